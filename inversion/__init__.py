@@ -1,0 +1,1 @@
+"""Inversion: signature databases, classifier, refiners and MCMC for PPR."""

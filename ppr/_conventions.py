@@ -1,0 +1,58 @@
+r"""Conventions of ppr, fixed once here (and pinned by ``tests/test_conventions.py``).
+
+Directions
+    All directions are unit 3-vectors pointing *away from the surface*: ``k_in`` points from
+    the surface toward the source (laser), ``k_out`` from the surface toward the receiver.
+    Exact monostatic backscatter is ``k_out == k_in``; the specular direction of ``k_in`` about
+    a normal ``n`` is ``2 (k_in . n) n - k_in``. The half vector is
+    ``h = (k_in + k_out) / |k_in + k_out|``. The light *propagates* along ``-k_in`` before the
+    bounce and along ``+k_out`` after it.
+
+Complex refractive index and time convention
+    Fields vary as ``exp(i (k z - omega t))``; an absorbing medium has ``n = n' + i n''`` with
+    ``n'' >= 0`` (metals have large ``n''``). Fresnel amplitude coefficients follow the
+    Hecht/Born-Wolf form with the square root on the principal branch:
+
+        r_s = (cos t - sqrt(n^2 - sin^2 t)) / (cos t + sqrt(n^2 - sin^2 t))
+        r_p = (n^2 cos t - sqrt(n^2 - sin^2 t)) / (n^2 cos t + sqrt(n^2 - sin^2 t))
+
+    so that at normal incidence ``r_s = -r_p = -(n-1)/(n+1)`` (the paper's eq. 10 has the
+    opposite sign of ``r_s``; its eq. 10-11 give ``r_s = r_p`` at normal incidence).
+
+Beam frames, Jones and Stokes
+    Every beam carries a right-handed frame ``(x, y, d)`` with ``d`` its direction of
+    *propagation* and ``x`` (the "frame vector") perpendicular to ``d``; ``y = d x x``.
+    Jones vectors are the complex components ``(E_x, E_y)`` in that frame. For a reflection,
+    the s axis is shared by incident and reflected beams (``s = normalize(k_in x k_out)`` for a
+    facet, or ``normalize(n x k)`` for a plane of incidence) and ``p = d x s`` for each beam,
+    so a perfect conductor is ``J = diag(-1, +1)`` and every mirror reverses circular
+    handedness: ``M = R diag(1, 1, -1, -1)``.
+
+    Stokes vectors (Chipman, *Polarized Light and Optical Systems*, 2018):
+        S0 = |E_x|^2 + |E_y|^2,  S1 = |E_x|^2 - |E_y|^2,
+        S2 = 2 Re(E_x E_y^*),    S3 = -2 Im(E_x E_y^*)
+    i.e. ``S = A (E (x) E^*)`` with ``A = [[1,0,0,1],[1,0,0,-1],[0,1,1,0],[0,1j,-1j,0]]``;
+    Mueller matrices from Jones matrices are ``M = A (J (x) J^*) A^{-1}``. With fields
+    ``exp(i(kz - wt))`` and S3 defined this way, S3 > 0 is right-circular as seen by the
+    receiver looking at the source (Chipman's convention). Mueller matrices multiply Stokes
+    column vectors from the left: ``S_out = M @ S_in``; a chain of elements is
+    ``M_N @ ... @ M_1``.
+
+    Rotating a beam's frame vector by angle ``a`` about ``d`` (counter-clockwise looking
+    against ``d``, i.e. right-handed about ``d``) changes Stokes components by
+    ``S' = R(a) S`` with ``R(a) = [[1,0,0,0],[0,cos 2a, sin 2a,0],[0,-sin 2a,cos 2a,0],[0,0,0,1]]``.
+
+BRDF output
+    ``mueller_brdf`` returns a 4x4 Mueller BRDF in 1/sr mapping the incident Stokes vector
+    (frame of the beam travelling along ``-k_in``) to the outgoing radiance Stokes vector
+    (frame of the beam travelling along ``+k_out``). Its M00 is the scalar BRDF ``f`` with
+    ``integral f (k_out . n) d omega_out`` = directional albedo.
+
+Units and time zero
+    Lengths in metres, time in seconds, angles in radians in code (degrees only in configs
+    and plots where the field name says ``_deg``). Range is one-way distance ``r = c t / 2``
+    measured along the line of sight from a float64 reference range subtracted on the host;
+    time zero of a profile is the return of a point at the reference range.
+"""
+
+C_LIGHT = 299_792_458.0  # m/s

@@ -1,0 +1,82 @@
+"""Materials: small immutable pytrees of optical constants and microfacet finish."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._types import Array, ArrayLike
+
+
+def _as_complex(x: ArrayLike) -> Array:
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.complexfloating):
+        if not jnp.issubdtype(x.dtype, jnp.floating):
+            x = x.astype(jnp.result_type(float))
+        x = x.astype(jnp.result_type(x.dtype, jnp.complex64))
+    return x
+
+
+def _as_float(x: ArrayLike) -> Array:
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        x = x.astype(jnp.result_type(float))
+    return x
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+class Material(eqx.Module):
+    """Optical constants and finish of one surface.
+
+    **Arguments:**
+
+    - `n`: complex refractive index ``n' + i n''`` (``n'' >= 0``; time convention
+      ``exp(i(kz - wt))``, see :mod:`ppr._conventions`). Real input is promoted to complex.
+    - `m`: Blinn-Phong exponent, ``0 <= m <= 1e6`` (0 is Lambertian-like, large is a mirror).
+    - `corr_length`: surface correlation length in metres, sets the width of the coherent
+      enhanced-backscatter cone of the double-bounce term (``~ lambda / (4 d)``).
+    - `name`: label (static; not traced).
+
+    Batched materials (leading axes on every field) are allowed; kernels ``vmap`` over them.
+    Concrete (non-traced) values are validated at construction with a ``ValueError`` that names
+    the field; traced values are checked inside kernels with ``eqx.error_if``.
+    """
+
+    n: Array = eqx.field(converter=_as_complex)
+    m: Array = eqx.field(converter=_as_float)
+    corr_length: Array = eqx.field(converter=_as_float, default=5e-6)
+    name: str = eqx.field(static=True, default="")
+
+    def __check_init__(self):
+        for field in ("n", "m", "corr_length"):
+            v = getattr(self, field)
+            if not _is_concrete(v):
+                continue
+            a = np.asarray(v)
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"Material.{field} must be finite, got {a!r}")
+        if _is_concrete(self.n) and np.any(np.imag(np.asarray(self.n)) < 0):
+            raise ValueError(
+                f"Material.n must have a non-negative imaginary part (absorbing medium, "
+                f"exp(i(kz - wt)) convention), got n={np.asarray(self.n)!r}"
+            )
+        if _is_concrete(self.n) and np.any(np.real(np.asarray(self.n)) <= 0):
+            raise ValueError(f"Material.n must have a positive real part, got n={np.asarray(self.n)!r}")
+        if _is_concrete(self.m):
+            m = np.asarray(self.m)
+            if np.any(m < 0) or np.any(m > 1e6 * (1 + 1e-9)):
+                raise ValueError(f"Material.m (Blinn-Phong exponent) must lie in [0, 1e6], got m={m!r}")
+        if _is_concrete(self.corr_length) and np.any(np.asarray(self.corr_length) <= 0):
+            raise ValueError(
+                f"Material.corr_length must be > 0 metres, got {np.asarray(self.corr_length)!r}"
+            )
+
+    @property
+    def dtype(self):
+        """Real float dtype the material computes in."""
+        return jnp.finfo(self.n.dtype).dtype
