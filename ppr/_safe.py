@@ -36,16 +36,18 @@ def eps(dtype) -> float:
     return float(np.finfo(dtype).eps)
 
 
-def safe_sqrt(x: Array, threshold: float | None = None) -> Array:
+def safe_sqrt(x: ArrayLike, threshold: float | None = None) -> Array:
     """sqrt(x) with value 0 and gradient 0 for x <= threshold (default: tiny(dtype))."""
-    t = tiny(x.dtype) if threshold is None else threshold
+    x = jnp.asarray(x)
+    t = tiny(float_dtype(x)) if threshold is None else threshold
     ok = x > t
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
 
 
-def safe_div(num: Array, den: Array, fill: float = 0.0) -> Array:
+def safe_div(num: ArrayLike, den: ArrayLike, fill: float = 0.0) -> Array:
     """num / den, ``fill`` (value and zero gradient) where |den| <= tiny(dtype)."""
-    ok = jnp.abs(den) > tiny(jnp.result_type(den))
+    num, den = jnp.asarray(num), jnp.asarray(den)
+    ok = jnp.abs(den) > tiny(float_dtype(num, den))
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), fill)
 
 
