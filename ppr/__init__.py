@@ -9,6 +9,8 @@ Conventions (directions, frames, Stokes handedness, complex index sign, units) a
 """
 
 from ._material import Material
+from ._fresnel import fresnel_amplitudes, fresnel_mueller_params
+from ._frames import jones_to_mueller, mueller_rotator
 
-__all__ = ["Material"]
+__all__ = ["Material", "fresnel_amplitudes", "fresnel_mueller_params", "jones_to_mueller", "mueller_rotator"]
 __version__ = "0.1.0"

@@ -24,23 +24,34 @@ Beam frames, Jones and Stokes
     *propagation* and ``x`` (the "frame vector") perpendicular to ``d``; ``y = d x x``.
     Jones vectors are the complex components ``(E_x, E_y)`` in that frame. For a reflection,
     the s axis is shared by incident and reflected beams (``s = normalize(k_in x k_out)`` for a
-    facet, or ``normalize(n x k)`` for a plane of incidence) and ``p = d x s`` for each beam,
-    so a perfect conductor is ``J = diag(-1, +1)`` and every mirror reverses circular
-    handedness: ``M = R diag(1, 1, -1, -1)``.
+    facet, or ``normalize(n x k)`` for a plane of incidence; the two differ in sign, which
+    changes nothing: flipping ``s`` flips both ``p`` axes) and ``p = d x s`` for each beam.
+    In these s/p frames the Hecht coefficients above are the diagonal of the Jones matrix,
+    a perfect conductor is ``J = diag(-1, +1)`` at every angle (tangential field reversed,
+    normal field kept), so its ``M = diag(1, 1, -1, -1)``; at normal incidence every mirror
+    (``r_s = -r_p``) gives ``M = R diag(1, 1, -1, -1)`` in any beam frames with
+    ``x_out = x_in``: circular handedness is reversed.
 
-    Stokes vectors (Chipman, *Polarized Light and Optical Systems*, 2018):
+    Stokes vectors:
         S0 = |E_x|^2 + |E_y|^2,  S1 = |E_x|^2 - |E_y|^2,
         S2 = 2 Re(E_x E_y^*),    S3 = -2 Im(E_x E_y^*)
     i.e. ``S = A (E (x) E^*)`` with ``A = [[1,0,0,1],[1,0,0,-1],[0,1,1,0],[0,1j,-1j,0]]``;
     Mueller matrices from Jones matrices are ``M = A (J (x) J^*) A^{-1}``. With fields
-    ``exp(i(kz - wt))`` and S3 defined this way, S3 > 0 is right-circular as seen by the
-    receiver looking at the source (Chipman's convention). Mueller matrices multiply Stokes
-    column vectors from the left: ``S_out = M @ S_in``; a chain of elements is
-    ``M_N @ ... @ M_1``.
+    ``exp(i(kz - wt))`` and S3 defined this way, S3 > 0 (e.g. Jones ``(1, i)/sqrt 2``) is a
+    field that turns from ``x`` toward ``y``: right-handed about the propagation direction
+    ``d`` (positive helicity), seen *counterclockwise* by a receiver looking back at the
+    source. Texts name this state differently (IEEE: right-hand circular; Born & Wolf and
+    Hecht, "clockwise looking at the source is right": left-circular), so ppr never relies on
+    the words, only on the sign of S3 as stated here (pinned by a 3D field computation in
+    ``tests/test_conventions.py``). Mueller matrices multiply Stokes column vectors from the
+    left: ``S_out = M @ S_in``; a chain of elements is ``M_N @ ... @ M_1``.
 
     Rotating a beam's frame vector by angle ``a`` about ``d`` (counter-clockwise looking
     against ``d``, i.e. right-handed about ``d``) changes Stokes components by
-    ``S' = R(a) S`` with ``R(a) = [[1,0,0,0],[0,cos 2a, sin 2a,0],[0,-sin 2a,cos 2a,0],[0,0,0,1]]``.
+    ``S' = R(a) S`` with ``R(a) = [[1,0,0,0],[0,cos 2a, sin 2a,0],[0,-sin 2a,cos 2a,0],[0,0,0,1]]``
+    and Jones components by ``E' = [[cos a, sin a], [-sin a, cos a]] E``. A facet's reflection
+    in beam frames is ``R(b) F R(a)`` (``a``: ``x_in -> s`` about ``-k_in``; ``b``:
+    ``s -> x_out`` about ``+k_out``), see :mod:`ppr._frames`.
 
 BRDF output
     ``mueller_brdf`` returns a 4x4 Mueller BRDF in 1/sr mapping the incident Stokes vector

@@ -1,0 +1,278 @@
+r"""Beam frames, frame rotations, Jones -> Mueller, and a facet's Fresnel reflection expressed
+in the incident/outgoing beam frames.
+
+Conventions (:mod:`ppr._conventions`): a beam travelling along ``d`` carries a right-handed
+frame ``(x, y = d x x, d)``. Rotating the frame vector by ``a`` (right-handed about ``d``)
+maps Stokes vectors by ``R(a) = [[1,0,0,0],[0,C,S,0],[0,-S,C,0],[0,0,0,1]]`` with
+``C = cos 2a, S = sin 2a``, and Jones vectors by ``[[cos a, sin a], [-sin a, cos a]]``.
+
+A facet with normal ``h`` reflecting the beam travelling along ``-k_in`` into the beam along
+``+k_out`` has its own s/p frames: ``s = normalize(k_in x k_out)`` (shared), ``p = d x s`` per
+beam; in those frames its Jones matrix is ``diag(r_s, r_p)`` (:mod:`ppr._fresnel`). The result
+does not depend on the sign of ``s``. At exact backscatter (``k_out = k_in``) and exact forward
+geometry (``k_out = -k_in``) ``s`` is undefined, but so is the dependence on it (normal
+incidence: ``r_s = -r_p``; grazing: ``r_s = r_p``, ``d_in = d_out``): any ``s`` perpendicular
+to ``k_in`` gives the same matrix, and the fallback below keeps values and gradients finite.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._fresnel import fresnel_amplitudes_re, fresnel_mueller_params, jax_complex
+from ._safe import float_dtype, safe_div, safe_normalize
+from ._types import Array, ArrayLike, Complex, Float
+
+__all__ = [
+    "A_STOKES",
+    "default_frame",
+    "facet_jones_in_beam_frames",
+    "facet_jones_in_beam_frames_re",
+    "facet_mueller_in_beam_frames",
+    "jones_rotator",
+    "jones_to_mueller",
+    "mueller_from_params",
+    "mueller_rotator",
+    "perpendicular_unit",
+    "rotation_cos_sin",
+    "rotation_cos_sin_2a",
+]
+
+# S = A (E (x) E^*), Chipman's Stokes definitions (see ppr._conventions)
+A_STOKES = np.array([[1, 0, 0, 1], [1, 0, 0, -1], [0, 1, 1, 0], [0, 1j, -1j, 0]], np.complex128)
+_A_STOKES_INV = np.linalg.inv(A_STOKES)
+
+FLike = Float[ArrayLike, "..."]
+VLike = Float[ArrayLike, "... 3"]
+
+
+def _dot(a: Array, b: Array) -> Array:
+    return jnp.sum(a * b, axis=-1)
+
+
+def perpendicular_unit(d: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    """A deterministic unit vector perpendicular to ``d`` (piecewise smooth, finite gradient).
+
+    ``normalize(d x e)`` with ``e = e_x`` unless ``|d_x| > 0.9 |d|``, then ``e = e_y``.
+    """
+    d = jnp.asarray(d)
+    ex = jnp.zeros_like(d).at[..., 0].set(1.0)
+    ey = jnp.zeros_like(d).at[..., 1].set(1.0)
+    use_y = (jnp.abs(d[..., 0:1]) > 0.9 * jnp.sqrt(_dot(d, d)[..., None]))
+    e = jnp.where(use_y, ey, ex)
+    v = jnp.cross(d, e)
+    # |d x e| >= 0.43 |d| by construction; the (+z) fallback only matters for d = 0
+    u, _ = safe_normalize(v)
+    return u
+
+
+def default_frame(d: VLike, normal: VLike) -> Float[Array, "... 3"]:
+    """Frame vector (x axis) of a beam travelling along ``d``: the s direction
+    ``normalize(normal x d)``; where ``d`` is parallel to ``normal`` (no plane of incidence)
+    the deterministic :func:`perpendicular_unit` of ``d`` (gradient through ``d x normal``
+    is zero there)."""
+    dt = float_dtype(d, normal)
+    d = jnp.asarray(d, dt)
+    normal = jnp.asarray(normal, dt)
+    d, normal = jnp.broadcast_arrays(d, normal)
+    fb = perpendicular_unit(d)
+    cr = jnp.cross(normal, d)
+    # threshold |normal x d|^2 > eps (not tiny): nearly parallel inputs would otherwise give a
+    # rounding-dominated direction and gradients ~1/|normal x d|
+    ok = _dot(cr, cr) > jnp.finfo(dt).eps
+    x = cr / jnp.sqrt(jnp.where(ok, _dot(cr, cr), 1.0))[..., None]
+    return jnp.where(ok[..., None], x, fb)
+
+
+def rotation_cos_sin(
+    x_from: Float[ArrayLike, "... 3"], x_to: Float[ArrayLike, "... 3"], d: Float[ArrayLike, "... 3"]
+) -> tuple[Float[Array, "..."], Float[Array, "..."]]:
+    """``(cos a, sin a)`` of the rotation about ``d`` (right-handed) taking ``x_from`` to ``x_to``.
+
+    ``cos a = x_from . x_to``, ``sin a = d . (x_from x x_to)``, renormalized so that
+    ``cos^2 + sin^2 = 1`` (identity where both vanish). Sign-unambiguous, so it is the right
+    input for Jones rotations (coherent sums need the sign).
+    """
+    x_from = jnp.asarray(x_from)
+    x_to = jnp.asarray(x_to)
+    d = jnp.asarray(d)
+    c = _dot(x_from, x_to)
+    s = _dot(d, jnp.cross(x_from, x_to))
+    r2 = c * c + s * s
+    ok = r2 > jnp.finfo(r2.dtype).tiny * 1e6
+    inv = 1.0 / jnp.sqrt(jnp.where(ok, r2, 1.0))
+    return jnp.where(ok, c * inv, 1.0), jnp.where(ok, s * inv, 0.0)
+
+
+def rotation_cos_sin_2a(
+    x_from: Float[ArrayLike, "... 3"], x_to: Float[ArrayLike, "... 3"], d: Float[ArrayLike, "... 3"]
+) -> tuple[Float[Array, "..."], Float[Array, "..."]]:
+    """``(cos 2a, sin 2a)`` of the rotation about ``d`` taking frame vector ``x_from`` to
+    ``x_to`` (no arccos; from dot and cross products, identity where undefined)."""
+    x_from = jnp.asarray(x_from)
+    x_to = jnp.asarray(x_to)
+    d = jnp.asarray(d)
+    c = _dot(x_from, x_to)
+    s = _dot(d, jnp.cross(x_from, x_to))
+    r2 = c * c + s * s
+    return safe_div(c * c - s * s, r2, fill=1.0), safe_div(2.0 * c * s, r2, fill=0.0)
+
+
+def mueller_rotator(c2: FLike, s2: FLike) -> Float[Array, "... 4 4"]:
+    """Stokes rotator ``[[1,0,0,0],[0,c2,s2,0],[0,-s2,c2,0],[0,0,0,1]]`` (frame rotation by
+    ``a`` with ``c2 = cos 2a``, ``s2 = sin 2a``)."""
+    c2, s2 = jnp.broadcast_arrays(jnp.asarray(c2), jnp.asarray(s2))
+    dt = float_dtype(c2, s2)
+    c2, s2 = c2.astype(dt), s2.astype(dt)
+    o, z = jnp.ones_like(c2), jnp.zeros_like(c2)
+    rows = [[o, z, z, z], [z, c2, s2, z], [z, -s2, c2, z], [z, z, z, o]]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def jones_rotator(c: FLike, s: FLike) -> Float[Array, "... 2 2"]:
+    """Jones frame rotator ``[[c, s], [-s, c]]`` (``c = cos a``, ``s = sin a``)."""
+    c, s = jnp.broadcast_arrays(jnp.asarray(c), jnp.asarray(s))
+    return jnp.stack([jnp.stack([c, s], -1), jnp.stack([-s, c], -1)], -2)
+
+
+def mueller_from_params(
+    a: FLike, b: FLike, c: FLike, d: FLike
+) -> Float[Array, "... 4 4"]:
+    """``[[a,b,0,0],[b,a,0,0],[0,0,c,d],[0,0,-d,c]]`` (Fresnel Mueller matrix in s/p frames)."""
+    a, b, c, d = jnp.broadcast_arrays(*(jnp.asarray(v) for v in (a, b, c, d)))
+    z = jnp.zeros_like(a)
+    rows = [[a, b, z, z], [b, a, z, z], [z, z, c, d], [z, z, -d, c]]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def jones_to_mueller(J: Complex[ArrayLike, "... 2 2"]) -> Float[Array, "... 4 4"]:
+    """Mueller matrix ``A (J (x) J^*) A^{-1}`` of a (batched) 2x2 complex Jones matrix."""
+    J = jnp.asarray(J)
+    if not jnp.issubdtype(J.dtype, jnp.complexfloating):
+        J = J.astype(jnp.result_type(float_dtype(J), jnp.complex64))
+    A = jnp.asarray(A_STOKES, J.dtype)
+    Ainv = jnp.asarray(_A_STOKES_INV, J.dtype)
+    K = jnp.einsum("...ij,...kl->...ikjl", J, jnp.conj(J))
+    K = K.reshape(J.shape[:-2] + (4, 4))
+    M = A @ K @ Ainv
+    return jnp.real(M)
+
+
+def _facet_frames(k_in: Array, k_out: Array):
+    """Shared s vector and per-beam p vectors (p = d x s), with a safe fallback for s."""
+    fb = perpendicular_unit(k_in)
+    cr = jnp.cross(k_in, k_out)
+    sq = _dot(cr, cr)
+    # fallback inside |k_in x k_out|^2 <= eps: near backscatter the matrix depends on s only at
+    # O(|k_in x k_out|^2) (r_s + r_p = O(t^2)), so the switch costs ~eps in value and keeps
+    # gradients ~ rounding / |k_in x k_out| small; near forward geometry the dependence is
+    # O(|k_in x k_out|) (degenerate half vector, masked by callers)
+    ok = sq > jnp.finfo(cr.dtype).eps
+    s = jnp.where(ok[..., None], cr / jnp.sqrt(jnp.where(ok, sq, 1.0))[..., None], fb)
+    p_in = jnp.cross(-k_in, s)
+    p_out = jnp.cross(k_out, s)
+    return s, p_in, p_out
+
+
+def _prep(n_re, n_im, k_in, k_out, h, x_in, x_out):
+    dt = float_dtype(n_re, n_im, k_in, k_out, h, x_in, x_out)
+    vecs = jnp.broadcast_arrays(*(jnp.asarray(v, dt) for v in (k_in, k_out, h, x_in, x_out)))
+    k_in, k_out, h, x_in, x_out = vecs
+    cos_t = jnp.clip(_dot(k_in, h), 0.0, 1.0)
+    return jnp.asarray(n_re, dt), jnp.asarray(n_im, dt), k_in, k_out, x_in, x_out, cos_t
+
+
+def facet_jones_in_beam_frames_re(
+    n_re: Float[ArrayLike, "..."],
+    n_im: Float[ArrayLike, "..."],
+    k_in: Float[ArrayLike, "... 3"],
+    k_out: Float[ArrayLike, "... 3"],
+    h: Float[ArrayLike, "... 3"],
+    x_in: Float[ArrayLike, "... 3"],
+    x_out: Float[ArrayLike, "... 3"],
+) -> tuple[Float[Array, "... 2 2"], Float[Array, "... 2 2"]]:
+    """Real and imaginary parts of :func:`facet_jones_in_beam_frames`."""
+    n_re, n_im, k_in, k_out, x_in, x_out, cos_t = _prep(n_re, n_im, k_in, k_out, h, x_in, x_out)
+    rs_re, rs_im, rp_re, rp_im = fresnel_amplitudes_re(n_re, n_im, cos_t)
+    s, p_in, p_out = _facet_frames(k_in, k_out)
+    y_in = jnp.cross(-k_in, x_in)
+    y_out = jnp.cross(k_out, x_out)
+    # components in the new basis are dot products: E_s = E.s, E_p = E.p_in
+    # J = P_out diag(rs, rp) P_in, P_in = [[s.x_in, s.y_in], [p_in.x_in, p_in.y_in]],
+    # P_out = [[x_out.s, x_out.p_out], [y_out.s, y_out.p_out]]
+    a11, a12 = _dot(s, x_in), _dot(s, y_in)
+    a21, a22 = _dot(p_in, x_in), _dot(p_in, y_in)
+    b11, b12 = _dot(x_out, s), _dot(x_out, p_out)
+    b21, b22 = _dot(y_out, s), _dot(y_out, p_out)
+
+    def assemble(rs, rp):
+        j11 = b11 * rs * a11 + b12 * rp * a21
+        j12 = b11 * rs * a12 + b12 * rp * a22
+        j21 = b21 * rs * a11 + b22 * rp * a21
+        j22 = b21 * rs * a12 + b22 * rp * a22
+        return jnp.stack([jnp.stack([j11, j12], -1), jnp.stack([j21, j22], -1)], -2)
+
+    return assemble(rs_re, rp_re), assemble(rs_im, rp_im)
+
+
+def facet_jones_in_beam_frames(
+    n_re: Float[ArrayLike, "..."],
+    n_im: Float[ArrayLike, "..."],
+    k_in: Float[ArrayLike, "... 3"],
+    k_out: Float[ArrayLike, "... 3"],
+    h: Float[ArrayLike, "... 3"],
+    x_in: Float[ArrayLike, "... 3"],
+    x_out: Float[ArrayLike, "... 3"],
+) -> Complex[Array, "... 2 2"]:
+    """Complex 2x2 Jones matrix of a facet's Fresnel reflection in the beam frames.
+
+    **Arguments:**
+
+    - `n_re`, `n_im`: complex index of the facet (``n_im >= 0``).
+    - `k_in`, `k_out`: unit directions away from the surface (toward source / receiver).
+    - `h`: facet normal (unit); the angle of incidence is ``cos t = clip(k_in . h, 0, 1)``.
+      The caller guarantees ``k_out`` is the mirror of ``k_in`` about ``h`` (e.g. ``h`` is
+      the half vector); only ``k_in . h`` and the s/p geometry of ``(k_in, k_out)`` are used.
+    - `x_in`: frame vector of the incident beam (travelling along ``-k_in``), unit, ``_|_ k_in``.
+    - `x_out`: frame vector of the outgoing beam (travelling along ``+k_out``), unit,
+      ``_|_ k_out``.
+
+    **Returns:** ``J`` with ``E_out = J @ E_in`` (Jones components in the beam frames). The
+    overall sign is unambiguous (no angle-doubling), as a coherent sum of paths requires.
+    """
+    re, im = facet_jones_in_beam_frames_re(n_re, n_im, k_in, k_out, h, x_in, x_out)
+    return jax_complex(re, im)
+
+
+def facet_mueller_in_beam_frames(
+    n_re: Float[ArrayLike, "..."],
+    n_im: Float[ArrayLike, "..."],
+    k_in: Float[ArrayLike, "... 3"],
+    k_out: Float[ArrayLike, "... 3"],
+    h: Float[ArrayLike, "... 3"],
+    x_in: Float[ArrayLike, "... 3"],
+    x_out: Float[ArrayLike, "... 3"],
+) -> Float[Array, "... 4 4"]:
+    """Mueller matrix of a facet's Fresnel reflection in the beam frames (arguments as in
+    :func:`facet_jones_in_beam_frames`): ``R(b) F R(a)``, ``a`` rotating ``x_in`` to ``s``
+    about ``-k_in``, ``F`` from :func:`ppr._fresnel.fresnel_mueller_params`, ``b`` rotating
+    ``s`` to ``x_out`` about ``+k_out``. Unitless (multiply by the BRDF's scalar factors)."""
+    n_re, n_im, k_in, k_out, x_in, x_out, cos_t = _prep(n_re, n_im, k_in, k_out, h, x_in, x_out)
+    a, b, c, d = fresnel_mueller_params(n_re, n_im, cos_t)
+    s, p_in, p_out = _facet_frames(k_in, k_out)
+    y_in = jnp.cross(-k_in, x_in)
+    # rotation x_in -> s about -k_in: cos = s.x_in, sin = s.y_in ; s -> x_out about k_out:
+    # cos = x_out.s, sin = x_out.p_out ; frames are orthonormal so no renormalization needed
+    ca, sa = _dot(s, x_in), _dot(s, y_in)
+    cb, sb = _dot(x_out, s), _dot(x_out, p_out)
+    Ca, Sa = ca * ca - sa * sa, 2.0 * ca * sa
+    Cb, Sb = cb * cb - sb * sb, 2.0 * cb * sb
+    z = jnp.zeros_like(a)
+    rows = [
+        [a, b * Ca, b * Sa, z],
+        [Cb * b, Cb * a * Ca - Sb * c * Sa, Cb * a * Sa + Sb * c * Ca, Sb * d],
+        [-Sb * b, -Sb * a * Ca - Cb * c * Sa, -Sb * a * Sa + Cb * c * Ca, Cb * d],
+        [z, d * Sa, -d * Ca, c],
+    ]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
