@@ -1,0 +1,262 @@
+r"""Blinn-Phong microfacet lobe: NDF, lobe averages and Ashikhmin visibility.
+
+Public as :mod:`ppr.microfacet`. All functions broadcast over their arguments, are
+``jit``/``vmap``/``grad``-able in ``m`` and ``cos_theta`` (and the directions), and follow the
+input float dtype (float32 in, float32 out). ``cos_theta = k . n`` of a unit direction ``k`` in
+the upper hemisphere; values outside ``[0, 1]`` are clamped.
+
+Normal distribution (PHYSICS.md section 3)
+    ``p(h) = (m + 1) / (2 pi) (h . n)^m`` on the upper hemisphere, normalized so that
+    ``integral p(h) d omega_h = 1``; ``<h . n> = (m + 1) / (m + 2)``.
+
+The mean projected cosine ``<h . k>+`` (derivation, used by :func:`mean_cosine_plus`)
+    Let ``c = k . n``, ``s = sqrt(1 - c^2)``, ``t = h . n``. Integrating ``max(h . k, 0)`` over
+    the facet azimuth in closed form gives ``c t`` when the facet faces ``k`` at every azimuth
+    (``t >= s``) and ``c t + G(t)`` below the kink ``t = s``, with
+    ``pi G = sqrt(s^2 - t^2) - c t atan2(sqrt(s^2 - t^2), c t)`` (the facets facing away).
+    So ``<h . k>+ = c <h . n> + int_0^s (m + 1) t^m G(t) dt``. ``G`` vanishes like
+    ``(s - t)^{3/2}`` at the kink, which is what spoils plain Gauss-Legendre in ``t`` or in
+    ``u = t^(m+1)``. Two integrations by parts (``G' = -(t r / (1 - t^2) + c psi) / pi``,
+    ``psi' = -c / (r (1 - t^2))``, ``r = sqrt(s^2 - t^2)``) remove ``psi`` altogether, and
+    ``t = s cos(chi)``, ``x = tan(chi)`` then give, with ``M = m + 2``,
+
+    .. math::
+
+        <h.k>_+ = c \frac{m+1}{m+2} + \frac{s^M}{\pi} I, \qquad
+        I = \int_0^\infty \frac{s^2 x^2 + (c^2 / M)(1 + x^2)}{c^2 + x^2}
+            (1 + x^2)^{-(M+2)/2} dx .
+
+    The integrand is positive (no cancellation), smooth, and has exactly two scales: a
+    Lorentzian layer of width ``c`` at ``x = 0`` (the grazing band) and the lobe
+    ``(1 + x^2)^{-(M+2)/2}`` of width ``~1/sqrt(M)``. The substitution ``x = c sinh(y)`` maps
+    the layer onto ``y ~ 1`` exactly:
+
+    .. math::
+
+        I = c \int_0^\infty \frac{s^2 \sinh^2 y + (1 + c^2 \sinh^2 y) / M}
+            {\cosh y \, (1 + c^2 \sinh^2 y)^{(M+2)/2}} dy ,
+
+    an even function of ``y``, analytic in the strip ``|Im y| < pi/2``, decaying like
+    ``exp(-(M + 1) y)`` (or faster, Gaussian, for large ``M``). It is truncated where the
+    tail is below ``exp(-T)`` of the integral and integrated by a fixed-order rule (static
+    ``order``). Checks: ``m = 0`` gives the closed form ``<h.k>+ = (1 + c) / 4``;
+    ``c -> 0`` gives ``I -> int_0^{pi/2} cos^M``; ``m -> inf`` gives ``c``.
+
+Visibility (Ashikhmin, Premoze, Shirley 2000)
+    ``P(k) = <h . n> (k . n) / <h . k>+`` and
+    ``P(k | k') = (1 - f) P(k) P(k') + f min(P(k), P(k'))``, ``f = cos(phi / 2)``, ``phi`` the
+    azimuth between the projections of ``k`` and ``k'`` on the surface plane.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Shaped
+
+from ._safe import float_dtype, safe_div, safe_norm, safe_normalize, tiny
+from ._types import Array, ArrayLike, Float
+
+__all__ = [
+    "ndf",
+    "mean_cosine_n",
+    "mean_cosine_plus",
+    "visibility",
+    "joint_visibility",
+    "DEFAULT_ORDER",
+]
+
+DEFAULT_ORDER = 128
+"""Default number of quadrature nodes of :func:`mean_cosine_plus` (see bench/bench_lobe.py)."""
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _check_m(m) -> None:
+    if _is_concrete(m):
+        a = np.asarray(m)
+        if not np.all(np.isfinite(a)) or np.any(a < 0):
+            raise ValueError(f"m (Blinn-Phong exponent) must be finite and >= 0, got m={a!r}")
+
+
+def _as(x, dt) -> Array:
+    return jnp.asarray(x).astype(dt)
+
+
+def ndf(m: Shaped[ArrayLike, "..."], cos_h: Shaped[ArrayLike, "..."]) -> Float[Array, "..."]:
+    """Blinn-Phong normal distribution ``p(h) = (m + 1) / (2 pi) (h . n)^m`` in 1/sr.
+
+    **Arguments:**
+
+    - `m`: Blinn-Phong exponent (``>= 0``).
+    - `cos_h`: ``h . n``, the cosine between the facet normal and the macro normal.
+
+    **Returns:** ``p(h)``, 0 below the horizon (``cos_h < 0``). The power is computed in log
+    space, ``exp(m log1p(-(1 - cos_h)))``, so that float32 keeps its precision at ``m = 1e6``;
+    at ``cos_h = 0`` exactly, ``0^0 = 1`` (``m = 0``) and ``0^m = 0`` (``m > 0``), with finite
+    gradients everywhere.
+    """
+    _check_m(m)
+    dt = float_dtype(m, cos_h)
+    m = _as(m, dt)
+    ch = _as(cos_h, dt)
+    ok = ch > tiny(dt)
+    x = 1.0 - jnp.where(ok, ch, 1.0)
+    val = jnp.exp(m * jnp.log1p(-x))
+    at_zero = jnp.where(m > 0, 0.0, 1.0)
+    pw = jnp.where(ok, val, jnp.where(ch >= 0, at_zero, 0.0))
+    return (m + 1.0) / (2.0 * math.pi) * pw
+
+
+def mean_cosine_n(m: Shaped[ArrayLike, "..."]) -> Float[Array, "..."]:
+    """``<h . n> = (m + 1) / (m + 2)``, the mean cosine of the facet normals."""
+    _check_m(m)
+    dt = float_dtype(m)
+    m = _as(m, dt)
+    return (m + 1.0) / (m + 2.0)
+
+
+@functools.lru_cache(maxsize=None)
+def _gauss_legendre(order: int) -> tuple[np.ndarray, np.ndarray]:
+    x, w = np.polynomial.legendre.leggauss(order)
+    return (x + 1.0) / 2.0, w / 2.0
+
+
+def _log_tail(dt) -> float:
+    """-log of the relative tail left out by the truncation (well below eps(dtype))."""
+    return 40.0 if np.finfo(dt).bits == 64 else 20.0
+
+
+def _c_floor(dt) -> float:
+    """Smallest cos_theta resolved by the quadrature (below: treated as this value)."""
+    return 1e-10 if np.finfo(dt).bits == 64 else 1e-7
+
+
+def _correction(m: Array, c: Array, order: int) -> Array:
+    """``<h.k>+ - c <h.n>`` by the sinh-substituted integral (module docstring)."""
+    dt = c.dtype
+    big_m = m + 2.0
+    cf = _c_floor(dt)
+    cq = jnp.where(c > cf, c, cf)
+    s2 = (1.0 - cq) * (1.0 + cq)
+    s2_ok = s2 > tiny(dt)
+    # log(s^2) to full relative precision (it is multiplied by M/2 <= 5e5): log1p(-c^2) for
+    # small c, log((1 - c)(1 + c)) near c = 1.
+    small_c = cq < 0.5
+    log_s2 = jnp.where(
+        small_c,
+        jnp.log1p(-jnp.where(small_c, cq * cq, 0.0)),
+        jnp.log(jnp.where(s2_ok, s2, 1.0)),
+    )
+    log_sm = jnp.where(s2_ok, 0.5 * big_m * log_s2, -jnp.inf)
+    s2 = jnp.where(s2_ok, s2, 0.0)
+    # truncation in x = c sinh y: (1 + X^2)^{-(M+1)/2} = exp(-T)
+    x_max = jnp.sqrt(jnp.expm1(2.0 * _log_tail(dt) / (big_m + 1.0)))
+    y_max = jnp.arcsinh(x_max / cq)
+    nodes, weights = _gauss_legendre(order)
+    nodes = jnp.asarray(nodes, dt)
+    weights = jnp.asarray(weights, dt)
+    y = y_max[..., None] * nodes
+    sh = jnp.sinh(y)
+    sh2 = sh * sh
+    q = (cq * cq)[..., None] * sh2
+    bm = big_m[..., None]
+    num = s2[..., None] * sh2 + (1.0 + q) / bm
+    logw = log_sm[..., None] - 0.5 * (bm + 2.0) * jnp.log1p(q)
+    f = num / jnp.cosh(y) * jnp.exp(logw)
+    integral = cq * y_max * jnp.sum(weights * f, axis=-1)
+    return integral / math.pi
+
+
+def mean_cosine_plus(
+    m: Shaped[ArrayLike, "..."], cos_theta: Shaped[ArrayLike, "..."], *, order: int = DEFAULT_ORDER
+) -> Float[Array, "..."]:
+    """``<h . k>+``: mean over the Blinn-Phong lobe of ``max(h . k, 0)``, ``cos_theta = k . n``.
+
+    **Arguments:**
+
+    - `m`: Blinn-Phong exponent, ``0 <= m <= 1e6``.
+    - `cos_theta`: ``k . n`` (clamped to ``[0, 1]``).
+    - `order`: number of quadrature nodes (static).
+
+    **Returns:** ``<h . k>+ >= (k . n) <h . n>``, equal to it away from grazing. Relative
+    error below 1e-9 in float64 for incidence up to 89.999 deg (tests/test_microfacet.py).
+    """
+    _check_m(m)
+    dt = float_dtype(m, cos_theta)
+    m = _as(m, dt)
+    c = jnp.clip(_as(cos_theta, dt), 0.0, 1.0)
+    m, c = jnp.broadcast_arrays(m, c)
+    base = c * (m + 1.0) / (m + 2.0)
+    return base + _correction(m, c, order)
+
+
+def _visibility(m: Array, c: Array, order: int) -> Array:
+    base = c * (m + 1.0) / (m + 2.0)
+    den = base + _correction(m, c, order)
+    return jnp.clip(safe_div(base, den, fill=1.0), 0.0, 1.0)
+
+
+def visibility(
+    m: Shaped[ArrayLike, "..."], cos_theta: Shaped[ArrayLike, "..."], *, order: int = DEFAULT_ORDER
+) -> Float[Array, "..."]:
+    """Ashikhmin shadowing ``P(k) = <h . n> (k . n) / <h . k>+`` in ``[0, 1]``.
+
+    ``P = 1`` at normal incidence and away from grazing; ``P -> 0`` linearly (finite gradient)
+    as ``cos_theta -> 0``.
+    """
+    _check_m(m)
+    dt = float_dtype(m, cos_theta)
+    m = _as(m, dt)
+    c = jnp.clip(_as(cos_theta, dt), 0.0, 1.0)
+    m, c = jnp.broadcast_arrays(m, c)
+    return _visibility(m, c, order)
+
+
+def joint_visibility(
+    m: Shaped[ArrayLike, "..."],
+    k_in: Shaped[ArrayLike, "... 3"],
+    k_out: Shaped[ArrayLike, "... 3"],
+    normal: Shaped[ArrayLike, "... 3"],
+    *,
+    order: int = DEFAULT_ORDER,
+) -> Float[Array, "..."]:
+    """Joint visibility ``P(k|k') = (1 - f) P(k) P(k') + f min(P(k), P(k'))``.
+
+    **Arguments:**
+
+    - `m`: Blinn-Phong exponent, shape broadcastable with the batch shape.
+    - `k_in`, `k_out`: unit directions away from the surface, ``(..., 3)``.
+    - `normal`: unit macro normal, ``(..., 3)``.
+
+    ``f = cos(phi / 2)`` with ``phi`` in ``[0, pi]`` the azimuth between the projections of the
+    two directions on the surface plane, evaluated as ``|u + u'| / 2`` (``u``, ``u'`` the unit
+    projections), which has a finite gradient also at ``phi = pi``. When either direction is
+    along the normal its projection vanishes and ``phi = 0`` (``f = 1``) is used; there
+    ``P = 1`` for that direction so the choice does not change the value. Symmetric in
+    ``k_in <-> k_out``.
+    """
+    _check_m(m)
+    dt = float_dtype(m, k_in, k_out, normal)
+    m = _as(m, dt)
+    ki = _as(k_in, dt)
+    ko = _as(k_out, dt)
+    n = _as(normal, dt)
+    ci = jnp.clip(jnp.sum(ki * n, axis=-1), 0.0, 1.0)
+    co = jnp.clip(jnp.sum(ko * n, axis=-1), 0.0, 1.0)
+    ti = ki - jnp.sum(ki * n, axis=-1, keepdims=True) * n
+    to = ko - jnp.sum(ko * n, axis=-1, keepdims=True) * n
+    ui, ok_i = safe_normalize(ti)
+    uo, ok_o = safe_normalize(to)
+    f = jnp.where(ok_i & ok_o, 0.5 * safe_norm(ui + uo), 1.0)
+    f = jnp.clip(f, 0.0, 1.0)
+    m, ci, co = jnp.broadcast_arrays(m, ci, co)
+    pi = _visibility(m, ci, order)
+    po = _visibility(m, co, order)
+    return (1.0 - f) * pi * po + f * jnp.minimum(pi, po)

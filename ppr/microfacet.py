@@ -1,0 +1,19 @@
+"""Blinn-Phong microfacet lobe: NDF, lobe averages and visibility (see :mod:`ppr._microfacet`)."""
+
+from ._microfacet import (
+    DEFAULT_ORDER,
+    joint_visibility,
+    mean_cosine_n,
+    mean_cosine_plus,
+    ndf,
+    visibility,
+)
+
+__all__ = [
+    "DEFAULT_ORDER",
+    "ndf",
+    "mean_cosine_n",
+    "mean_cosine_plus",
+    "visibility",
+    "joint_visibility",
+]
