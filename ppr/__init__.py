@@ -11,6 +11,7 @@ Conventions (directions, frames, Stokes handedness, complex index sign, units) a
 from ._material import Material
 from ._fresnel import fresnel_amplitudes, fresnel_mueller_params
 from ._frames import jones_to_mueller, mueller_rotator
+from . import microfacet
 
 __all__ = ["Material", "fresnel_amplitudes", "fresnel_mueller_params", "jones_to_mueller", "mueller_rotator"]
 __version__ = "0.1.0"
