@@ -1,0 +1,565 @@
+"""Per-pixel Mueller images of a mesh at a pose (the source paper's Figure 9).
+
+An orthographic camera looks along the line of sight; one ray per pixel is cast with
+trimesh's embree intersector (``trimesh.ray.ray_pyembree``; the pure-Python fallback is about
+1000x slower and is refused unless asked for). At each hit the face's normal and material give
+the Mueller BRDF :func:`ppr.mueller_brdf` at ``k_in`` = toward the laser and ``k_out`` = toward
+the receiver, both expressed in the sensor's polarization frame. Macro shadowing: in exact
+monostatic geometry a visible point is lit; with a bistatic offset a shadow ray toward the
+laser decides. From the per-pixel Mueller matrices the panels show the total reflectance
+``M00 cos(theta_in)`` (the pixel's return per unit projected area, 1/sr) and, from the
+Lu-Chipman decomposition, depolarization index, polarizance, diattenuation and retardance.
+
+Geometry conventions (see :mod:`ppr._conventions`): directions point away from the surface;
+``to_sensor`` is the unit vector from the object toward the receiver in world coordinates;
+``attitude`` is the body-to-world rotation as a quaternion ``(w, x, y, z)``
+(``v_world = R(q) v_body``); ``sensor_x`` is the sensor's polarization reference axis (the x
+axis of both the transmitted and received beams' Stokes frames), projected perpendicular to
+each beam. Image axes: columns run along ``sensor_x``, rows along ``to_sensor x sensor_x``
+(row 0 at the top, i.e. the largest coordinate along that axis).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+EXAMPLE_SATELLITE = Path(__file__).resolve().parent / "data" / "example_satellite.glb"
+
+QUANTITIES = ("reflectance", "depolarization_index", "polarizance", "diattenuation", "retardance")
+QUANTITY_LABELS = {
+    "reflectance": r"total reflectance $M_{00}\cos\theta_i$ [1/sr]",
+    "depolarization_index": "depolarization index",
+    "polarizance": "polarizance",
+    "diattenuation": "diattenuation",
+    "retardance": "retardance [rad]",
+}
+
+
+# --------------------------------------------------------------------------- geometry helpers
+def quaternion_to_matrix(q: Sequence[float]) -> np.ndarray:
+    """Rotation matrix of a quaternion ``(w, x, y, z)`` (any norm > 0, either sign)."""
+    q = np.asarray(q, dtype=float)
+    if q.shape != (4,) or not np.all(np.isfinite(q)):
+        raise ValueError(f"attitude must be 4 finite numbers (w, x, y, z), got {q.tolist()!r}")
+    nrm = np.linalg.norm(q)
+    if nrm < 1e-12:
+        raise ValueError(f"attitude quaternion has zero norm: {q.tolist()!r}")
+    w, x, y, z = q / nrm
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _unit(v, name: str) -> np.ndarray:
+    v = np.asarray(v, dtype=float)
+    if v.shape != (3,) or not np.all(np.isfinite(v)) or np.linalg.norm(v) < 1e-12:
+        raise ValueError(
+            f"{name} must be a finite non-zero 3-vector, got {np.asarray(v).tolist()!r}"
+        )
+    return v / np.linalg.norm(v)
+
+
+def sensor_axes(to_sensor, sensor_x=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit ``(s, x, y)``: toward the sensor, the polarization x axis projected perpendicular to
+    ``s``, and ``y = s x x``. Default ``sensor_x``: world z projected (world x if ``s`` is
+    along z)."""
+    s = _unit(to_sensor, "to_sensor")
+    if sensor_x is None:
+        sensor_x = (0.0, 0.0, 1.0) if abs(s[2]) < 0.9 else (1.0, 0.0, 0.0)
+    x = _unit(sensor_x, "sensor_x")
+    x = x - np.dot(x, s) * s
+    if np.linalg.norm(x) < 1e-6:
+        raise ValueError(f"sensor_x {list(sensor_x)!r} is parallel to to_sensor {s.tolist()!r}")
+    x /= np.linalg.norm(x)
+    return s, x, np.cross(s, x)
+
+
+def rotate_about(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues rotation of ``v`` by ``angle`` (rad) about unit ``axis``."""
+    return (
+        v * np.cos(angle)
+        + np.cross(axis, v) * np.sin(angle)
+        + axis * np.dot(axis, v) * (1 - np.cos(angle))
+    )
+
+
+# --------------------------------------------------------------------------------- meshes
+@dataclasses.dataclass(frozen=True)
+class PartMesh:
+    """A triangle mesh with a part index per face and the part names (body frame, metres)."""
+
+    vertices: np.ndarray  # (V, 3)
+    faces: np.ndarray  # (F, 3)
+    part_ids: np.ndarray  # (F,)
+    part_names: tuple[str, ...]
+    vertex_normals: np.ndarray | None = None  # (V, 3), for smooth shading
+
+
+def load_part_mesh(path: str | Path) -> PartMesh:
+    """Load any mesh trimesh reads; a multi-geometry file (GLB, OBJ groups) gives one part per
+    geometry, named by the geometry, with the scene graph's transforms applied."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"mesh file {str(path)!r} does not exist")
+    loaded = trimesh.load(path, force=None, process=False)
+    meshes: list[tuple[str, trimesh.Trimesh]] = []
+    if isinstance(loaded, trimesh.Scene):
+        for node in loaded.graph.nodes_geometry:
+            transform, gname = loaded.graph[node]
+            geom = loaded.geometry[gname]
+            if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
+                continue
+            g = geom.copy()
+            g.apply_transform(transform)
+            meshes.append((str(gname), g))
+    else:
+        meshes.append((path.stem, loaded))
+    if not meshes:
+        raise ValueError(f"mesh file {str(path)!r} has no triangles")
+    return part_mesh_from_trimeshes(meshes)
+
+
+def part_mesh_from_trimeshes(
+    meshes: Sequence[tuple[str, object]], smooth: bool = False
+) -> PartMesh:
+    """Concatenate named trimesh meshes into a :class:`PartMesh` (same-name parts merge)."""
+    names: list[str] = []
+    verts, faces, pids, vnorms = [], [], [], []
+    offset = 0
+    for name, m in meshes:
+        if name not in names:
+            names.append(name)
+        v = np.asarray(m.vertices, dtype=float)
+        f = np.asarray(m.faces, dtype=np.int64)
+        verts.append(v)
+        faces.append(f + offset)
+        pids.append(np.full(len(f), names.index(name), dtype=np.int64))
+        if smooth:
+            vnorms.append(np.asarray(m.vertex_normals, dtype=float))
+        offset += len(v)
+    v = np.concatenate(verts)
+    if not np.all(np.isfinite(v)):
+        raise ValueError("mesh has non-finite vertices")
+    return PartMesh(
+        vertices=v,
+        faces=np.concatenate(faces),
+        part_ids=np.concatenate(pids),
+        part_names=tuple(names),
+        vertex_normals=np.concatenate(vnorms) if smooth else None,
+    )
+
+
+def _intersector(vertices: np.ndarray, faces: np.ndarray, allow_slow: bool):
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    try:
+        from trimesh.ray import ray_pyembree
+
+        if getattr(ray_pyembree, "RayMeshIntersector", None) is None:  # pragma: no cover
+            raise ImportError("embree not available")
+        return ray_pyembree.RayMeshIntersector(mesh)
+    except (ImportError, ValueError):  # pragma: no cover - depends on the platform
+        if not allow_slow:
+            raise RuntimeError(
+                "trimesh's embree ray intersector (package embreex) is not available; the "
+                "pure-Python fallback is ~1000x slower: install embreex or pass allow_slow=True"
+            ) from None
+        from trimesh.ray import ray_triangle
+
+        return ray_triangle.RayMeshIntersector(mesh)
+
+
+# --------------------------------------------------------------------------------- result
+@dataclasses.dataclass
+class MuellerImage:
+    """Per-pixel results. Arrays are ``(H, W, ...)``; pixels without a hit are NaN (part -1).
+
+    - ``mueller``: Mueller BRDF in the sensor frames (1/sr), zero where shadowed;
+    - ``cos_in``/``cos_out``: cosines of the laser/receiver directions with the shading normal;
+    - ``normal``: shading normal (body frame); ``part``: part index (-1: background);
+    - ``lit``: hit and not shadowed; ``u``, ``v``: pixel-centre coordinates (m) along the image
+      axes ``x_axis``/``y_axis`` (body frame), ``y`` decreasing with the row index.
+    """
+
+    mueller: np.ndarray
+    cos_in: np.ndarray
+    cos_out: np.ndarray
+    normal: np.ndarray
+    part: np.ndarray
+    lit: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    x_axis: np.ndarray
+    y_axis: np.ndarray
+    part_names: tuple[str, ...]
+    quantities: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        out = {
+            "mueller": self.mueller,
+            "cos_in": self.cos_in,
+            "cos_out": self.cos_out,
+            "normal": self.normal,
+            "part": self.part,
+            "lit": self.lit,
+            "u": self.u,
+            "v": self.v,
+            "x_axis": self.x_axis,
+            "y_axis": self.y_axis,
+            "part_names": np.array(self.part_names),
+        }
+        out.update(self.quantities)
+        return out
+
+
+def polarimetric_maps(mueller: np.ndarray, cos_in: np.ndarray) -> dict[str, np.ndarray]:
+    """Total reflectance ``M00 cos(theta_in)`` and the Lu-Chipman quantities per pixel.
+
+    Pixels with ``M00 <= 0`` (background, shadow, no reflection) are NaN in the normalized
+    quantities (they have no polarization state)."""
+    import jax.numpy as jnp
+
+    import ppr
+
+    m00 = mueller[..., 0, 0]
+    ok = np.isfinite(m00) & (m00 > 0)
+    out = {"reflectance": np.where(np.isfinite(m00), m00 * cos_in, np.nan)}
+    flat = mueller[ok]
+    if flat.size:
+        flat = flat / flat[:, :1, :1]
+    funcs = {
+        "depolarization_index": ppr.depolarization_index,
+        "polarizance": ppr.polarizance,
+        "diattenuation": ppr.diattenuation,
+        "retardance": ppr.retardance,
+    }
+    for name, fn in funcs.items():
+        img = np.full(m00.shape, np.nan)
+        if flat.size:
+            img[ok] = np.asarray(fn(jnp.asarray(flat)))
+        out[name] = img
+    return out
+
+
+def _brdf_eval_fn(terms, wavelength: float) -> Callable:
+    """One jitted per-pixel evaluator (vmapped over pixels, material gathered per pixel)."""
+    import equinox as eqx
+    import jax
+
+    import ppr
+
+    def one(k_in, k_out, normal, x_in, x_out, mat):
+        return ppr.mueller_brdf(
+            k_in,
+            k_out,
+            normal,
+            mat,
+            terms=terms,
+            frame_in=x_in,
+            frame_out=x_out,
+            wavelength=wavelength,
+        )
+
+    @eqx.filter_jit
+    def many(k_in, k_out, normal, x_in, x_out, idx, materials):
+        mats = jax.tree_util.tree_map(lambda a: a[idx], materials)
+        return jax.vmap(one)(k_in, k_out, normal, x_in, x_out, mats)
+
+    return many
+
+
+def _stack_materials(materials: Sequence):
+    """Stack per-part materials (same structure, scalar fields) along a new leading axis."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    cleaned = []
+    for mat in materials:
+        if dataclasses.is_dataclass(mat) and hasattr(mat, "name"):
+            mat = dataclasses.replace(mat, name="")  # static label: avoid retracing per name
+        cleaned.append(mat)
+    arrays = [eqx.filter(m, eqx.is_array) for m in cleaned]
+    static = eqx.filter(cleaned[0], eqx.is_array, inverse=True)
+    stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *arrays)
+    return eqx.combine(stacked, static)
+
+
+def render_mueller_image(
+    mesh: PartMesh,
+    materials: Sequence,
+    *,
+    to_sensor: Sequence[float],
+    attitude: Sequence[float] = (1.0, 0.0, 0.0, 0.0),
+    sensor_x: Sequence[float] | None = None,
+    n_pixels: int = 128,
+    half_width: float | None = None,
+    bistatic_angle: float = 0.0,
+    wavelength: float = 532e-9,
+    terms="auto",
+    shading: str = "flat",
+    chunk: int = 8192,
+    dtype=np.float32,
+    progress: bool = False,
+    allow_slow: bool = False,
+) -> MuellerImage:
+    """Render the per-pixel Mueller BRDF of ``mesh`` (one material per part) at a pose.
+
+    **Arguments:**
+
+    - `mesh`: :class:`PartMesh` in the body frame (metres).
+    - `materials`: one :class:`ppr.Material` per ``mesh.part_names`` entry.
+    - `to_sensor`: unit vector from the object toward the receiver (world frame).
+    - `attitude`: body-to-world quaternion ``(w, x, y, z)``.
+    - `sensor_x`: the sensor's polarization x axis (world frame); default world z projected.
+    - `n_pixels`: image is ``n_pixels x n_pixels``.
+    - `half_width`: half the field of view (m); default: the mesh's bounding radius x 1.05.
+    - `bistatic_angle`: angle (rad) between the laser and receiver directions; the laser
+      direction is the receiver's rotated about the image y axis. 0: monostatic, every visible
+      point is lit; > 0: a shadow ray toward the laser decides.
+    - `wavelength`: metres. `terms`: BRDF terms (``"auto"`` or a tuple of names).
+    - `shading`: ``"flat"`` (face normals) or ``"smooth"`` (barycentric interpolation of the
+      mesh's vertex normals; needs ``mesh.vertex_normals``).
+    - `chunk`: pixels per BRDF call (fixed, padded: one compilation).
+    - `dtype`: float dtype of the BRDF evaluation (float32 default).
+
+    **Returns:** a :class:`MuellerImage` with the polarimetric maps in ``quantities``.
+    """
+    import jax.numpy as jnp
+    from tqdm.auto import tqdm
+
+    if len(materials) != len(mesh.part_names):
+        raise ValueError(
+            f"need one material per part {list(mesh.part_names)}, got {len(materials)} materials"
+        )
+    if shading not in ("flat", "smooth"):
+        raise ValueError(f"shading must be 'flat' or 'smooth', got {shading!r}")
+    if shading == "smooth" and mesh.vertex_normals is None:
+        raise ValueError("shading='smooth' needs a mesh with vertex_normals")
+    if not (isinstance(n_pixels, int | np.integer) and 1 <= n_pixels <= 4096):
+        raise ValueError(f"n_pixels must be an integer in [1, 4096], got {n_pixels!r}")
+    if not (np.isfinite(bistatic_angle) and 0.0 <= bistatic_angle < np.pi / 2):
+        raise ValueError(f"bistatic_angle must lie in [0, pi/2) rad, got {bistatic_angle!r}")
+
+    # Work in the body frame: rotate the sensor directions by R^T.
+    rot = quaternion_to_matrix(attitude)
+    s_w, x_w, y_w = sensor_axes(to_sensor, sensor_x)
+    s, x_ax, y_ax = rot.T @ s_w, rot.T @ x_w, rot.T @ y_w
+    s_tx = rotate_about(s, y_ax, bistatic_angle) if bistatic_angle > 0 else s
+    # Stokes frame x axes of the transmitted beam (travelling along -s_tx) and the received one
+    # (travelling along +s): the sensor x axis projected perpendicular to each.
+    x_in = x_ax - np.dot(x_ax, s_tx) * s_tx
+    x_in /= np.linalg.norm(x_in)
+    x_out = x_ax
+
+    verts = mesh.vertices
+    centre = 0.5 * (verts.min(0) + verts.max(0))
+    radius = float(np.max(np.linalg.norm(verts - centre, axis=1)))
+    hw = 1.05 * radius if half_width is None else float(half_width)
+    if not (np.isfinite(hw) and hw > 0):
+        raise ValueError(f"half_width must be > 0 metres, got {half_width!r}")
+    step = 2 * hw / n_pixels
+    u = (np.arange(n_pixels) + 0.5) * step - hw
+    v = hw - (np.arange(n_pixels) + 0.5) * step
+    uu, vv = np.meshgrid(u, v)  # (H, W): rows along -y, columns along +x
+    c_uv = centre - np.dot(centre, s) * s
+    far = float(np.dot(centre, s)) + 2 * radius + 1.0
+    origins = c_uv[None] + uu.reshape(-1, 1) * x_ax + vv.reshape(-1, 1) * y_ax + far * s
+    dirs = np.broadcast_to(-s, origins.shape)
+
+    inter = _intersector(verts, mesh.faces, allow_slow)
+    tri, ray, loc = inter.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
+    tri, ray, loc = np.asarray(tri), np.asarray(ray), np.asarray(loc)
+
+    tris = verts[mesh.faces[tri]]
+    fn = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+    # two-sided surfaces: the side facing the receiver is the one seen
+    flip = np.sum(fn * s, axis=1) < 0
+    fn[flip] *= -1
+    if shading == "smooth":
+        import trimesh
+
+        bary = trimesh.triangles.points_to_barycentric(tris, loc)
+        vn = mesh.vertex_normals[mesh.faces[tri]]
+        nrm = np.einsum("ij,ijk->ik", bary, vn)
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        nrm[flip] *= -1
+    else:
+        nrm = fn
+
+    lit = np.ones(len(tri), dtype=bool)
+    if bistatic_angle > 0 and len(tri):
+        eps = 1e-5 * max(radius, 1e-3)
+        sh_orig = loc + eps * fn
+        lit = ~np.asarray(inter.intersects_any(sh_orig, np.broadcast_to(s_tx, sh_orig.shape)))
+    cos_in_hit = np.sum(nrm * s_tx, axis=1)
+    cos_out_hit = np.sum(nrm * s, axis=1)
+    lit &= (cos_in_hit > 0) & (cos_out_hit > 0)
+
+    n_pix = n_pixels * n_pixels
+    mueller = np.full((n_pix, 4, 4), np.nan)
+    pid = mesh.part_ids[tri]
+    sel = np.nonzero(lit)[0]
+    mueller[ray] = 0.0
+    if len(sel):
+        evaluate = _brdf_eval_fn(terms, wavelength)
+        mats = _stack_materials([_cast_material(m, dtype) for m in materials])
+        starts = range(0, len(sel), chunk)
+        for a in tqdm(starts, desc="Mueller image", unit="chunk", disable=not progress):
+            idx = sel[a : a + chunk]
+            pad = chunk - len(idx)
+            idx_p = np.concatenate([idx, np.full(pad, idx[0])]) if pad else idx
+            cnt = len(idx_p)
+            out = evaluate(
+                jnp.asarray(np.broadcast_to(s_tx, (cnt, 3)), dtype),
+                jnp.asarray(np.broadcast_to(s, (cnt, 3)), dtype),
+                jnp.asarray(nrm[idx_p], dtype),
+                jnp.asarray(np.broadcast_to(x_in, (cnt, 3)), dtype),
+                jnp.asarray(np.broadcast_to(x_out, (cnt, 3)), dtype),
+                jnp.asarray(pid[idx_p]),
+                mats,
+            )
+            mueller[ray[idx]] = np.asarray(out, dtype=float)[: len(idx)]
+
+    def to_img(vals, fill, shape=()):
+        img = np.full((n_pix, *shape), fill, dtype=np.asarray(vals).dtype if len(vals) else float)
+        img[ray] = vals
+        return img.reshape(n_pixels, n_pixels, *shape)
+
+    cos_in = to_img(cos_in_hit, np.nan)
+    result = MuellerImage(
+        mueller=mueller.reshape(n_pixels, n_pixels, 4, 4),
+        cos_in=cos_in,
+        cos_out=to_img(cos_out_hit, np.nan),
+        normal=to_img(nrm, np.nan, (3,)),
+        part=to_img(pid, -1),
+        lit=to_img(lit, False),
+        u=u,
+        v=v,
+        x_axis=x_ax,
+        y_axis=y_ax,
+        part_names=mesh.part_names,
+    )
+    result.quantities = polarimetric_maps(result.mueller, np.where(result.lit, cos_in, 0.0))
+    return result
+
+
+def _cast_material(mat, dtype):
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    cdtype = jnp.complex64 if np.dtype(dtype) == np.float32 else jnp.complex128
+
+    def cast(x):
+        if not eqx.is_array(x):
+            return x
+        if jnp.issubdtype(x.dtype, jnp.complexfloating):
+            return x.astype(cdtype)
+        if jnp.issubdtype(x.dtype, jnp.floating):
+            return x.astype(dtype)
+        return x
+
+    return jax.tree_util.tree_map(cast, mat)
+
+
+# ------------------------------------------------------------------------------- plotting
+def plot_mueller_image(img: MuellerImage, path: str | Path, title: str = "") -> Path:
+    """Write the five panels (reflectance, depolarization index, polarizance, diattenuation,
+    retardance) with colour bars to ``path`` (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    du = img.u[1] - img.u[0] if len(img.u) > 1 else 1.0
+    extent = (img.u[0] - du / 2, img.u[-1] + du / 2, img.v[-1] - du / 2, img.v[0] + du / 2)
+    fig, axes = plt.subplots(1, 5, figsize=(20, 4.2))
+    fig.subplots_adjust(left=0.04, right=0.98, bottom=0.13, top=0.84, wspace=0.35)
+    for ax, name in zip(axes, QUANTITIES, strict=True):
+        data = img.quantities[name]
+        if name == "reflectance":
+            finite = data[np.isfinite(data) & (data > 0)]
+            vmax = float(np.percentile(finite, 99)) if finite.size else 1.0
+            kw = {"vmin": 0.0, "vmax": vmax, "cmap": "inferno"}
+        elif name == "retardance":
+            kw = {"vmin": 0.0, "vmax": np.pi, "cmap": "magma"}
+        else:
+            kw = {"vmin": 0.0, "vmax": 1.0, "cmap": "viridis"}
+        ax.set_facecolor("0.85")
+        im = ax.imshow(
+            np.ma.masked_invalid(data), extent=extent, origin="upper", interpolation="nearest", **kw
+        )
+        ax.set_title(QUANTITY_LABELS[name], fontsize=10)
+        ax.set_xlabel("image x [m]")
+        ax.set_ylabel("image y [m]")
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
+    if title:
+        fig.suptitle(title)
+    path = Path(path)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def plot_mueller_elements(img: MuellerImage, path: str | Path, title: str = "") -> Path:
+    """Write the Mueller image as a 4x4 grid: ``M00`` (1/sr) and the normalized elements
+    ``M_ij / M00`` (one shared colour bar, -1..1)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    m = img.mueller
+    m00 = m[..., 0, 0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        norm = np.where((m00 > 0)[..., None, None], m / m00[..., None, None], np.nan)
+    fig, axes = plt.subplots(4, 4, figsize=(10, 9.2))
+    fig.subplots_adjust(left=0.02, right=0.86, bottom=0.02, top=0.92, wspace=0.05, hspace=0.15)
+    im_n = im_0 = None
+    for i in range(4):
+        for j in range(4):
+            ax = axes[i, j]
+            ax.set_facecolor("0.85")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if i == j == 0:
+                finite = m00[np.isfinite(m00) & (m00 > 0)]
+                vmax = float(np.percentile(finite, 99)) if finite.size else 1.0
+                im_0 = ax.imshow(
+                    np.ma.masked_invalid(m00),
+                    vmin=0,
+                    vmax=vmax,
+                    cmap="inferno",
+                    interpolation="nearest",
+                )
+                ax.set_title(r"$M_{00}$ [1/sr]", fontsize=9)
+            else:
+                im_n = ax.imshow(
+                    np.ma.masked_invalid(norm[..., i, j]),
+                    vmin=-1,
+                    vmax=1,
+                    cmap="RdBu_r",
+                    interpolation="nearest",
+                )
+                ax.set_title(rf"$M_{{{i}{j}}}/M_{{00}}$", fontsize=9)
+    fig.colorbar(im_n, cax=fig.add_axes([0.89, 0.1, 0.02, 0.55]), label=r"$M_{ij}/M_{00}$")
+    fig.colorbar(im_0, cax=fig.add_axes([0.89, 0.72, 0.02, 0.2]), label=r"$M_{00}$ [1/sr]")
+    if title:
+        fig.suptitle(title)
+    path = Path(path)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
