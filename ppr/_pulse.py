@@ -1,0 +1,531 @@
+r"""Facet-sum pulse synthesis: range-resolved Mueller profiles of a posed mesh.
+
+Radiometry
+    A plane wave of irradiance ``E0`` (W/m^2 across the beam) from direction ``u_in`` lights a
+    flat facet of area ``A`` and normal ``n``; the radiance it sends toward ``u_out`` is
+    ``L = f E0 (n . u_in)`` (definition of the BRDF ``f``), and its radiant intensity toward
+    the receiver is ``I = L A (n . u_out)``. Summing over facets, the return is described by
+
+        J = sum_f  M_f (n_f . u_in)(n_f . u_out) A_f v_f        [m^2 / sr]
+
+    with ``M_f`` the facet's Mueller BRDF (1/sr; ``k_in = u_in``, ``k_out = u_out``, frames the
+    sensor's beam frames) and ``v_f`` its lit-and-visible fraction. ``J`` is the Mueller
+    radiant intensity per unit incident irradiance; its M00 is the bistatic radar cross
+    section over 4 pi: ``sigma = 4 pi J_00``. The received Stokes energy is
+    ``J S_tx E0 A_rx / R_rx^2`` (times pulse energy over beam area, aperture, and the two-way
+    atmospheric transmission, which the normalized signatures of PHYSICS.md section 1 drop).
+    Back-facing facets (``n . u <= COS_MIN`` toward laser or receiver) contribute nothing.
+
+Range-area density of a facet
+    The range of a point is its depth along the bisector ``w = (u_in + u_out)/2`` (see
+    :mod:`ppr._scene`). The area of a flat triangle between depths ``z`` and ``z + dz`` is
+    piecewise linear in ``z``: the triangular density with vertex depths ``d0 <= d1 <= d2``
+    (mode ``d1``), i.e. the linear B-spline ``g(z) = 2 [d0, d1, d2]_t (z - t)_+``.
+    Convolved with a Gaussian pulse of range width ``sigma`` its cumulative distribution is
+    a second divided difference
+
+        F(x) = [d0, d1, d2]_t  sigma^2 Q((x - t)/sigma),  Q(u) = (u^2 + 1) Phi(u) + u phi(u)
+
+    (``sigma^2 Q = E[(x - t - eps)_+^2]``, ``Q'' = 2 Phi``). Each bin receives ``F(right edge)
+    - F(left edge)``: bin-integrated, so the sum over bins is exactly the facet's weight for
+    any bin or pulse width. Numerically: ``Q(u) - Q(-u) = u^2 + 1`` gives the mirrored form
+    ``F = 1 - [..] Q((t - x)/sigma)`` used right of the facet's mean depth (no large
+    cancelling terms); first divided differences closer than ``tau_1`` fall back to a
+    midpoint Taylor series, and facets thinner than ``tau`` (in units of sigma; zero-depth
+    facets facing the sensor) to the moment expansion
+    ``Phi(c) - p2/24 c phi + p3/180 (c^2-1) phi - (p2^2 + 2 p4)/2880 (c^3 - 3c) phi`` about
+    the mean. Both branches are double-``where`` guarded: values and gradients stay finite
+    for edge-on, two-equal-depth and zero-depth facets.
+
+Windows
+    A facet affects only bins within ``NSIG`` sigma of its depth interval. Each facet's CDF is
+    evaluated at ``window + 1`` consecutive bin edges starting just before its nearest depth
+    (``window`` static, from the longest mesh edge, :func:`window_size`), and the differences
+    are scattered into the profile. Past the window the CDF is 1 to ``Phi(-NSIG)`` (1e-12).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.scipy.special import ndtr
+
+from ._conventions import C_LIGHT
+from ._material import Material
+from ._mesh import MeshArrays, capacity_for, mesh_arrays
+from ._pose import quat_to_matrix
+from ._scene import Pose, RangeBins, Scene, Sensor
+from ._types import Array, ArrayLike, Float
+from ._visibility import COS_MIN, VisibilityCaster
+
+NSIG = 7.0
+"""Half-width of a facet's window beyond its depth interval, in pulse sigmas."""
+COVER_NSIG = 3.0
+"""The range gate must contain every visible facet's depth interval +- this many sigmas."""
+_INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+
+STOKES_STATES = {
+    "H": (1.0, 1.0, 0.0, 0.0),
+    "V": (1.0, -1.0, 0.0, 0.0),
+    "D": (1.0, 0.0, 1.0, 0.0),
+    "A": (1.0, 0.0, -1.0, 0.0),
+    "R": (1.0, 0.0, 0.0, 1.0),
+    "L": (1.0, 0.0, 0.0, -1.0),
+}
+"""Named transmitted states (sensor frame): horizontal (x), vertical, +45, -45, and circular
+with ``S3 = +1`` (``"R"``, right-circular in Chipman's convention) and ``S3 = -1``."""
+
+
+# ----------------------------------------------------------------------------- closed form
+
+
+def _phi(u):
+    return _INV_SQRT_2PI * jnp.exp(-0.5 * u * u)
+
+
+def _q(u):
+    return (u * u + 1.0) * ndtr(u) + u * _phi(u)
+
+
+def _thresholds(dtype) -> tuple[float, float]:
+    """(tau, tau_1): thin-facet and close-pair thresholds in units of sigma."""
+    if jnp.finfo(dtype).bits <= 32:
+        return 0.25, 0.5
+    return 0.02, 0.05
+
+
+def _dd1(ua, ub, h):
+    """[ua, ub] Q with h = |ua - ub| (double-where: Taylor below tau_1)."""
+    _, tau1 = _thresholds(ua.dtype)
+    small = h < tau1
+    diff = ua - ub
+    safe = jnp.where(small, 1.0, diff)
+    direct = (_q(ua) - _q(ub)) / safe
+    m = 0.5 * (ua + ub)
+    pm = _phi(m)
+    h2 = h * h
+    taylor = 2.0 * (m * ndtr(m) + pm) + h2 * pm / 12.0 + h2 * h2 * (m * m - 1.0) * pm / 960.0
+    return jnp.where(small, taylor, direct)
+
+
+def _dd2(u0, u1, u2, g01, g12):
+    """[u0, u1, u2] Q for u sorted monotonically, gaps g01 = |u0-u1|, g12 = |u1-u2|."""
+    tau, _ = _thresholds(u0.dtype)
+    s = g01 + g12
+    thin = s < tau
+    # direct branch
+    d01 = _dd1(u0, u1, g01)
+    d12 = _dd1(u1, u2, g12)
+    span = u0 - u2
+    direct = (d01 - d12) / jnp.where(thin, 1.0, span)
+    # thin branch: moment expansion about the mean
+    c = (u0 + u1 + u2) / 3.0
+    e0, e1, e2 = u0 - c, u1 - c, u2 - c
+    p2 = e0 * e0 + e1 * e1 + e2 * e2
+    p3 = e0**3 + e1**3 + e2**3
+    p4 = (e0 * e0) ** 2 + (e1 * e1) ** 2 + (e2 * e2) ** 2
+    pc = _phi(c)
+    c2 = c * c
+    thin_val = (
+        ndtr(c)
+        - p2 / 24.0 * c * pc
+        + p3 / 180.0 * (c2 - 1.0) * pc
+        - (p2 * p2 + 2.0 * p4) / 2880.0 * (c2 * c - 3.0 * c) * pc
+    )
+    return jnp.where(thin, thin_val, direct)
+
+
+def tent_gaussian_cdf(
+    x: Float[ArrayLike, "..."],
+    d0: Float[ArrayLike, "..."],
+    d1: Float[ArrayLike, "..."],
+    d2: Float[ArrayLike, "..."],
+    sigma: Float[ArrayLike, "..."],
+) -> Float[Array, "..."]:
+    """CDF at ``x`` of (triangular density on ``d0 <= d1 <= d2``) convolved with N(0, sigma^2).
+
+    Closed form (module docstring); broadcasts; finite values and gradients for coincident
+    depths (``d0 == d1``, ``d1 == d2``, all equal).
+    """
+    x, d0, d1, d2, sigma = jnp.broadcast_arrays(*map(jnp.asarray, (x, d0, d1, d2, sigma)))
+    inv = 1.0 / sigma
+    g01 = (d1 - d0) * inv
+    g12 = (d2 - d1) * inv
+    mean = (d0 + d1 + d2) / 3.0
+    left = x <= mean
+    sgn = jnp.where(left, 1.0, -1.0)
+    u0 = sgn * (x - d0) * inv
+    u1 = sgn * (x - d1) * inv
+    u2 = sgn * (x - d2) * inv
+    val = _dd2(u0, u1, u2, g01, g12)
+    return jnp.where(left, val, 1.0 - val)
+
+
+# ----------------------------------------------------------------------------- stand-in BRDFs
+
+
+def lambertian_mueller(k_in, k_out, normal, material, *, frame_in=None, frame_out=None,
+                       wavelength=532e-9, terms=None):
+    """Stand-in BRDF: ideal depolarizing Lambertian ``diag(1, 0, 0, 0) / pi`` (albedo 1),
+    same signature as :func:`ppr.mueller_brdf`. For tests and geometry checks."""
+    del k_out, material, frame_in, frame_out, wavelength, terms
+    batch = jnp.broadcast_shapes(jnp.shape(k_in)[:-1], jnp.shape(normal)[:-1])
+    dt = jnp.result_type(k_in, normal)
+    m = jnp.zeros((4, 4), dt).at[0, 0].set(1.0 / jnp.pi)
+    return jnp.broadcast_to(m, (*batch, 4, 4))
+
+
+def _default_brdf():
+    try:
+        from ._brdf import mueller_brdf  # noqa: PLC0415
+    except ImportError as exc:  # pragma: no cover - until the BRDF lands
+        raise RuntimeError("ppr.mueller_brdf is not available; pass brdf=...") from exc
+    return mueller_brdf
+
+
+# ----------------------------------------------------------------------------- kernel
+
+
+def stack_materials(materials: Sequence[Material]) -> Material:
+    """One batched :class:`Material` (leading axis = part index) from per-part materials."""
+    mats = list(materials)
+    if not mats:
+        raise ValueError("need at least one material")
+    return Material(
+        jnp.stack([jnp.asarray(m.n) for m in mats]),
+        jnp.stack([jnp.asarray(m.m) for m in mats]),
+        jnp.stack([jnp.asarray(m.corr_length) for m in mats]),
+        name="stacked",
+    )
+
+
+def window_size(max_depth_extent: float, sigma_r: float, width: float, n_bins: int) -> int:
+    """Static number of bins per facet window (multiple of 8; capped at ``n_bins``, which is
+    the dense evaluation)."""
+    k = math.ceil((max_depth_extent + 2 * NSIG * sigma_r) / width) + 2
+    k = 8 * math.ceil(k / 8)
+    return int(min(k, n_bins))
+
+
+def stokes_projection(states: Float[ArrayLike, "S 4"]) -> np.ndarray:
+    """``(16, 4 S)`` matrix mapping flattened Mueller rows to Stokes outputs ``M @ s`` of each
+    transmitted state ``s`` (column ``4 s + i`` is output component ``i`` of state ``s``)."""
+    st = np.asarray(states, np.float64)
+    p = np.zeros((16, 4 * len(st)))
+    for s, vec in enumerate(st):
+        for i in range(4):
+            for j in range(4):
+                p[4 * i + j, 4 * s + i] = vec[j]
+    return p
+
+
+def channel_projection(channels: Sequence[tuple[int, int]]) -> np.ndarray:
+    """``(16, C)`` matrix selecting Mueller elements ``(i, j)``."""
+    p = np.zeros((16, len(channels)))
+    for c, (i, j) in enumerate(channels):
+        p[4 * i + j, c] = 1.0
+    return p
+
+
+def facet_weights(
+    arrays: MeshArrays,
+    vis: Float[Array, " F"],
+    rot: Float[Array, "3 3"],
+    materials: Material,
+    sensor: Sensor,
+    *,
+    projection: Float[Array, "16 C"] | None,
+    brdf: Callable,
+    terms=None,
+) -> tuple[Float[Array, "F C"], Array]:
+    """Per-facet weights ``M_f (n.u_in)(n.u_out) A_f v_f`` projected to the output channels,
+    and the body-frame bisector. Everything is evaluated in the body frame (the BRDF is
+    rotation covariant), so only four 3-vectors are rotated per pose."""
+    rt = rot.T
+    u_in = rt @ sensor.laser_dir
+    u_out = rt @ sensor.receiver_dir
+    x_tx = rt @ sensor.frame_tx
+    x_rx = rt @ sensor.frame_rx
+    nrm = arrays.normals
+    cos_in = nrm @ u_in
+    cos_out = nrm @ u_out
+    front = (cos_in > COS_MIN) & (cos_out > COS_MIN) & arrays.valid & (vis > 0)
+    # double where: masked facets see a harmless normal (the bisector) before the BRDF
+    w = 0.5 * (u_in + u_out)
+    w_unit = w / jnp.linalg.norm(w)
+    safe_n = jnp.where(front[:, None], nrm, w_unit[None, :])
+    mat = jax.tree_util.tree_map(lambda a: a[arrays.material_ids], materials)
+    f_count = nrm.shape[0]
+    k_in = jnp.broadcast_to(u_in, (f_count, 3))
+    k_out = jnp.broadcast_to(u_out, (f_count, 3))
+    m = brdf(
+        k_in, k_out, safe_n, mat,
+        frame_in=jnp.broadcast_to(x_tx, (f_count, 3)),
+        frame_out=jnp.broadcast_to(x_rx, (f_count, 3)),
+        wavelength=sensor.wavelength,
+        terms=terms,
+    )
+    m = m.reshape(f_count, 16)
+    g = jnp.where(front, cos_in * cos_out * arrays.areas * vis, 0.0)
+    m = jnp.where(front[:, None], m, 0.0)
+    wch = m if projection is None else m @ projection.astype(m.dtype)
+    return wch * g[:, None], w
+
+
+@eqx.filter_jit
+def render(
+    arrays: MeshArrays,
+    vis: Float[Array, " F"],
+    pose: Pose,
+    materials: Material,
+    sensor: Sensor,
+    sigma_r: Float[ArrayLike, ""],
+    start: Float[ArrayLike, ""],
+    width: Float[ArrayLike, ""],
+    *,
+    n_bins: int,
+    window: int,
+    projection: Float[Array, "16 C"] | None = None,
+    brdf: Callable = lambertian_mueller,
+    terms=None,
+) -> Float[Array, "C B"]:
+    """Pure jitted core: bin-integrated range profiles ``(C, n_bins)`` (m^2/sr per bin).
+
+    **Arguments:**
+
+    - `arrays`: :class:`ppr.MeshArrays` (padded body-frame mesh).
+    - `vis`: ``(F,)`` lit-and-visible fractions (:class:`ppr.VisibilityCaster`, host).
+    - `pose`: :class:`ppr.Pose` (traced; differentiable).
+    - `materials`: batched :class:`ppr.Material`, one entry per part (:func:`stack_materials`).
+    - `sensor`: :class:`ppr.Sensor`.
+    - `sigma_r`: pulse RMS width in range (m), ``c sigma_t / 2``, including jitter; add a
+      time offset ``t0`` through ``start`` (``start - c t0 / 2``).
+    - `start`, `width`: first bin edge and bin width (m, relative range).
+    - `n_bins`, `window` (static): bin count; bins per facet window (:func:`window_size`).
+    - `projection`: ``(16, C)`` output channels (None: all 16 Mueller elements, row-major).
+    - `brdf` (static): Mueller BRDF with the signature of :func:`ppr.mueller_brdf`.
+
+    Facets deeper than the window lose the part of their return beyond it: choose
+    ``window`` from the longest edge (``simulate`` does).
+    """
+    dt = arrays.tri.dtype
+    rot = quat_to_matrix(pose.quaternion.astype(dt))
+    wch, w_body = facet_weights(arrays, vis, rot, materials, sensor, projection=projection,
+                                brdf=brdf, terms=terms)
+    w_world = rot @ w_body
+    sigma = jnp.asarray(sigma_r, dt)
+    start = jnp.asarray(start, dt)
+    width = jnp.asarray(width, dt)
+    depth = -(arrays.tri @ w_body) - jnp.dot(pose.position.astype(dt), w_world)  # (F, 3)
+    depth = jnp.sort(depth, axis=-1)
+    d0, d1, d2 = depth[:, 0:1], depth[:, 1:2], depth[:, 2:3]
+    if window >= n_bins:
+        j0 = jnp.zeros(d0.shape, jnp.int32)
+        k = n_bins
+    else:
+        first = jax.lax.stop_gradient((d0 - NSIG * sigma - start) / width)
+        j0 = jnp.floor(first).astype(jnp.int32)
+        k = window
+    j = j0 + jnp.arange(k + 1, dtype=jnp.int32)[None, :]  # (F, k+1) edge indices
+    edges = start + j.astype(dt) * width
+    cdf = tent_gaussian_cdf(edges, d0, d1, d2, sigma)
+    dcdf = cdf[:, 1:] - cdf[:, :-1]  # (F, k) bin contents of each facet (unit weight)
+    if window >= n_bins:
+        return wch.T @ dcdf
+    f_count = dcdf.shape[0]
+    bins = j[:, :-1]
+    bins = jnp.where((bins >= 0) & (bins < n_bins), bins, n_bins)
+    rows = jnp.broadcast_to(jnp.arange(f_count)[:, None], bins.shape)
+    dense = jnp.zeros((f_count, n_bins), dt).at[rows, bins].add(dcdf, mode="drop")
+    return wch.T @ dense
+
+
+# ----------------------------------------------------------------------------- wrapper
+
+
+class Profile(eqx.Module):
+    """Range-resolved result of :func:`simulate`.
+
+    - `data`: ``(4, 4, B)`` Mueller profiles (``kind="mueller"``), ``(S, 4, B)`` Stokes
+      profiles per transmitted state (``kind="stokes"``, states named by `labels`) or
+      ``(C, B)`` selected Mueller elements (``kind="channels"``). Units m^2/sr per bin
+      (bin-integrated, module docstring), sensor frames.
+    - `range_m`: ``(B,)`` bin centres, one-way range relative to `reference_range_m`.
+    - `time_s`: ``(B,)`` round-trip time of the bin centres relative to the reference's
+      return, ``2 r / c``.
+    - `edges_m`: ``(B + 1,)`` bin edges (m).
+    - `visibility`: ``(F,)`` per-face lit-and-visible fractions used.
+    """
+
+    data: Array
+    range_m: Array
+    time_s: Array
+    edges_m: Array
+    visibility: Array
+    reference_range_m: float = eqx.field(static=True)
+    kind: str = eqx.field(static=True)
+    labels: tuple = eqx.field(static=True)
+
+    @property
+    def total(self) -> Array:
+        """Time integral of the return (sum over bins)."""
+        return jnp.sum(self.data, axis=-1)
+
+
+def _check_concrete(x, what):
+    if isinstance(x, jax.core.Tracer):
+        raise ValueError(
+            f"simulate() needs a concrete {what} to cast visibility rays; inside jit/grad/vmap "
+            "pass visibility=... (host-computed) or call ppr.render directly"
+        )
+
+
+def simulate(
+    scene: Scene,
+    *,
+    states: Sequence[str] | Float[ArrayLike, "S 4"] | None = None,
+    channels: Sequence[tuple[int, int]] | None = None,
+    visibility: Float[ArrayLike, " F"] | None = None,
+    brdf: Callable | None = None,
+    terms=None,
+    prune: bool = True,
+    dtype=None,
+) -> Profile:
+    """Simulate the range-resolved return of ``scene``.
+
+    **Arguments:**
+
+    - `scene`: :class:`ppr.Scene`.
+    - `states`: transmitted Stokes states (names from ``STOKES_STATES`` or ``(S, 4)`` rows):
+      return Stokes profiles ``(S, 4, B)``. Default: the full Mueller profile ``(4, 4, B)``.
+    - `channels`: Mueller elements ``[(i, j), ...]`` to compute (``(C, B)``), instead.
+    - `visibility`: ``(F,)`` lit-and-visible fractions; default: ray-cast at the scene's pose
+      (needs concrete pose values).
+    - `brdf`: Mueller BRDF callable (default :func:`ppr.mueller_brdf`); `terms` passed to it.
+    - `prune`: drop back-facing and invisible facets before the kernel (same result).
+    - `dtype`: kernel float dtype (default: the default float, float32 unless x64 is on).
+
+    Raises ``ValueError`` (before computing anything) if the range gate does not contain every
+    visible facet's depth interval +- ``COVER_NSIG`` pulse sigmas.
+    """
+    if states is not None and channels is not None:
+        raise ValueError("give states or channels, not both")
+    brdf = _default_brdf() if brdf is None else brdf
+    mesh, sensor, bins, pulse, pose = scene.mesh, scene.sensor, scene.bins, scene.pulse, scene.pose
+    for x, what in ((pose.quaternion, "pose"), (pose.position, "pose"), (pulse.sigma_t, "pulse")):
+        _check_concrete(x, what)
+    rot = np.asarray(quat_to_matrix(np.asarray(pose.quaternion, np.float64)))
+    u_in = np.asarray(sensor.laser_dir, np.float64)
+    u_out = np.asarray(sensor.receiver_dir, np.float64)
+    if visibility is None:
+        caster = VisibilityCaster(mesh, scene.vis_samples)
+        vis = caster.fractions(rot.T @ u_in, rot.T @ u_out)
+    else:
+        vis = np.asarray(visibility, np.float64)
+        if vis.shape != (mesh.n_faces,) or not np.all(np.isfinite(vis)) or np.any(vis < 0) or np.any(vis > 1):
+            raise ValueError(f"visibility must be ({mesh.n_faces},) fractions in [0, 1], got shape {vis.shape}")
+    # projection / labels
+    if states is not None:
+        names = [s if isinstance(s, str) else None for s in states]
+        if all(isinstance(s, str) for s in states):
+            bad = [s for s in states if s not in STOKES_STATES]
+            if bad:
+                raise ValueError(f"unknown transmitted state(s) {bad}; known: {sorted(STOKES_STATES)}")
+            svec = np.asarray([STOKES_STATES[s] for s in states])
+            labels = tuple(names)
+        else:
+            svec = np.asarray(states, np.float64)
+            if svec.ndim != 2 or svec.shape[1] != 4 or not np.all(np.isfinite(svec)):
+                raise ValueError(f"states must be names or (S, 4) Stokes rows, got {svec.tolist()}")
+            labels = tuple(str(list(r)) for r in svec)
+        proj = stokes_projection(svec)
+        kind, out_shape = "stokes", (len(svec), 4)
+    elif channels is not None:
+        chans = [tuple(int(v) for v in c) for c in channels]
+        if not chans or any(len(c) != 2 or not (0 <= c[0] < 4 and 0 <= c[1] < 4) for c in chans):
+            raise ValueError(f"channels must be (i, j) pairs with 0 <= i, j < 4, got {channels!r}")
+        proj = channel_projection(chans)
+        kind, out_shape, labels = "channels", (len(chans),), tuple(chans)
+    else:
+        proj = None
+        kind, out_shape, labels = "mueller", (4, 4), ()
+    # geometry on the host: coverage check and window size
+    tri = mesh.triangles()
+    w = 0.5 * (u_in + u_out)
+    pos = np.asarray(pose.position, np.float64)
+    sigma_r = 0.5 * C_LIGHT * float(pulse.sigma_t)
+    shift = 0.5 * C_LIGHT * float(pulse.t0)
+    depth = -(tri @ rot.T @ w) - pos @ w + shift
+    keep = vis > 0 if prune else np.ones(mesh.n_faces, bool)
+    edges = bins.edges()
+    if np.any(vis > 0):
+        lo = depth[vis > 0].min() - COVER_NSIG * sigma_r
+        hi = depth[vis > 0].max() + COVER_NSIG * sigma_r
+        if lo < edges[0] or hi > edges[-1]:
+            raise ValueError(
+                f"range bins [{edges[0]:.4g}, {edges[-1]:.4g}] m do not cover the visible object "
+                f"[{lo:.4g}, {hi:.4g}] m (depth +- {COVER_NSIG:g} pulse sigmas); widen or move "
+                "the bins (start, width, count)"
+            )
+    if not keep.any():
+        keep = np.zeros(mesh.n_faces, bool)
+        keep[0] = True  # a zero-weight facet keeps the shapes valid (vis = 0)
+    from ._mesh import Mesh  # noqa: PLC0415
+
+    sub = Mesh(mesh.vertices, np.asarray(mesh.faces)[keep], np.asarray(mesh.material_ids)[keep], mesh.parts)
+    dt = jnp.result_type(float) if dtype is None else dtype
+    arrays = mesh_arrays(sub, capacity_for(int(keep.sum())), dt)
+    vis_k = np.zeros(arrays.valid.shape[0])
+    vis_k[: int(keep.sum())] = vis[keep]
+    max_ext = float(np.ptp(depth[keep], axis=1).max())
+    # window from the longest edge (pose independent, so new poses reuse the compilation)
+    sub_tri = tri[keep]
+    max_edge = float(np.linalg.norm(sub_tri - np.roll(sub_tri, 1, axis=1), axis=-1).max())
+    window = window_size(max(max_edge * float(np.linalg.norm(w)), max_ext), sigma_r, float(bins.width),
+                         bins.n_bins)
+    mats = stack_materials(scene.materials)
+    mats = jax.tree_util.tree_map(
+        lambda a: a.astype(jnp.result_type(dt, jnp.complex64) if jnp.iscomplexobj(a) else dt), mats
+    )
+    cast = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, dt), t)  # noqa: E731
+    out = render(
+        arrays, jnp.asarray(vis_k, dt), cast(pose), mats, cast(sensor),
+        jnp.asarray(sigma_r, dt), jnp.asarray(float(bins.start) - shift, dt), jnp.asarray(bins.width, dt),
+        n_bins=bins.n_bins, window=window,
+        projection=None if proj is None else jnp.asarray(proj, dt), brdf=brdf, terms=terms,
+    )
+    data = out.reshape(*out_shape, bins.n_bins)
+    centres = bins.centres()
+    return Profile(
+        data=data,
+        range_m=jnp.asarray(centres),
+        time_s=jnp.asarray(2.0 * centres / C_LIGHT),
+        edges_m=jnp.asarray(edges),
+        visibility=jnp.asarray(vis),
+        reference_range_m=float(bins.reference_range),
+        kind=kind,
+        labels=labels,
+    )
+
+
+__all__ = [
+    "NSIG",
+    "Profile",
+    "STOKES_STATES",
+    "channel_projection",
+    "facet_weights",
+    "lambertian_mueller",
+    "render",
+    "simulate",
+    "stack_materials",
+    "stokes_projection",
+    "tent_gaussian_cdf",
+    "window_size",
+]
+
+_ = RangeBins  # re-exported type used in annotations of callers
