@@ -11,6 +11,17 @@ Conventions (directions, frames, Stokes handedness, complex index sign, units) a
 from ._material import Material
 from ._fresnel import fresnel_amplitudes, fresnel_mueller_params
 from ._frames import jones_to_mueller, mueller_rotator
+from . import _polarimetry as polarimetry
+from ._polarimetry import (
+    cloude_eigenvalues,
+    degree_of_polarization,
+    depolarization_index,
+    diattenuation,
+    is_realizable,
+    lu_chipman,
+    polarizance,
+    retardance,
+)
 from . import microfacet
 from . import shapes
 from ._mesh import Mesh, MeshArrays, check_mesh, load_mesh, mesh_arrays, subdivide
@@ -19,6 +30,21 @@ from ._scene import Pose, Pulse, RangeBins, Scene, Sensor, load_scene, load_sens
 from ._visibility import VisibilityCaster
 from ._pulse import Profile, render, simulate, stack_materials, tent_gaussian_cdf, window_size
 
-__all__ = ["Material", "fresnel_amplitudes", "fresnel_mueller_params", "jones_to_mueller", "mueller_rotator"]
+__all__ = [
+    "Material",
+    "fresnel_amplitudes",
+    "fresnel_mueller_params",
+    "jones_to_mueller",
+    "mueller_rotator",
+    "polarimetry",
+    "cloude_eigenvalues",
+    "degree_of_polarization",
+    "depolarization_index",
+    "diattenuation",
+    "is_realizable",
+    "lu_chipman",
+    "polarizance",
+    "retardance",
+]
 __all__ += ["shapes", "Mesh", "MeshArrays", "check_mesh", "load_mesh", "mesh_arrays", "subdivide", "quat_from_axis_angle", "quat_to_matrix", "Pose", "Pulse", "RangeBins", "Scene", "Sensor", "load_scene", "load_sensor", "VisibilityCaster", "Profile", "render", "simulate", "stack_materials", "tent_gaussian_cdf", "window_size"]
 __version__ = "0.1.0"
