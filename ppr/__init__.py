@@ -11,6 +11,7 @@ Conventions (directions, frames, Stokes handedness, complex index sign, units) a
 from ._material import Material
 from ._fresnel import fresnel_amplitudes, fresnel_mueller_params
 from ._frames import jones_to_mueller, mueller_rotator
+from ._library import load_material, material_names
 from . import _polarimetry as polarimetry
 from ._polarimetry import (
     cloude_eigenvalues,
@@ -36,6 +37,8 @@ __all__ = [
     "fresnel_mueller_params",
     "jones_to_mueller",
     "mueller_rotator",
+    "load_material",
+    "material_names",
     "polarimetry",
     "cloude_eigenvalues",
     "degree_of_polarization",
