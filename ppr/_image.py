@@ -10,18 +10,17 @@ laser decides. From the per-pixel Mueller matrices the panels show the total ref
 ``M00 cos(theta_in)`` (the pixel's return per unit projected area, 1/sr) and, from the
 Lu-Chipman decomposition, depolarization index, polarizance, diattenuation and retardance.
 
-Geometry conventions (see :mod:`ppr._conventions`): directions point away from the surface;
-``to_sensor`` is the unit vector from the object toward the receiver in world coordinates;
-``attitude`` is the body-to-world rotation as a quaternion ``(w, x, y, z)``
-(``v_world = R(q) v_body``); ``sensor_x`` is the sensor's polarization reference axis (the x
-axis of both the transmitted and received beams' Stokes frames), projected perpendicular to
-each beam. Image axes: columns run along ``sensor_x``, rows along ``to_sensor x sensor_x``
-(row 0 at the top, i.e. the largest coordinate along that axis).
+Geometry conventions are those of :mod:`ppr._scene` (and :mod:`ppr._conventions`): world
+vectors ``laser_dir`` (object -> laser) and ``receiver_dir`` (object -> receiver), Stokes frame
+x axes ``frame_tx``/``frame_rx`` of the transmitted and received beams, and the body-to-world
+attitude quaternion ``(w, x, y, z)``. The camera is the receiver: image columns run along
+``frame_rx``, rows along ``receiver_dir x frame_rx`` (row 0 at the top).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -32,11 +31,54 @@ EXAMPLE_SATELLITE = Path(__file__).resolve().parent / "data" / "example_satellit
 QUANTITIES = ("reflectance", "depolarization_index", "polarizance", "diattenuation", "retardance")
 QUANTITY_LABELS = {
     "reflectance": r"total reflectance $M_{00}\cos\theta_i$ [1/sr]",
-    "depolarization_index": "depolarization index",
+    "depolarization_index": "depolarization index (1: none)",
     "polarizance": "polarizance",
     "diattenuation": "diattenuation",
     "retardance": "retardance [rad]",
 }
+
+
+_API_HOMES = {
+    "mueller_brdf": "ppr._brdf",
+    "depolarization_index": "ppr._polarimetry",
+    "polarizance": "ppr._polarimetry",
+    "diattenuation": "ppr._polarimetry",
+    "retardance": "ppr._polarimetry",
+}
+
+
+def api(name: str):
+    """``ppr.<name>``, or the function from its home module if ``ppr`` does not export it yet
+    (``None`` if neither exists)."""
+    import importlib
+
+    import ppr
+
+    fn = getattr(ppr, name, None)
+    if fn is None and name in _API_HOMES:
+        try:
+            fn = getattr(importlib.import_module(_API_HOMES[name]), name, None)
+        except ImportError:
+            fn = None
+    return fn
+
+
+def supported_terms(terms):
+    """``terms`` itself, or ``None`` (all implemented terms) when it is ``"auto"`` and this
+    build's :func:`ppr.mueller_brdf` does not implement the automatic choice yet."""
+    if terms != "auto":
+        return terms
+    brdf = api("mueller_brdf")
+    if brdf is None:
+        return terms
+    import ppr
+
+    z = np.array([0.0, 0.0, 1.0])
+    try:
+        brdf(z, z, z, ppr.Material(n=1.5, m=10.0), terms="auto")
+    except NotImplementedError:
+        return None
+    return terms
 
 
 # --------------------------------------------------------------------------- geometry helpers
@@ -44,10 +86,10 @@ def quaternion_to_matrix(q: Sequence[float]) -> np.ndarray:
     """Rotation matrix of a quaternion ``(w, x, y, z)`` (any norm > 0, either sign)."""
     q = np.asarray(q, dtype=float)
     if q.shape != (4,) or not np.all(np.isfinite(q)):
-        raise ValueError(f"attitude must be 4 finite numbers (w, x, y, z), got {q.tolist()!r}")
+        raise ValueError(f"quaternion must be 4 finite numbers (w, x, y, z), got {q.tolist()!r}")
     nrm = np.linalg.norm(q)
     if nrm < 1e-12:
-        raise ValueError(f"attitude quaternion has zero norm: {q.tolist()!r}")
+        raise ValueError(f"quaternion has zero norm: {q.tolist()!r}")
     w, x, y, z = q / nrm
     return np.array(
         [
@@ -68,16 +110,16 @@ def _unit(v, name: str) -> np.ndarray:
 
 
 def sensor_axes(to_sensor, sensor_x=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unit ``(s, x, y)``: toward the sensor, the polarization x axis projected perpendicular to
-    ``s``, and ``y = s x x``. Default ``sensor_x``: world z projected (world x if ``s`` is
-    along z)."""
-    s = _unit(to_sensor, "to_sensor")
+    """Unit ``(s, x, y)`` of a beam travelling along ``s``: ``s``, the reference ``sensor_x``
+    projected perpendicular to ``s``, and ``y = s x x``. Default ``sensor_x``: world z (world
+    x if ``s`` is along z)."""
+    s = _unit(to_sensor, "beam direction")
     if sensor_x is None:
         sensor_x = (0.0, 0.0, 1.0) if abs(s[2]) < 0.9 else (1.0, 0.0, 0.0)
-    x = _unit(sensor_x, "sensor_x")
+    x = _unit(sensor_x, "polarization reference")
     x = x - np.dot(x, s) * s
     if np.linalg.norm(x) < 1e-6:
-        raise ValueError(f"sensor_x {list(sensor_x)!r} is parallel to to_sensor {s.tolist()!r}")
+        raise ValueError(f"polarization reference {list(sensor_x)!r} is parallel to {s.tolist()!r}")
     x /= np.linalg.norm(x)
     return s, x, np.cross(s, x)
 
@@ -203,6 +245,7 @@ class MuellerImage:
     x_axis: np.ndarray
     y_axis: np.ndarray
     part_names: tuple[str, ...]
+    monostatic: bool = True
     quantities: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
 
     def arrays(self) -> dict[str, np.ndarray]:
@@ -223,14 +266,33 @@ class MuellerImage:
         return out
 
 
-def polarimetric_maps(mueller: np.ndarray, cos_in: np.ndarray) -> dict[str, np.ndarray]:
+_POLARIMETRY_JIT: dict = {}
+
+
+def _polarimetry_fn():
+    """One jitted function for the four Lu-Chipman quantities (built once per process)."""
+    if "fn" not in _POLARIMETRY_JIT:
+        import jax
+
+        funcs = {name: api(name) for name in QUANTITIES[1:]}
+
+        @jax.jit
+        def quantities(M):
+            return {name: fn(M) for name, fn in funcs.items() if fn is not None}
+
+        _POLARIMETRY_JIT["fn"] = quantities
+    return _POLARIMETRY_JIT["fn"]
+
+
+def polarimetric_maps(
+    mueller: np.ndarray, cos_in: np.ndarray, chunk: int = 8192
+) -> dict[str, np.ndarray]:
     """Total reflectance ``M00 cos(theta_in)`` and the Lu-Chipman quantities per pixel.
 
     Pixels with ``M00 <= 0`` (background, shadow, no reflection) are NaN in the normalized
-    quantities (they have no polarization state)."""
+    quantities (they have no polarization state). Evaluated in padded chunks of ``chunk``
+    matrices by one jitted function (one compilation per dtype)."""
     import jax.numpy as jnp
-
-    import ppr
 
     m00 = mueller[..., 0, 0]
     ok = np.isfinite(m00) & (m00 > 0)
@@ -238,43 +300,51 @@ def polarimetric_maps(mueller: np.ndarray, cos_in: np.ndarray) -> dict[str, np.n
     flat = mueller[ok]
     if flat.size:
         flat = flat / flat[:, :1, :1]
-    funcs = {
-        "depolarization_index": ppr.depolarization_index,
-        "polarizance": ppr.polarizance,
-        "diattenuation": ppr.diattenuation,
-        "retardance": ppr.retardance,
-    }
-    for name, fn in funcs.items():
-        img = np.full(m00.shape, np.nan)
-        if flat.size:
-            img[ok] = np.asarray(fn(jnp.asarray(flat)))
-        out[name] = img
+    for name in QUANTITIES[1:]:
+        out[name] = np.full(m00.shape, np.nan)
+    if not flat.size or api("retardance") is None:
+        return out
+    n = len(flat)
+    size = chunk
+    fn = _polarimetry_fn()
+    parts: dict[str, list] = {name: [] for name in QUANTITIES[1:]}
+    for a in range(0, n, size):
+        block = flat[a : a + size]
+        pad = size - len(block)
+        if pad:
+            block = np.concatenate([block, np.broadcast_to(np.eye(4), (pad, 4, 4))])
+        res = fn(jnp.asarray(block))
+        for name in parts:
+            parts[name].append(np.asarray(res[name], dtype=float)[: size - pad])
+    for name in parts:
+        out[name][ok] = np.concatenate(parts[name])
     return out
 
 
+@functools.lru_cache(maxsize=16)
 def _brdf_eval_fn(terms, wavelength: float) -> Callable:
-    """One jitted per-pixel evaluator (vmapped over pixels, material gathered per pixel)."""
+    """One jitted evaluator over a fixed-size chunk of pixels: the per-part materials are
+    gathered per pixel (fields with a leading pixel axis broadcast with the directions)."""
     import equinox as eqx
     import jax
 
-    import ppr
+    brdf = api("mueller_brdf")
+    if brdf is None:
+        raise RuntimeError("ppr.mueller_brdf is not available in this build")
 
-    def one(k_in, k_out, normal, x_in, x_out, mat):
-        return ppr.mueller_brdf(
+    @eqx.filter_jit
+    def many(k_in, k_out, normal, x_in, x_out, idx, materials):
+        mats = jax.tree_util.tree_map(lambda a: a[idx], materials)
+        return brdf(
             k_in,
             k_out,
             normal,
-            mat,
+            mats,
             terms=terms,
             frame_in=x_in,
             frame_out=x_out,
             wavelength=wavelength,
         )
-
-    @eqx.filter_jit
-    def many(k_in, k_out, normal, x_in, x_out, idx, materials):
-        mats = jax.tree_util.tree_map(lambda a: a[idx], materials)
-        return jax.vmap(one)(k_in, k_out, normal, x_in, x_out, mats)
 
     return many
 
@@ -290,6 +360,8 @@ def _stack_materials(materials: Sequence):
         if dataclasses.is_dataclass(mat) and hasattr(mat, "name"):
             mat = dataclasses.replace(mat, name="")  # static label: avoid retracing per name
         cleaned.append(mat)
+    # pad to a multiple of 8 slots so meshes with different part counts share a compilation
+    cleaned += [cleaned[-1]] * (-len(cleaned) % 8)
     arrays = [eqx.filter(m, eqx.is_array) for m in cleaned]
     static = eqx.filter(cleaned[0], eqx.is_array, inverse=True)
     stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *arrays)
@@ -300,12 +372,13 @@ def render_mueller_image(
     mesh: PartMesh,
     materials: Sequence,
     *,
-    to_sensor: Sequence[float],
-    attitude: Sequence[float] = (1.0, 0.0, 0.0, 0.0),
-    sensor_x: Sequence[float] | None = None,
+    laser_dir: Sequence[float],
+    receiver_dir: Sequence[float] | None = None,
+    frame_tx: Sequence[float] | None = None,
+    frame_rx: Sequence[float] | None = None,
+    quaternion: Sequence[float] = (1.0, 0.0, 0.0, 0.0),
     n_pixels: int = 128,
     half_width: float | None = None,
-    bistatic_angle: float = 0.0,
     wavelength: float = 532e-9,
     terms="auto",
     shading: str = "flat",
@@ -316,19 +389,25 @@ def render_mueller_image(
 ) -> MuellerImage:
     """Render the per-pixel Mueller BRDF of ``mesh`` (one material per part) at a pose.
 
+    Directions and frames are world vectors as in :class:`ppr.Sensor` (see
+    :mod:`ppr._scene`): the camera is the receiver, looking along ``-receiver_dir``.
+
     **Arguments:**
 
     - `mesh`: :class:`PartMesh` in the body frame (metres).
     - `materials`: one :class:`ppr.Material` per ``mesh.part_names`` entry.
-    - `to_sensor`: unit vector from the object toward the receiver (world frame).
-    - `attitude`: body-to-world quaternion ``(w, x, y, z)``.
-    - `sensor_x`: the sensor's polarization x axis (world frame); default world z projected.
+    - `laser_dir`: unit vector from the object toward the laser (every pixel's ``k_in``).
+    - `receiver_dir`: unit vector from the object toward the receiver (``k_out``); default
+      ``laser_dir`` (monostatic: every visible point is lit). Otherwise a shadow ray toward
+      the laser decides whether a visible point is lit.
+    - `frame_tx`, `frame_rx`: x axes of the transmitted (along ``-laser_dir``) and received
+      (along ``+receiver_dir``) beams' Stokes frames; default world z projected (world x if a
+      beam is along z). The image's columns run along ``frame_rx`` and its rows along
+      ``receiver_dir x frame_rx`` (up).
+    - `quaternion`: body-to-world attitude ``(w, x, y, z)``.
     - `n_pixels`: image is ``n_pixels x n_pixels``.
     - `half_width`: half the field of view (m); default: the mesh's bounding radius x 1.05.
-    - `bistatic_angle`: angle (rad) between the laser and receiver directions; the laser
-      direction is the receiver's rotated about the image y axis. 0: monostatic, every visible
-      point is lit; > 0: a shadow ray toward the laser decides.
-    - `wavelength`: metres. `terms`: BRDF terms (``"auto"`` or a tuple of names).
+    - `wavelength`: metres. `terms`: BRDF terms (``"auto"``, ``None`` for all, or names).
     - `shading`: ``"flat"`` (face normals) or ``"smooth"`` (barycentric interpolation of the
       mesh's vertex normals; needs ``mesh.vertex_normals``).
     - `chunk`: pixels per BRDF call (fixed, padded: one compilation).
@@ -349,18 +428,21 @@ def render_mueller_image(
         raise ValueError("shading='smooth' needs a mesh with vertex_normals")
     if not (isinstance(n_pixels, int | np.integer) and 1 <= n_pixels <= 4096):
         raise ValueError(f"n_pixels must be an integer in [1, 4096], got {n_pixels!r}")
-    if not (np.isfinite(bistatic_angle) and 0.0 <= bistatic_angle < np.pi / 2):
-        raise ValueError(f"bistatic_angle must lie in [0, pi/2) rad, got {bistatic_angle!r}")
 
     # Work in the body frame: rotate the sensor directions by R^T.
-    rot = quaternion_to_matrix(attitude)
-    s_w, x_w, y_w = sensor_axes(to_sensor, sensor_x)
+    rot = quaternion_to_matrix(quaternion)
+    u_in = _unit(laser_dir, "laser_dir")
+    u_out = u_in if receiver_dir is None else _unit(receiver_dir, "receiver_dir")
+    if np.dot(u_in, u_out) <= 0:
+        raise ValueError("receiver_dir is more than 90 deg from laser_dir")
+    monostatic = bool(np.allclose(u_in, u_out, rtol=0.0, atol=1e-12))
+    _, x_tx_w, _ = sensor_axes(u_in, frame_tx)
+    s_w, x_w, y_w = sensor_axes(u_out, frame_rx)
     s, x_ax, y_ax = rot.T @ s_w, rot.T @ x_w, rot.T @ y_w
-    s_tx = rotate_about(s, y_ax, bistatic_angle) if bistatic_angle > 0 else s
-    # Stokes frame x axes of the transmitted beam (travelling along -s_tx) and the received one
-    # (travelling along +s): the sensor x axis projected perpendicular to each.
-    x_in = x_ax - np.dot(x_ax, s_tx) * s_tx
-    x_in /= np.linalg.norm(x_in)
+    s_tx = rot.T @ u_in
+    # Stokes frame x axes of the transmitted beam (travelling along -s_tx) and the received
+    # one (travelling along +s), body frame.
+    x_in = rot.T @ x_tx_w
     x_out = x_ax
 
     verts = mesh.vertices
@@ -400,7 +482,7 @@ def render_mueller_image(
         nrm = fn
 
     lit = np.ones(len(tri), dtype=bool)
-    if bistatic_angle > 0 and len(tri):
+    if not monostatic and len(tri):
         eps = 1e-5 * max(radius, 1e-3)
         sh_orig = loc + eps * fn
         lit = ~np.asarray(inter.intersects_any(sh_orig, np.broadcast_to(s_tx, sh_orig.shape)))
@@ -414,7 +496,7 @@ def render_mueller_image(
     sel = np.nonzero(lit)[0]
     mueller[ray] = 0.0
     if len(sel):
-        evaluate = _brdf_eval_fn(terms, wavelength)
+        evaluate = _brdf_eval_fn(supported_terms(terms), wavelength)
         mats = _stack_materials([_cast_material(m, dtype) for m in materials])
         starts = range(0, len(sel), chunk)
         for a in tqdm(starts, desc="Mueller image", unit="chunk", disable=not progress):
@@ -451,6 +533,7 @@ def render_mueller_image(
         x_axis=x_ax,
         y_axis=y_ax,
         part_names=mesh.part_names,
+        monostatic=monostatic,
     )
     result.quantities = polarimetric_maps(result.mueller, np.where(result.lit, cos_in, 0.0))
     return result
@@ -491,9 +574,12 @@ def plot_mueller_image(img: MuellerImage, path: str | Path, title: str = "") -> 
     for ax, name in zip(axes, QUANTITIES, strict=True):
         data = img.quantities[name]
         if name == "reflectance":
+            from matplotlib.colors import LogNorm
+
             finite = data[np.isfinite(data) & (data > 0)]
-            vmax = float(np.percentile(finite, 99)) if finite.size else 1.0
-            kw = {"vmin": 0.0, "vmax": vmax, "cmap": "inferno"}
+            vmax = float(finite.max()) if finite.size else 1.0
+            cmap = plt.get_cmap("inferno").with_extremes(under="black")
+            kw = {"norm": LogNorm(vmin=vmax * 1e-4, vmax=vmax), "cmap": cmap}
         elif name == "retardance":
             kw = {"vmin": 0.0, "vmax": np.pi, "cmap": "magma"}
         else:

@@ -121,62 +121,23 @@ def write_json(path: Path, data: dict) -> None:
 Vec3 = tuple[float, float, float]
 
 
-class InlineMaterial(StrictModel):
-    """A material given by its optical constants."""
-
-    n: tuple[float, float] = pydantic.Field(description="complex index [n', n''], n'' >= 0")
-    m: float = pydantic.Field(ge=0.0, le=1e6, description="Blinn-Phong exponent")
-    corr_length: float = pydantic.Field(5e-6, gt=0.0, description="correlation length (m)")
-    name: str = ""
-
-    @pydantic.field_validator("n")
-    @classmethod
-    def _n_ok(cls, v):
-        if v[0] <= 0 or v[1] < 0:
-            raise ValueError("need n' > 0 and n'' >= 0")
-        return v
-
-
-class LibraryMaterial(StrictModel):
-    """A material of the library (configs/materials.toml) with an optional finish."""
-
-    name: str
-    finish: str | None = None
-
-
-MaterialSpec = str | LibraryMaterial | InlineMaterial
-
-
-def resolve_material(spec: MaterialSpec, wavelength: float, field: str, source: str):
-    """Turn a config material spec into a :class:`ppr.Material` (ConfigError on a bad name)."""
-    import ppr
-
-    if isinstance(spec, InlineMaterial):
-        try:
-            return ppr.Material(
-                n=complex(*spec.n), m=spec.m, corr_length=spec.corr_length, name=spec.name
-            )
-        except ValueError as err:
-            raise ConfigError(f"{source}: {field} = {spec.model_dump()!r}: {err}") from None
-    name, finish = (spec, None) if isinstance(spec, str) else (spec.name, spec.finish)
-    load = getattr(ppr, "load_material", None)
-    if load is None:
+def resolve_material(spec: Any, wavelength: float, field: str, cfg_path: Path):
+    """A config material spec (library name, or inline table ``{n_real, n_imag, m,
+    corr_length_m}`` as in scene configs) -> :class:`ppr.Material`; errors name the field."""
+    sc = _scene_schema()
+    if isinstance(spec, dict):
+        spec = _sub_model(sc.InlineMaterial, spec, cfg_path, field)
+    elif not isinstance(spec, str):
         raise ConfigError(
-            f"{source}: {field} = {name!r}: the material library is not available in this "
-            "build; give the material inline as {{n = [n', n''], m = ...}}"
-        )
-    names = getattr(ppr, "material_names", None)
-    if names is not None and name not in names():
-        raise ConfigError(
-            f"{source}: {field} = {name!r}: unknown material; known: {', '.join(names())}"
+            f"{cfg_path}: {field} = {spec!r}: expected a library material name or an inline "
+            "table {n_real, n_imag, m, corr_length_m}"
         )
     try:
-        if finish is None:
-            return load(name, wavelength)
-        return load(name, wavelength, finish)
-    except (ValueError, KeyError) as err:
-        msg = str(err).strip("'\"")
-        raise ConfigError(f"{source}: {field} = {name!r} (finish {finish!r}): {msg}") from None
+        return sc._material_from_config(spec, wavelength, f"{cfg_path}: {field}")
+    except ValueError as err:
+        if isinstance(err, ConfigError):
+            raise
+        raise ConfigError(f"{cfg_path}: {field} = {spec!r}: {err}") from None
 
 
 Terms = Literal["auto", "all"] | list[Literal["single", "double", "multiple"]]
@@ -200,8 +161,8 @@ class Range(StrictModel):
 class BrdfConfig(StrictModel):
     """``ppr brdf``: a Mueller BRDF sweep over incidence and bistatic angle."""
 
-    material: MaterialSpec
-    wavelength: float = pydantic.Field(532e-9, gt=0.0, lt=1e-3)
+    material: str | dict[str, Any]
+    wavelength_nm: float = pydantic.Field(532.0, gt=0.0)
     terms: Terms = "auto"
     incidence_deg: list[Annotated[float, pydantic.Field(ge=0.0, lt=90.0)]] = [0.0, 30.0, 60.0]
     bistatic_deg: Range | list[Annotated[float, pydantic.Field(ge=0.0, le=179.0)]] = Range(
@@ -219,33 +180,55 @@ class BrdfConfig(StrictModel):
         return v
 
 
-class PoseConfig(StrictModel):
-    attitude: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
-    to_sensor: Vec3 = (1.0, 0.0, 0.0)
-    sensor_x: Vec3 | None = None
+class ViewConfig(StrictModel):
+    """Sensor geometry of an image (same fields and meaning as configs/sensors/*.toml)."""
+
+    wavelength_nm: float = pydantic.Field(532.0, gt=0.0)
+    line_of_sight: Vec3 = (-0.8, -0.3, -0.52)
+    polarization_reference: Vec3 = (-0.5, 0.866, 0.0)
+    bistatic_angle_urad: float = pydantic.Field(0.0, ge=0.0, lt=1.5e6)
+    bistatic_azimuth_deg: float = 0.0
 
 
-class ShapeConfig(StrictModel):
-    """A parametric shape of ``ppr.shapes`` (name plus its keyword parameters)."""
+class RenderConfig(StrictModel):
+    n_pixels: int = pydantic.Field(128, ge=4, le=2048)
+    half_width_m: float | None = pydantic.Field(None, gt=0.0)
+    shading: Literal["flat", "smooth"] = "flat"
+    terms: Terms = "auto"
+    dtype: Literal["float32", "float64"] = "float32"
 
-    model_config = pydantic.ConfigDict(extra="allow", frozen=True, allow_inf_nan=False)
-    name: str
+
+def _scene_schema():
+    from . import _scene
+
+    return _scene
 
 
 class ImageConfig(StrictModel):
-    """``ppr image``: per-pixel monostatic Mueller images of a mesh at a pose."""
+    """``ppr image``: per-pixel Mueller images of a mesh at a pose."""
 
-    mesh: str = "example"
-    shape: ShapeConfig | None = None
-    materials: dict[str, MaterialSpec]
-    wavelength: float = pydantic.Field(532e-9, gt=0.0, lt=1e-3)
-    terms: Terms = "auto"
-    pose: PoseConfig = PoseConfig()
-    n_pixels: int = pydantic.Field(128, ge=4, le=2048)
-    half_width: float | None = pydantic.Field(None, gt=0.0)
-    bistatic_angle: float = pydantic.Field(0.0, ge=0.0, lt=1.5)
-    shading: Literal["flat", "smooth"] = "flat"
-    dtype: Literal["float32", "float64"] = "float32"
+    scene: str | None = None
+    mesh: str | None = None
+    shape: dict[str, Any] | None = None
+    materials: dict[str, Any] = {}
+    pose: dict[str, Any] | None = None
+    view: ViewConfig | None = None
+    render: RenderConfig = RenderConfig()
+
+    @pydantic.model_validator(mode="after")
+    def _geometry(self):
+        given = [k for k in ("scene", "mesh", "shape") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(f"give exactly one of scene, mesh, [shape] (got {given or 'none'})")
+        if self.scene is not None:
+            extra = [k for k in ("materials", "pose", "view") if getattr(self, k)]
+            if extra:
+                raise ValueError(
+                    f"{extra[0]} comes from the scene file when scene is given; remove it"
+                )
+        elif not self.materials:
+            raise ValueError("materials: give a material per mesh part (or materials.default)")
+        return self
 
 
 # ============================================================================== helpers
@@ -323,21 +306,10 @@ def brdf_geometry(incidence_deg, bistatic_deg, plane: str):
 
 def polarimetry(mueller: np.ndarray) -> dict[str, np.ndarray]:
     """Depolarization index, polarizance, diattenuation, retardance of normalized matrices."""
-    import jax.numpy as jnp
+    from ._image import polarimetric_maps
 
-    import ppr
-
-    m00 = mueller[..., 0, 0]
-    ok = np.isfinite(m00) & (m00 > 0)
-    out = {}
-    flat = mueller[ok]
-    flat = flat / flat[:, :1, :1] if flat.size else flat
-    for name in ("depolarization_index", "polarizance", "diattenuation", "retardance"):
-        fn = getattr(ppr, name, None)
-        arr = np.full(m00.shape, np.nan)
-        if fn is not None and flat.size:
-            arr[ok] = np.asarray(fn(jnp.asarray(flat)))
-        out[name] = arr
+    out = polarimetric_maps(mueller, np.ones(mueller.shape[:-2]))
+    out.pop("reflectance")
     return out
 
 
@@ -349,9 +321,9 @@ def cmd_brdf(args) -> int:
         _maybe_x64(cfg.dtype)
         import jax.numpy as jnp
 
-        import ppr
+        from ._image import api
 
-        mat = resolve_material(cfg.material, cfg.wavelength, "material", str(cfg_path))
+        mat = resolve_material(cfg.material, cfg.wavelength_nm * 1e-9, "material", cfg_path)
         bis = (
             cfg.bistatic_deg.values()
             if isinstance(cfg.bistatic_deg, Range)
@@ -362,7 +334,7 @@ def cmd_brdf(args) -> int:
         dt = _dtype(cfg.dtype)
         safe_out = np.where(valid[..., None], k_out, k_in)
         t0 = time.perf_counter()
-        mueller = ppr.mueller_brdf(
+        mueller = api("mueller_brdf")(
             jnp.asarray(k_in, dt),
             jnp.asarray(safe_out, dt),
             jnp.asarray([0.0, 0.0, 1.0], dt),
@@ -370,7 +342,7 @@ def cmd_brdf(args) -> int:
             terms=_terms_arg(cfg.terms),
             frame_in=jnp.asarray(f_in, dt),
             frame_out=jnp.asarray(f_out, dt),
-            wavelength=cfg.wavelength,
+            wavelength=cfg.wavelength_nm * 1e-9,
         )
         mueller = np.where(valid[..., None, None], np.asarray(mueller, float), np.nan)
         elapsed = time.perf_counter() - t0
@@ -439,7 +411,7 @@ def _plot_brdf(path, inc, bis, mueller, quants, cfg, mat) -> None:
     n = complex(np.asarray(mat.n).reshape(-1)[0])
     fig.suptitle(
         f"{getattr(mat, 'name', '') or 'material'}: n = {n.real:.3g}+{n.imag:.3g}i, "
-        f"m = {float(np.asarray(mat.m).reshape(-1)[0]):.3g}, {cfg.wavelength * 1e9:.0f} nm, "
+        f"m = {float(np.asarray(mat.m).reshape(-1)[0]):.3g}, {cfg.wavelength_nm:.0f} nm, "
         f"terms {cfg.terms}, {cfg.plane}-plane"
     )
     fig.savefig(path, dpi=100)
@@ -447,43 +419,90 @@ def _plot_brdf(path, inc, bis, mueller, quants, cfg, mat) -> None:
 
 
 # ================================================================================ image
-def _image_mesh(cfg: ImageConfig, cfg_path: Path):
-    from . import _image
-
-    smooth = cfg.shading == "smooth"
-    if cfg.shape is not None:
-        extra = dict(cfg.shape.model_extra or {})
-        name = cfg.shape.name
-        if name == "sphere" and smooth:
-            import trimesh
-
-            tm = trimesh.creation.icosphere(
-                subdivisions=int(extra.get("subdivisions", 3)),
-                radius=float(extra.get("radius", 0.5)),
-            )
-            return _image.part_mesh_from_trimeshes([(extra.get("part", "body"), tm)], smooth=True)
-        try:
-            shapes = importlib.import_module("ppr.shapes")
-            mesh = shapes.by_name(name, **extra)
-        except ModuleNotFoundError:
-            raise ConfigError(
-                f"{cfg_path}: shape.name = {name!r}: ppr.shapes is not available"
-            ) from None
-        except ValueError as err:
-            raise ConfigError(f"{cfg_path}: shape = {cfg.shape.model_dump()!r}: {err}") from None
-        return part_mesh_from_ppr_mesh(mesh, smooth)
-    path = _image.EXAMPLE_SATELLITE if cfg.mesh == "example" else _resolve_path(cfg.mesh, cfg_path)
-    if not path.is_file():
-        raise ConfigError(f"{cfg_path}: mesh = {cfg.mesh!r}: no such mesh file ({path})")
-    if smooth:
-        import trimesh
-
-        loaded = trimesh.load(path, force="mesh", process=True)
-        return _image.part_mesh_from_trimeshes([(path.stem, loaded)], smooth=True)
+def _sub_model(model, data, cfg_path: Path, field: str):
+    """Validate a sub-table with another module's schema; errors name ``field``."""
     try:
-        return _image.load_part_mesh(path)
+        return model.model_validate(data)
+    except pydantic.ValidationError as err:
+        from ._config import format_validation_error
+
+        msg = format_validation_error(err, str(cfg_path))
+        head, _, rest = msg.partition(": ")
+        raise ConfigError(f"{head}: {field}.{rest}") from None
+
+
+def image_inputs(cfg: ImageConfig, cfg_path: Path):
+    """Resolve an image config to ``(part mesh, materials, sensor, quaternion)``."""
+    from . import _image
+    from ._mesh import load_mesh
+
+    sc = _scene_schema()
+    smooth = cfg.render.shading == "smooth"
+    if cfg.scene is not None:
+        spath = _resolve_path(cfg.scene, cfg_path)
+        scene = sc.load_scene(spath)
+        mesh = part_mesh_from_ppr_mesh(scene.mesh, smooth)
+        return mesh, list(scene.materials), scene.sensor, np.asarray(scene.pose.quaternion)
+    if cfg.shape is not None:
+        shape = _sub_model(sc.ShapeConfig, cfg.shape, cfg_path, "shape")
+        from . import shapes
+
+        try:
+            pmesh = shapes.by_name(shape.name, **shape.params)
+        except ValueError as err:
+            raise ConfigError(f"{cfg_path}: shape = {cfg.shape!r}: {err}") from None
+    else:
+        path = (
+            _image.EXAMPLE_SATELLITE if cfg.mesh == "example" else _resolve_path(cfg.mesh, cfg_path)
+        )
+        try:
+            pmesh = load_mesh(path)
+        except ValueError as err:
+            raise ConfigError(f"{cfg_path}: mesh = {cfg.mesh!r}: {err}") from None
+    mesh = part_mesh_from_ppr_mesh(pmesh, smooth)
+    view = cfg.view or ViewConfig()
+    try:
+        sensor = sc.Sensor.make(
+            view.line_of_sight,
+            view.polarization_reference,
+            bistatic_angle=view.bistatic_angle_urad * 1e-6,
+            bistatic_azimuth=np.deg2rad(view.bistatic_azimuth_deg),
+            wavelength=view.wavelength_nm * 1e-9,
+        )
     except ValueError as err:
-        raise ConfigError(f"{cfg_path}: mesh = {cfg.mesh!r}: {err}") from None
+        raise ConfigError(f"{cfg_path}: view: {err}") from None
+    pose = _sub_model(sc.PoseConfig, cfg.pose or {}, cfg_path, "pose")
+    try:
+        from ._pose import check_quaternion
+
+        quat = check_quaternion(pose.quaternion, "pose.quaternion")
+    except ValueError as err:
+        raise ConfigError(f"{cfg_path}: {err}") from None
+    wl = view.wavelength_nm * 1e-9
+    mats = []
+    for part in mesh.part_names:
+        key = part if part in cfg.materials else "default"
+        if key not in cfg.materials:
+            raise ConfigError(
+                f"{cfg_path}: materials: no material for mesh part {part!r} (parts: "
+                f"{', '.join(mesh.part_names)}; add materials.{part} or materials.default)"
+            )
+        spec = cfg.materials[key]
+        if isinstance(spec, dict):
+            spec = _sub_model(sc.InlineMaterial, spec, cfg_path, f"materials.{key}")
+        elif not isinstance(spec, str):
+            raise ConfigError(
+                f"{cfg_path}: materials.{key} = {spec!r}: expected a library material name or "
+                "an inline table {n_real, n_imag, m, corr_length_m}"
+            )
+        mats.append(sc._material_from_config(spec, wl, f"{cfg_path}: materials.{key}"))
+    unknown = sorted(set(cfg.materials) - set(mesh.part_names) - {"default"})
+    if unknown:
+        raise ConfigError(
+            f"{cfg_path}: materials.{unknown[0]}: the mesh has no part {unknown[0]!r} (parts: "
+            f"{', '.join(mesh.part_names)})"
+        )
+    return mesh, mats, sensor, quat
 
 
 def part_mesh_from_ppr_mesh(mesh, smooth: bool = False):
@@ -506,50 +525,27 @@ def part_mesh_from_ppr_mesh(mesh, smooth: bool = False):
     )
 
 
-def _image_materials(cfg: ImageConfig, part_names, cfg_path: Path):
-    mats = []
-    for part in part_names:
-        if part in cfg.materials:
-            spec, field = cfg.materials[part], f"materials.{part}"
-        elif "default" in cfg.materials:
-            spec, field = cfg.materials["default"], "materials.default"
-        else:
-            raise ConfigError(
-                f"{cfg_path}: materials: no material for mesh part {part!r} (parts: "
-                f"{', '.join(part_names)}; add materials.{part} or materials.default)"
-            )
-        mats.append(resolve_material(spec, cfg.wavelength, field, str(cfg_path)))
-    unknown = set(cfg.materials) - set(part_names) - {"default"}
-    if unknown:
-        bad = sorted(unknown)[0]
-        raise ConfigError(
-            f"{cfg_path}: materials.{bad}: the mesh has no part {bad!r} (parts: "
-            f"{', '.join(part_names)})"
-        )
-    return mats
-
-
 def run_image(cfg: ImageConfig, cfg_path: Path, progress: bool = False):
     """Render the image a config describes (library entry used by the CLI and the demo)."""
     from . import _image
 
-    _maybe_x64(cfg.dtype)
-    mesh = _image_mesh(cfg, cfg_path)
-    mats = _image_materials(cfg, mesh.part_names, cfg_path)
+    _maybe_x64(cfg.render.dtype)
+    mesh, mats, sensor, quat = image_inputs(cfg, cfg_path)
     try:
         return _image.render_mueller_image(
             mesh,
             mats,
-            to_sensor=cfg.pose.to_sensor,
-            attitude=cfg.pose.attitude,
-            sensor_x=cfg.pose.sensor_x,
-            n_pixels=cfg.n_pixels,
-            half_width=cfg.half_width,
-            bistatic_angle=cfg.bistatic_angle,
-            wavelength=cfg.wavelength,
-            terms=_terms_arg(cfg.terms),
-            shading=cfg.shading,
-            dtype=_dtype(cfg.dtype),
+            laser_dir=np.asarray(sensor.laser_dir, float),
+            receiver_dir=np.asarray(sensor.receiver_dir, float),
+            frame_tx=np.asarray(sensor.frame_tx, float),
+            frame_rx=np.asarray(sensor.frame_rx, float),
+            quaternion=quat,
+            n_pixels=cfg.render.n_pixels,
+            half_width=cfg.render.half_width_m,
+            wavelength=float(sensor.wavelength),
+            terms=_terms_arg(cfg.render.terms),
+            shading=cfg.render.shading,
+            dtype=_dtype(cfg.render.dtype),
             progress=progress,
         )
     except ValueError as err:
@@ -560,7 +556,8 @@ def write_image_outputs(img, cfg, cfg_path, out: Outputs, prefix: str = "image",
     from . import _image
 
     np.savez_compressed(out.path(f"{prefix}.npz"), **img.arrays())
-    title = f"{cfg.mesh if cfg.shape is None else cfg.shape.name}, {cfg.wavelength * 1e9:.0f} nm"
+    what = cfg.scene or cfg.mesh or (cfg.shape or {}).get("name", "shape")
+    title = f"{what}: monostatic Mueller image" if img.monostatic else f"{what}: Mueller image"
     _image.plot_mueller_image(img, out.path(f"{prefix}.png"), title=title)
     _image.plot_mueller_elements(img, out.path(f"{prefix}_mueller.png"), title=title)
     per_part = {}
@@ -648,15 +645,15 @@ def cmd_demo(args) -> int:
     for label, _, _ in DEMO_STEPS:
         if label not in done and label not in skipped:
             skipped.append(label)
-    import ppr
+    from ._image import api
 
-    if getattr(ppr, "mueller_brdf", None) is None or getattr(ppr, "retardance", None) is None:
+    if api("mueller_brdf") is None or api("retardance") is None:
         skipped.append("Mueller image")
     else:
         _say(args, "ppr demo: Mueller image of the example satellite ...")
         t0 = time.perf_counter()
         cfg_path = CONFIG_DIR / "cli" / "image.toml"
-        cfg = load_toml_model(ImageConfig, cfg_path, {"n_pixels": args.pixels})
+        cfg = load_toml_model(ImageConfig, cfg_path, {"render.n_pixels": args.pixels})
         img = run_image(cfg, cfg_path, progress=_progress(args))
         with outputs(out, IMAGE_OUTPUTS, overwrite=True) as demo_out:
             write_image_outputs(img, cfg, cfg_path, demo_out, seconds=time.perf_counter() - t0)
@@ -710,9 +707,9 @@ BRDF_HELP = """\
 Evaluate the Mueller BRDF of one material over a grid of incidence and bistatic angles.
 
 Config fields (configs/cli/brdf.toml):
-  material       library name (e.g. "aluminium"), {name = ..., finish = ...}, or inline
-                 {n = [n', n''], m = <Blinn-Phong exponent, 0..1e6>, corr_length = <m>}
-  wavelength     metres (default 532e-9)
+  material       library name (e.g. "aluminium") or inline {n_real, n_imag,
+                 m = <Blinn-Phong exponent, 0..1e6>, corr_length_m = <metres>}
+  wavelength_nm  nanometres (default 532)
   terms          "auto", "all", or a list of "single", "double", "multiple"
   incidence_deg  incidence angles from the normal, degrees in [0, 90)
   bistatic_deg   bistatic angles (between k_in and k_out), degrees: a list or
@@ -725,29 +722,29 @@ perpendicular to each beam. Outputs: brdf.npz (mueller [1/sr] of shape (incidenc
 bistatic, 4, 4), polarimetric quantities), brdf.json, brdf.png."""
 
 IMAGE_HELP = """\
-Render per-pixel Mueller images of a mesh at a pose (orthographic view along the line of
-sight, one embree ray per pixel, macro shadowing) as PNG panels with colour bars: total
-reflectance M00 cos(theta_in) [1/sr], depolarization index, polarizance, diattenuation and
-retardance [rad] (Lu-Chipman), plus the 16 normalized Mueller elements.
+Render per-pixel Mueller images of a mesh at a pose (orthographic view from the receiver,
+one embree ray per pixel, macro shadowing) as PNG panels with colour bars: total reflectance
+M00 cos(theta_in) [1/sr], depolarization index, polarizance, diattenuation and retardance
+[rad] (Lu-Chipman), plus the 16 normalized Mueller elements.
 
-Config fields (configs/cli/image.toml):
+Config fields (configs/cli/image.toml); exactly one of scene, mesh, [shape]:
+  scene          a scene config (configs/scenes/*.toml): mesh, materials, pose and sensor
+                 all come from it
   mesh           "example" (the shipped example satellite) or a mesh file trimesh reads
-                 (metres; one part per geometry); relative to the config's folder
-  shape          instead of mesh: {name = "sphere", radius = 0.5, ...} (ppr.shapes)
-  materials      part name -> material (library name, {name, finish} or inline
-                 {n = [n', n''], m = ...}); "default" for parts not listed
-  wavelength     metres
-  terms          "auto", "all", or a list of "single", "double", "multiple"
-  pose.attitude  body-to-world quaternion [w, x, y, z]
-  pose.to_sensor unit vector from the object toward the sensor (world frame)
-  pose.sensor_x  the sensor's polarization x axis (world; default world z projected)
-  n_pixels       image is n_pixels x n_pixels
-  half_width     half field of view in metres (default: fit the mesh)
-  bistatic_angle radians between laser and receiver (0: monostatic; > 0: shadow rays)
-  shading        "flat" (face normals) or "smooth" (interpolated vertex normals)
-  dtype          "float32" or "float64"
-Outputs: image.npz (mueller (H, W, 4, 4) in 1/sr, NaN off the object; quantities), image.png,
-image_mueller.png, image.json."""
+                 (metres; one part per geometry), relative to the config's folder
+  shape          {name = "sphere", params = {radius = 0.5}} (ppr.shapes)
+  materials      part -> library material name or inline {n_real, n_imag, m (Blinn-Phong
+                 exponent, 0..1e6), corr_length_m}; "default" covers unlisted parts
+  pose           quaternion = [w, x, y, z] (body -> world), position_m
+  view           wavelength_nm; line_of_sight (laser propagation, sensor -> object, world);
+                 polarization_reference (sensor x axis, world); bistatic_angle_urad
+                 (microradians; 0: monostatic, every visible point lit; > 0: shadow rays
+                 toward the laser); bistatic_azimuth_deg
+  render         n_pixels (image is n x n); half_width_m (half field of view, metres;
+                 default fits the mesh); shading "flat" | "smooth"; terms "auto" | "all" |
+                 list of "single", "double", "multiple"; dtype "float32" | "float64"
+Outputs: image.npz (mueller (H, W, 4, 4) in 1/sr, NaN off the object; cos_in, normal, part,
+lit, quantities), image.png, image_mueller.png, image.json."""
 
 DEMO_HELP = """\
 Write every demo figure into --out: the BRDF figures, the double-bounce (enhancement peak)
@@ -804,6 +801,22 @@ def build_parser() -> argparse.ArgumentParser:
 _EXTRA_COMMANDS: list[Callable[[Any], None]] = []
 
 
+def enable_compile_cache() -> None:
+    """Persistent XLA compilation cache for repeated ``ppr`` runs (the CLI is a program, so it
+    may set JAX config; the library never does). ``PPR_JAX_CACHE=0`` turns it off,
+    ``PPR_JAX_CACHE_DIR`` moves it (default ``~/.cache/ppr/jax``)."""
+    if os.environ.get("PPR_JAX_CACHE", "1") == "0":
+        return
+    import jax
+
+    if jax.config.jax_compilation_cache_dir:
+        return
+    default = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "ppr" / "jax"
+    jax.config.update(
+        "jax_compilation_cache_dir", os.environ.get("PPR_JAX_CACHE_DIR", str(default))
+    )
+
+
 def _one_line(err: BaseException) -> str:
     msg = str(err).strip() or type(err).__name__
     return " ".join(part.strip() for part in msg.splitlines() if part.strip())
@@ -817,6 +830,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if getattr(args, "func", None) is None:
         parser.print_help(sys.stderr)
         raise SystemExit(2)
+    enable_compile_cache()
     try:
         return int(args.func(args) or 0)
     except (ConfigError, CLIError, ValueError, pydantic.ValidationError) as err:
