@@ -190,7 +190,9 @@ class NoiseModel(eqx.Module):
             )
 
 
-def shift_profile(x: Float[Array, "*batch bins"], shift: ArrayLike) -> Float[Array, "*batch bins"]:
+def shift_profile(
+    x: Float[ArrayLike, "*batch bins"], shift: ArrayLike
+) -> Float[Array, "*batch bins"]:
     """Shift a piecewise-constant profile later by ``shift`` bins (flux-conserving rebinning).
 
     Bin ``b`` of the result collects ``F(b + 1 - shift) - F(b - shift)`` with ``F`` the
@@ -220,7 +222,7 @@ class Observation(eqx.Module):
     holds the drawn nuisances (gain, offset_bins, channel_offsets_bins) for evaluation.
     """
 
-    data: Array
+    data: ArrayLike = eqx.field(converter=jnp.asarray)
     sensor: str = eqx.field(static=True)
     seed: int = eqx.field(static=True, default=-1)
     truth: dict = eqx.field(default_factory=dict)

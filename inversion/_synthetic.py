@@ -162,7 +162,6 @@ class SyntheticSignatures:
                 )
         self._mat = np.asarray([SYNTHETIC_MATERIALS[m] for m in self.materials])
         self._chan = measurement.channel_matrix()
-        self._fn = jax.jit(_synthetic_kernel, static_argnames=("n_bins",))
 
     @property
     def n_channels(self) -> int:
@@ -192,7 +191,7 @@ class SyntheticSignatures:
         }
         tables = {k: jnp.asarray(v, dt) for k, v in tables.items()}
         sigma_r = C_LIGHT * self.pulse_fwhm_s / (2 * math.sqrt(8 * math.log(2))) / 2
-        return self._fn(
+        return _kernel_jit(
             params["shape_id"],
             params["material_id"],
             params["finish_id"],
@@ -263,3 +262,6 @@ def _synthetic_kernel(shape_id, material_id, finish_id, quat, t, sigma_r, bin_w,
         return jnp.einsum("fk,fb->kb", chan, prof)
 
     return jax.vmap(one)(shape_id, material_id, finish_id, quat)
+
+
+_kernel_jit = jax.jit(_synthetic_kernel, static_argnames=("n_bins",))  # shared compile cache

@@ -1,0 +1,166 @@
+"""Weighted-inner-product classifier: exactness at grid points, invariances, FFT against a
+direct reference, low-rank certificate, weight designs, bad input, evaluation report."""
+
+import json
+
+import numpy as np
+import pytest
+
+from inversion._classifier import (
+    ATTRIBUTES,
+    WEIGHT_KINDS,
+    attitude_error_deg,
+    classify,
+    design_weights,
+    prepare,
+    score_pair,
+)
+from inversion._database import bank_in_memory, spec_from_dict
+from inversion._grid import quat_mul, symmetry_group
+from inversion._noise import NoiseModel, Observation, observe, shift_profile
+
+SPEC = {
+    "name": "clf",
+    "shapes": [
+        {"name": "cube", "symmetry": "octahedral"},
+        {"name": "box3u", "symmetry": "dihedral:4"},
+        {"name": "cylinder", "symmetry": "dihedral:12"},
+    ],
+    "materials": ["aluminium", "white_paint", "silica"],
+    "finishes": {"polished": 3000.0, "brushed": 100.0, "matte": 5.0},
+    "grid": {"kind": "hopf", "size": 1},
+    "sensor": {"channels": "full", "n_bins": 48, "bin_width_m": 0.01},
+    "chunk_rows": 256,
+}
+
+
+@pytest.fixture(scope="module")
+def bank():
+    return bank_in_memory(spec_from_dict(SPEC), batch=256)
+
+
+@pytest.fixture(scope="module")
+def exact(bank):
+    return prepare(bank, design_weights(bank, "fisher", "shape"), chunk=512)
+
+
+def test_noise_free_grid_points_exact(bank, exact):
+    rng = np.random.default_rng(0)
+    rows = rng.choice(len(bank), 40, replace=False)
+    shifts = rng.integers(-4, 5, len(rows))
+    gains = 10 ** rng.uniform(-3, 3, len(rows))
+    x = gains[:, None, None] * np.asarray(
+        shift_profile(bank.signatures[rows], shifts[:, None].astype(np.float32))
+    )
+    res = classify(exact, x, k=3)
+    # score 1 at the true row (float32 spectra: 2e-5), right integer shift
+    top = res.index[:, 0]
+    np.testing.assert_allclose(res.score[:, 0], 1.0, atol=2e-5)
+    same = np.all(
+        np.isclose(bank.signatures[top], bank.signatures[rows], rtol=1e-5, atol=1e-7), axis=(1, 2)
+    )
+    assert np.all((top == rows) | same)  # ties only between identical signatures
+    np.testing.assert_array_equal(res.shift[:, 0], shifts)
+    assert np.all(res.certified)
+
+
+def test_invariant_to_gain_and_offset(bank, exact):
+    y = bank.signatures[17]
+    base = classify(exact, y, k=5)
+    moved = classify(exact, 123.4 * np.asarray(shift_profile(y, 3.0)), k=5)
+    np.testing.assert_array_equal(base.index, moved.index)
+    # float32 FFT round-off only (1e-5)
+    np.testing.assert_allclose(base.score, moved.score, atol=1e-5)
+    np.testing.assert_array_equal(moved.shift[:, 0] - base.shift[:, 0], [3])
+
+
+def test_fft_scores_match_direct_reference(bank):
+    rng = np.random.default_rng(1)
+    w = rng.uniform(0.1, 2.0, (bank.n_channels, bank.n_bins)).astype(np.float32)
+    prep = prepare(bank, w, chunk=512)
+    x = rng.random((bank.n_channels, bank.n_bins)) * (bank.signatures[5] > 1e-4)
+    res = classify(prep, x, k=4)
+    for i, s, lag in zip(res.index[0], res.score[0], res.shift[0], strict=True):
+        direct = [
+            score_pair(x, bank.signatures[i], w, k) for k in range(-(bank.n_bins - 1), bank.n_bins)
+        ]
+        # FFT in float32 against float64 direct sums: 1e-5
+        assert s == pytest.approx(max(direct), abs=1e-5)
+        assert s == pytest.approx(score_pair(x, bank.signatures[i], w, int(lag)), abs=1e-5)
+    # the best template really is the best over the whole bank (brute force on all rows)
+    brute = [
+        max(score_pair(x, y, w, k) for k in range(-6, 7))
+        for y in bank.signatures[:: max(1, len(bank) // 60)]
+    ]
+    assert res.score[0, 0] >= max(brute) - 1e-5
+
+
+def test_low_rank_matches_exact_on_noisy_observations(bank, exact):
+    lowrank = prepare(bank, exact.weights, chunk=512, rank=96)
+    noise = NoiseModel(
+        snr=100.0, speckle_cells=20.0, max_offset_bins=3.0, gain_min=0.5, gain_max=2.0
+    )
+    sensor = bank.sensor
+    obs = [
+        observe(bank.signatures[r].astype(np.float64), noise, seed=int(r), sensor=sensor)
+        for r in (3, 50, 200)
+    ]
+    a = classify(exact, obs, k=3)
+    b = classify(lowrank, obs, k=3, n_candidates=64)
+    np.testing.assert_array_equal(a.index[:, 0], b.index[:, 0])
+    np.testing.assert_allclose(a.score, b.score, atol=1e-5)  # certified or exhaustive: exact
+    assert b.certified.dtype == bool
+
+
+def test_weight_designs(bank):
+    for kind in WEIGHT_KINDS:
+        for att in ATTRIBUTES:
+            w = design_weights(bank, kind, att)
+            assert w.shape == (bank.n_channels, bank.n_bins) and np.all(w > 0)
+            assert w.mean() == pytest.approx(1.0, rel=0.01)
+    # Fisher ratio against a direct per-feature computation on one feature
+    w = design_weights(bank, "fisher", "material", floor=0.0, eps_rel=0.0)
+    x = bank.signatures.reshape(len(bank), -1).astype(np.float64)
+    lab = bank.material_id
+    j = int(np.argmax(x.var(0)))
+    mu = x[:, j].mean()
+    between = sum((lab == c).sum() * (x[lab == c, j].mean() - mu) ** 2 for c in np.unique(lab))
+    within = sum(((x[lab == c, j] - x[lab == c, j].mean()) ** 2).sum() for c in np.unique(lab))
+    ratio = (between / within) / np.mean(w.ravel() * 0 + 1)
+    full = w.ravel()
+    # the design is scaled to mean 1: compare ratios of two features instead
+    k = int(np.argsort(x.var(0))[-2])
+    mu_k = x[:, k].mean()
+    b_k = sum((lab == c).sum() * (x[lab == c, k].mean() - mu_k) ** 2 for c in np.unique(lab))
+    w_k = sum(((x[lab == c, k] - x[lab == c, k].mean()) ** 2).sum() for c in np.unique(lab))
+    assert full[j] / full[k] == pytest.approx(ratio / (b_k / w_k), rel=1e-5)
+
+
+def test_attitude_error_modulo_symmetry():
+    g = symmetry_group("octahedral")
+    q = np.array([0.9, 0.1, -0.3, 0.2])
+    q /= np.linalg.norm(q)
+    equivalent = quat_mul(q, g[7])
+    assert attitude_error_deg(q, equivalent, "octahedral")[0] == pytest.approx(0.0, abs=1e-4)
+    assert attitude_error_deg(q, equivalent, "none")[0] > 10
+
+
+def test_bad_input(bank, exact):
+    other = Observation(
+        data=bank.signatures[0], sensor=json.dumps({"model": "other", "n_bins": 48})
+    )
+    with pytest.raises(ValueError, match="other sensor settings"):
+        classify(exact, other)
+    with pytest.raises(ValueError, match="n_bins=40"):
+        classify(exact, np.ones((bank.n_channels, 40)))
+    with pytest.raises(ValueError, match="channels"):
+        classify(exact, np.ones((3, bank.n_bins)))
+    with pytest.raises(ValueError, match="non-finite"):
+        classify(exact, np.full((bank.n_channels, bank.n_bins), np.nan))
+    with pytest.raises(ValueError, match="max_shift"):
+        classify(exact, bank.signatures[0], max_shift=100)
+    empty = type(bank)(**{**bank.__dict__, "signatures": bank.signatures[:0]})
+    with pytest.raises(ValueError, match="empty"):
+        prepare(empty)
+    with pytest.raises(ValueError, match="weights have shape"):
+        prepare(bank, np.ones((2, 2)))

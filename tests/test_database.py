@@ -1,0 +1,215 @@
+"""Signature database: layout, resumability (kill mid-build), corruption detection, device
+sharding and bad-input errors."""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from inversion._database import (
+    CorruptChunkError,
+    IncompleteDatabaseError,
+    bank_in_memory,
+    build_database,
+    chunk_status,
+    enumerate_rows,
+    load_database,
+    spec_from_dict,
+)
+from ppr._config import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SPEC = {
+    "name": "tiny",
+    "model": "synthetic",
+    "shapes": [
+        {"name": "cube", "symmetry": "octahedral"},
+        {"name": "box3u", "symmetry": "dihedral:4"},
+    ],
+    "materials": ["aluminium", "white_paint"],
+    "finishes": {"polished": 3000.0, "matte": 5.0},
+    "grid": {"kind": "hopf", "size": 1},
+    "sensor": {"channels": "stokes", "n_bins": 32, "bin_width_m": 0.02},
+    "chunk_rows": 16,
+}
+
+
+def tree_bytes(path: Path) -> dict:
+    return {
+        str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()
+    }
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """One uninterrupted build shared by the tests of this file."""
+    path = tmp_path_factory.mktemp("ref") / "db"
+    report = build_database(spec_from_dict(SPEC), path, progress=False)
+    return path, report
+
+
+def test_layout_and_rows(reference):
+    path, report = reference
+    spec = spec_from_dict(SPEC)
+    rows = enumerate_rows(spec)
+    assert report.n_rows == len(rows["quat"]) and report.computed == list(range(report.n_chunks))
+    bank = load_database(path)
+    assert bank.signatures.shape == (len(rows["quat"]), 8, 32)
+    # energy normalization: every row sums to 1 (float32 storage: 1e-5)
+    np.testing.assert_allclose(bank.signatures.sum((1, 2)), 1.0, rtol=1e-5)
+    for k in ("shape_id", "attitude_id", "material_id", "finish_id"):
+        np.testing.assert_array_equal(getattr(bank, k), rows[k])
+    np.testing.assert_array_equal(bank.quat, rows["quat"])
+    assert bank.names["materials"] == ["aluminium", "white_paint"]
+    # the same rows built in memory give the same signatures (same kernel, same chunking of
+    # work is not required: rows are independent; 1e-6 relative covers float32 batch effects)
+    mem = bank_in_memory(spec, batch=spec.chunk_rows)
+    np.testing.assert_allclose(mem.signatures, bank.signatures, rtol=1e-6, atol=1e-9)
+    # a second build call is a no-op
+    again = build_database(spec, path, progress=False)
+    assert again.computed == [] and len(again.skipped) == report.n_chunks
+
+
+SCRIPT = textwrap.dedent(
+    """
+    import sys, time
+    from inversion._database import build_database, make_signature_fn, spec_from_dict
+    spec = spec_from_dict({spec!r})
+    fn = make_signature_fn(spec)
+
+    class Slow:
+        sensor, n_channels = fn.sensor, fn.n_channels
+        def __call__(self, params):
+            out = fn(params)
+            out.block_until_ready()
+            time.sleep(0.4)
+            return out
+
+    build_database(spec, sys.argv[1], Slow(), progress=False)
+    """
+)
+
+
+def test_resume_after_kill_is_byte_identical(reference, tmp_path):
+    ref_path, ref_report = reference
+    path = tmp_path / "db"
+    script = tmp_path / "slow_build.py"
+    script.write_text(SCRIPT.format(spec=SPEC))
+    env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu")
+    proc = subprocess.Popen([sys.executable, str(script), str(path)], env=env, cwd=str(ROOT))
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline:
+            done = list((path / "_chunks").glob("*.json")) if (path / "_chunks").exists() else []
+            if len(done) >= 2 or proc.poll() is not None:
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, "the build finished before it could be interrupted"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    status = chunk_status(path)
+    n_done = len(status["done"])
+    assert 2 <= n_done < ref_report.n_chunks
+    with pytest.raises(IncompleteDatabaseError, match="not built"):
+        load_database(path)
+    report = build_database(spec_from_dict(SPEC), path, progress=False)
+    assert report.skipped == status["done"]  # only missing chunks recomputed
+    assert sorted(report.computed) == status["missing"]
+    assert tree_bytes(path) == tree_bytes(ref_path)
+
+
+def test_corrupt_chunk_detected_and_recomputed(reference, tmp_path):
+    ref_path, _ = reference
+    path = tmp_path / "db"
+    build_database(spec_from_dict(SPEC), path, progress=False)
+    chunk = path / "signatures" / "c" / "1" / "0" / "0"
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # flip one byte in the middle of the compressed chunk
+    chunk.write_bytes(bytes(data))
+    with pytest.raises(CorruptChunkError, match=r"chunks \[1\]"):
+        load_database(path)
+    assert chunk_status(path)["corrupt"] == [1]
+    report = build_database(spec_from_dict(SPEC), path, progress=False)
+    assert report.recomputed_corrupt == [1] and report.computed == [1]
+    assert tree_bytes(path) == tree_bytes(ref_path)
+    # a truncated (half-written) chunk behind a marker is corrupt too
+    chunk.write_bytes(chunk.read_bytes()[:10])
+    with pytest.raises(CorruptChunkError):
+        load_database(path)
+
+
+def test_two_devices_subprocess(reference, tmp_path):
+    ref_path, _ = reference
+    path = tmp_path / "db2"
+    code = textwrap.dedent(
+        f"""
+        import jax, json, sys
+        from inversion._database import build_database, spec_from_dict, evaluate_rows, device_mesh
+        from inversion._database import make_signature_fn, enumerate_rows
+        spec = spec_from_dict({SPEC!r})
+        assert len(jax.devices()) == 2, jax.devices()
+        rep = build_database(spec, sys.argv[1], progress=False)
+        fn = make_signature_fn(spec)
+        rows = {{k: v[:16] for k, v in enumerate_rows(spec).items()}}
+        import numpy as np
+        mesh = device_mesh()
+        from jax.sharding import NamedSharding, PartitionSpec
+        shard = NamedSharding(mesh, PartitionSpec("rows"))
+        q = jax.device_put(rows["quat"].astype("float32"), shard)
+        out = fn(dict(rows, quat=q))
+        n_out = len(out.sharding.device_set)
+        print(json.dumps({{"n_devices": rep.n_devices, "out_devices": n_out}}))
+        """
+    )
+    env = dict(
+        os.environ,
+        PYTHONPATH=str(ROOT),
+        JAX_PLATFORMS="cpu",
+        XLA_FLAGS="--xla_force_host_platform_device_count=2",
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code, str(path)],
+        env=env,
+        cwd=str(ROOT),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert res.returncode == 0, res.stderr[-2000:]
+    import json
+
+    info = json.loads(res.stdout.strip().splitlines()[-1])
+    assert info == {"n_devices": 2, "out_devices": 2}
+    two, one = load_database(path), load_database(ref_path)
+    # rows are independent, so sharding over two devices changes nothing beyond float32
+    # vectorization effects (1e-6 relative)
+    np.testing.assert_allclose(two.signatures, one.signatures, rtol=1e-6, atol=1e-9)
+
+
+def test_bad_inputs(reference, tmp_path):
+    ref_path, _ = reference
+    other = dict(SPEC, finishes={"polished": 1000.0, "matte": 5.0})
+    with pytest.raises(ValueError, match="other settings"):
+        build_database(spec_from_dict(other), ref_path, progress=False)
+    with pytest.raises(ConfigError, match="materials"):
+        spec_from_dict(dict(SPEC, materials=[]))
+    with pytest.raises(ConfigError, match="shapes"):
+        spec_from_dict(dict(SPEC, shapes=[]))
+    with pytest.raises(ConfigError, match="finishes"):
+        spec_from_dict(dict(SPEC, finishes={}))
+    with pytest.raises(ConfigError, match="size"):
+        spec_from_dict(dict(SPEC, grid={"kind": "hopf", "size": 0}))
+    with pytest.raises(ValueError, match="not a signature database"):
+        load_database(tmp_path)
+    with pytest.raises(ValueError, match="unknown synthetic shape"):
+        bank_in_memory(spec_from_dict(dict(SPEC, shapes=[{"name": "torus"}])))
