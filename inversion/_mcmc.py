@@ -1,0 +1,556 @@
+r"""Posterior sampling with emcee: jitted, walker-vectorised log-probability; diagnostics.
+
+The sampler moves the refiner's unconstrained vector ``theta`` (:mod:`inversion._params`,
+reference = the refined optimum, so the attitude entries are small rotations about it). The
+log-posterior in ``theta`` is
+
+    log p(theta | d) = log L(d | phys(theta)) + sum_g log pi_g(phys_g) + log |d phys / d theta|
+
+with a Gaussian likelihood whose variance is the noise model's ``variance(expected, phys)``
+(including the ``-1/2 log(2 pi var)`` term, since the variance depends on the parameters),
+priors ``pi_g`` on *physical* values (from a TOML config, :class:`MCMCConfig`) and the
+Jacobian of the reparametrisation (``m = e^x`` -> ``x``; ``n'' = softplus(u)`` ->
+``log sigmoid(u)``; rotation vector -> Haar measure ``4 sin^2(|w|/2) / |w|^2`` for a uniform
+attitude prior). Visibility (``aux``) is fixed at the refined optimum during sampling (it is
+piecewise constant; the chain explores a small neighbourhood).
+
+The log-probability is one ``jax.jit(jax.vmap(...))`` over walkers, called by
+``emcee.EnsembleSampler(..., vectorize=True)``; float64 is required (x64 on). Chains can be
+stored in HDF5 (emcee's ``HDFBackend``). Diagnostics: integrated autocorrelation time per
+parameter (emcee's estimator, ``tol`` = chain length in units of tau), acceptance fraction,
+effective sample size ``n_walkers * n_kept / tau``; a :class:`ChainTooShortWarning` is issued
+when the chain is shorter than ``tol * tau`` (emcee's ``AutocorrError``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+import warnings
+from pathlib import Path
+from typing import Literal
+
+import emcee
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pydantic
+
+from ppr._config import ConfigError, StrictModel, load_toml_model, validate_data
+
+from ._params import DEFAULT_FREE, LOG_M_MIN, U_N_IMAG_MIN, Parametrisation, PhysicalParams
+from ._refine import (
+    PoissonNoise,
+    RefineResult,
+    _from_physical,
+    _model_shape,
+    _pure,
+    _to_physical,
+    check_observation,
+)
+
+__all__ = [
+    "ChainTooShortWarning",
+    "MCMCConfig",
+    "MCMCResult",
+    "PriorConfig",
+    "SamplerConfig",
+    "load_mcmc_config",
+    "make_log_prob",
+    "sample_posterior",
+]
+
+
+class ChainTooShortWarning(UserWarning):
+    """The chain is too short for a reliable autocorrelation time (emcee's AutocorrError)."""
+
+
+# --------------------------------------------------------------------------- config schema
+class Prior1D(StrictModel):
+    """A prior on one physical scalar (applied to every material slot of its group).
+
+    ``kind``: ``uniform`` (``low``, ``high``), ``loguniform`` (``low > 0``, ``high``),
+    ``normal`` (``mean``, ``sigma``), ``lognormal`` (``mean`` = median, ``sigma`` in ln units),
+    ``halfnormal`` (``sigma``; support ``>= 0``).
+    """
+
+    kind: Literal["uniform", "loguniform", "normal", "lognormal", "halfnormal"]
+    low: float | None = None
+    high: float | None = None
+    mean: float | None = None
+    sigma: float | None = None
+
+    @pydantic.model_validator(mode="after")
+    def _check(self):
+        k = self.kind
+        if k in ("uniform", "loguniform"):
+            if self.low is None or self.high is None:
+                raise ValueError(f"{k} prior needs low and high")
+            if not self.low < self.high:
+                raise ValueError(
+                    f"{k} prior needs low < high, got low={self.low}, high={self.high}"
+                )
+            if k == "loguniform" and self.low <= 0:
+                raise ValueError(f"loguniform prior needs low > 0, got low={self.low}")
+        else:
+            if self.sigma is None or not self.sigma > 0:
+                raise ValueError(f"{k} prior needs sigma > 0, got sigma={self.sigma}")
+            if k in ("normal", "lognormal") and self.mean is None:
+                raise ValueError(f"{k} prior needs mean")
+            if k == "lognormal" and not self.mean > 0:
+                raise ValueError(f"lognormal prior needs mean (median) > 0, got {self.mean}")
+        return self
+
+    def support(self) -> tuple[float, float]:
+        if self.kind in ("uniform", "loguniform"):
+            return (self.low, self.high)
+        if self.kind == "normal":
+            return (-math.inf, math.inf)
+        return (0.0, math.inf)
+
+    def logpdf(self, x):
+        """Log density (up to a constant) on physical ``x``; ``-inf`` outside the support."""
+        k = self.kind
+        if k == "uniform":
+            ok = (x >= self.low) & (x <= self.high)
+            return jnp.where(ok, 0.0, -jnp.inf)
+        if k == "loguniform":
+            ok = (x >= self.low) & (x <= self.high)
+            return jnp.where(ok, -jnp.log(jnp.where(ok, x, 1.0)), -jnp.inf)
+        if k == "normal":
+            return -0.5 * ((x - self.mean) / self.sigma) ** 2
+        if k == "halfnormal":
+            return jnp.where(x >= 0, -0.5 * (x / self.sigma) ** 2, -jnp.inf)
+        ok = x > 0
+        lx = jnp.log(jnp.where(ok, x, 1.0))
+        return jnp.where(ok, -lx - 0.5 * ((lx - math.log(self.mean)) / self.sigma) ** 2, -jnp.inf)
+
+
+class AttitudePrior(StrictModel):
+    """``uniform`` on SO(3) (Haar) or ``gaussian``: isotropic, ``sigma_deg`` about the refined
+    optimum (use it to encode a classifier's grid resolution)."""
+
+    kind: Literal["uniform", "gaussian"] = "uniform"
+    sigma_deg: float | None = None
+
+    @pydantic.model_validator(mode="after")
+    def _check(self):
+        if self.kind == "gaussian" and (self.sigma_deg is None or not self.sigma_deg > 0):
+            raise ValueError(f"gaussian attitude prior needs sigma_deg > 0, got {self.sigma_deg}")
+        return self
+
+
+class PriorConfig(StrictModel):
+    attitude: AttitudePrior = AttitudePrior()
+    m: Prior1D = Prior1D(kind="loguniform", low=1e-3, high=1e6)
+    n_re: Prior1D = Prior1D(kind="uniform", low=0.05, high=5.0)
+    n_im: Prior1D = Prior1D(kind="uniform", low=0.0, high=15.0)
+    corr_length: Prior1D = Prior1D(kind="loguniform", low=1e-8, high=1e-2)
+    range_offset: Prior1D = Prior1D(kind="uniform", low=-1.0, high=1.0)
+    gain: Prior1D = Prior1D(kind="loguniform", low=1e-8, high=1e8)
+
+
+class SamplerConfig(StrictModel):
+    n_walkers: int = pydantic.Field(32, ge=4)
+    n_steps: int = pydantic.Field(2000, ge=10)
+    burn_in: int = pydantic.Field(500, ge=0)
+    thin: int = pydantic.Field(1, ge=1)
+    init_scale: float = pydantic.Field(0.1, gt=0)
+    autocorr_tol: float = pydantic.Field(50.0, gt=0)
+    seed: int = 0
+    progress: bool = False
+
+    @pydantic.model_validator(mode="after")
+    def _check(self):
+        if self.burn_in >= self.n_steps:
+            raise ValueError(f"burn_in ({self.burn_in}) must be < n_steps ({self.n_steps})")
+        return self
+
+
+class MCMCConfig(StrictModel):
+    """Schema of ``configs/inversion/*.toml``: ``[priors.*]`` tables and ``[sampler]``."""
+
+    priors: PriorConfig = PriorConfig()
+    sampler: SamplerConfig = SamplerConfig()
+
+
+def load_mcmc_config(path: str | Path, overrides: dict | None = None) -> MCMCConfig:
+    """Load and validate an MCMC config (errors name file, field and value: ConfigError)."""
+    return load_toml_model(MCMCConfig, path, overrides)
+
+
+def mcmc_config_from_dict(data: dict, source: str = "<dict>") -> MCMCConfig:
+    return validate_data(MCMCConfig, data, source)
+
+
+# --------------------------------------------------------------------------- log probability
+def _log_prior_and_jacobian(param: Parametrisation, theta, priors: PriorConfig):
+    """Sum of log priors on physical values plus log |d phys/d theta| (per free group)."""
+    parts = param._split(theta)
+    phys = param.to_physical(theta)
+    lp = jnp.zeros((), theta.dtype)
+    k = param.reference.n_materials
+    if "attitude" in parts:
+        w = parts["attitude"]
+        a2 = jnp.sum(w * w)
+        small = a2 < 1e-12
+        a = jnp.sqrt(jnp.where(small, 1.0, a2))
+        # Haar density in rotation-vector coordinates, 4 sin^2(a/2)/a^2 (-> 1 at a = 0)
+        haar = jnp.where(small, 1.0 - a2 / 12.0, 4.0 * jnp.sin(0.5 * a) ** 2 / (a * a))
+        lp = lp + jnp.log(haar)
+        lp = lp + jnp.where(a2 <= math.pi**2, 0.0, -jnp.inf)
+        if priors.attitude.kind == "gaussian":
+            s = math.radians(priors.attitude.sigma_deg)
+            lp = lp - 0.5 * a2 / s**2
+    if "m" in parts:
+        x = parts["m"]
+        lp = lp + jnp.sum(priors.m.logpdf(phys.m)) + jnp.sum(jnp.where(x >= LOG_M_MIN, x, -jnp.inf))
+    if "n" in parts:
+        u = parts["n"][k:]
+        lp = lp + jnp.sum(priors.n_re.logpdf(jnp.real(phys.n))) + jnp.sum(parts["n"][:k])
+        # below the clamp the map is flat (zero Jacobian): no posterior mass there
+        jac_u = jnp.where(u >= U_N_IMAG_MIN, jax.nn.log_sigmoid(u), -jnp.inf)
+        lp = lp + jnp.sum(priors.n_im.logpdf(jnp.imag(phys.n))) + jnp.sum(jac_u)
+    if "corr_length" in parts:
+        lp = (
+            lp
+            + jnp.sum(priors.corr_length.logpdf(phys.corr_length))
+            + jnp.sum(parts["corr_length"])
+        )
+    if "range_offset" in parts:
+        lp = lp + priors.range_offset.logpdf(phys.range_offset)
+    if "gain" in parts:
+        lp = lp + priors.gain.logpdf(phys.gain) + parts["gain"][0]
+    return lp
+
+
+def _log_likelihood(model, noise, param, aux, data, theta):
+    phys = param.to_physical(theta)
+    mu = model.expected(phys, aux)
+    var = noise.variance(mu, phys)
+    return -0.5 * jnp.sum((data - mu) ** 2 / var + jnp.log(2 * jnp.pi * var))
+
+
+class _LogProb(eqx.Module):
+    model: object
+    noise: object
+    param: Parametrisation
+    aux: object
+    data: jax.Array
+    priors: PriorConfig = eqx.field(static=True)
+
+    def single(self, theta):
+        lp = _log_prior_and_jacobian(self.param, theta, self.priors)
+        ll = _log_likelihood(self.model, self.noise, self.param, self.aux, self.data, theta)
+        out = jnp.where(jnp.isfinite(lp), lp + ll, -jnp.inf)
+        return jnp.where(jnp.isnan(out), -jnp.inf, out)
+
+
+@eqx.filter_jit
+def _batched_log_prob(lp: _LogProb, thetas):
+    return jax.vmap(lp.single)(thetas)
+
+
+def make_log_prob(model, data, param: Parametrisation, priors: PriorConfig, noise=None, aux=None):
+    """``f(thetas (W, P) numpy) -> (W,) numpy float64``: jitted, vmapped over walkers."""
+    if not jax.config.read("jax_enable_x64"):
+        raise RuntimeError(
+            "MCMC needs float64: enable x64 before sampling "
+            "(jax.config.update('jax_enable_x64', True)); the library never sets it"
+        )
+    noise = PoissonNoise() if noise is None else noise
+    aux = model.prepare(param.reference) if aux is None else aux
+    shape = _model_shape(model, param.reference, aux)
+    data = jnp.asarray(check_observation(data, shape))
+    lp = _LogProb(_pure(model), noise, param, aux, data, priors)
+
+    def f(thetas):
+        return np.asarray(_batched_log_prob(lp, jnp.asarray(thetas, jnp.float64)), np.float64)
+
+    f.single = lp.single  # type: ignore[attr-defined]
+    return f
+
+
+def _check_prior_support(param: Parametrisation, theta0: np.ndarray, priors: PriorConfig):
+    """Raise a ValueError naming every parameter whose prior has no support at ``theta0``."""
+    phys = _to_physical(param, jnp.asarray(theta0))
+    k = param.reference.n_materials
+    problems = []
+
+    def chk(name, prior: Prior1D, values):
+        for i, v in enumerate(np.atleast_1d(np.asarray(values, float))):
+            if not np.isfinite(float(prior.logpdf(jnp.asarray(v)))):
+                lo, hi = prior.support()
+                tag = f"{name}[{i}]" if np.ndim(values) else name
+                problems.append(
+                    f"{tag} = {v:.6g} outside the {prior.kind} prior's support [{lo:g}, {hi:g}]"
+                )
+
+    free = param.free
+    if "m" in free:
+        chk("m", priors.m, phys.m)
+    if "n" in free:
+        chk("n_re", priors.n_re, np.real(phys.n)[:k])
+        chk("n_im", priors.n_im, np.imag(phys.n)[:k])
+    if "corr_length" in free:
+        chk("corr_length", priors.corr_length, phys.corr_length)
+    if "range_offset" in free:
+        chk("range_offset", priors.range_offset, phys.range_offset)
+    if "gain" in free:
+        chk("gain", priors.gain, phys.gain)
+    if problems:
+        raise ValueError(
+            "prior has no support at the starting point (the refined optimum): "
+            + "; ".join(problems)
+            + ". Widen the prior in the config or check the refinement."
+        )
+
+
+# --------------------------------------------------------------------------- result
+@dataclasses.dataclass(frozen=True)
+class MCMCResult:
+    """Posterior samples and diagnostics.
+
+    - `chain`: ``(n_steps, n_walkers, P)`` in solver coordinates ``theta`` (all steps);
+      `log_prob`: ``(n_steps, n_walkers)``; `samples`: kept, flattened samples in *physical*
+      units (:attr:`labels`), ``(n_kept * n_walkers / thin, P)``.
+    - `acceptance_fraction` per walker; `tau` integrated autocorrelation time per parameter
+      (steps); `ess` effective sample size per parameter; `converged`: chain longer than
+      ``autocorr_tol * max(tau)``; `path`: HDF5 file of the chain (or None).
+    """
+
+    chain: np.ndarray
+    log_prob: np.ndarray
+    samples: np.ndarray
+    labels: list[str]
+    parametrisation: Parametrisation
+    acceptance_fraction: np.ndarray
+    tau: np.ndarray
+    ess: np.ndarray
+    converged: bool
+    burn_in: int
+    thin: int
+    elapsed_s: float
+    path: Path | None = None
+
+    def interval(self, level: float = 0.68) -> np.ndarray:
+        """Equal-tailed credible interval ``(P, 2)`` in physical units at ``level``."""
+        if not 0 < level < 1:
+            raise ValueError(f"interval: level must be in (0, 1), got {level}")
+        q = 50 * (1 - level)
+        return np.percentile(self.samples, [q, 100 - q], axis=0).T
+
+    def median(self) -> np.ndarray:
+        return np.median(self.samples, axis=0)
+
+    def contains(self, truth_vector, level: float) -> np.ndarray:
+        iv = self.interval(level)
+        t = np.asarray(truth_vector)
+        return (t >= iv[:, 0]) & (t <= iv[:, 1])
+
+    def truth_vector(self, truth: PhysicalParams) -> np.ndarray:
+        """``truth`` in the coordinates of :attr:`samples` (attitude relative to the reference)."""
+        par = self.parametrisation
+        return np.asarray(par.physical_vector(par.from_physical(truth)))
+
+    def summary(self) -> str:
+        iv68, iv95 = self.interval(0.68), self.interval(0.95)
+        med = self.median()
+        lines = [
+            f"mcmc: walkers={self.chain.shape[1]} steps={self.chain.shape[0]} "
+            f"burn_in={self.burn_in} "
+            f"acceptance={np.mean(self.acceptance_fraction):.2f} max_tau={np.max(self.tau):.1f} "
+            f"min_ess={np.min(self.ess):.0f} converged={self.converged} time={self.elapsed_s:.1f}s"
+        ]
+        for i, lab in enumerate(self.labels):
+            lines.append(
+                f"  {lab:>22s} median {med[i]: .6g}  68% [{iv68[i, 0]:.6g}, {iv68[i, 1]:.6g}]"
+                f"  95% [{iv95[i, 0]:.6g}, {iv95[i, 1]:.6g}]  tau {self.tau[i]:.1f}"
+            )
+        return "\n".join(lines)
+
+    def corner_plot(self, path: str | Path, truth: PhysicalParams | None = None):
+        """Write a corner plot (``corner`` package) of the physical samples to ``path``."""
+        import corner
+        import matplotlib
+
+        matplotlib.use("Agg", force=False)
+        import matplotlib.pyplot as plt
+
+        truths = None if truth is None else self.truth_vector(truth)
+        keep = np.ptp(self.samples, axis=0) > 0
+        fig = corner.corner(
+            self.samples[:, keep],
+            labels=[lab for lab, k in zip(self.labels, keep, strict=True) if k],
+            truths=None if truths is None else truths[keep],
+            quantiles=[0.16, 0.5, 0.84],
+            show_titles=True,
+            title_fmt=".3g",
+        )
+        fig.savefig(path, dpi=80)
+        plt.close(fig)
+        return Path(path)
+
+
+# --------------------------------------------------------------------------- driver
+def sample_posterior(
+    model,
+    data,
+    start: RefineResult | PhysicalParams,
+    *,
+    config: MCMCConfig | None = None,
+    noise=None,
+    free=None,
+    path: str | Path | None = None,
+    range_scale: float = 0.01,
+) -> MCMCResult:
+    """Sample the posterior with emcee, started in a small ball around ``start``.
+
+    **Arguments:**
+
+    - `model`, `data`, `noise`: as for :func:`inversion.refine`.
+    - `start`: a :class:`RefineResult` (its optimum and covariance set the ball: walkers start
+      at ``theta* + init_scale * N(0, cov_theta)``, the block of the free groups) or
+      :class:`PhysicalParams` (ball of ``init_scale * 1e-2`` in every coordinate).
+    - `config`: :class:`MCMCConfig` (priors and sampler settings), e.g. from
+      :func:`load_mcmc_config`.
+    - `free`: parameter groups (default: those of the RefineResult, else the default set).
+    - `path`: HDF5 file to store the chain in (emcee ``HDFBackend``; overwritten).
+
+    Raises ``ValueError`` when the data do not match the model, contain NaN, or a prior has
+    no support at the start. Warns :class:`ChainTooShortWarning` when the chain is too short
+    for the autocorrelation estimate.
+    """
+    t0 = time.perf_counter()
+    config = MCMCConfig() if config is None else config
+    sc = config.sampler
+    if isinstance(start, RefineResult):
+        phys = start.params
+        free = tuple(start.parametrisation.free) if free is None else tuple(free)
+        cov = _sub_covariance(start, Parametrisation(phys, free, range_scale))
+    elif isinstance(start, PhysicalParams):
+        phys, cov = start, None
+        free = DEFAULT_FREE if free is None else tuple(free)
+    else:
+        raise ValueError(
+            "sample_posterior: start must be a RefineResult or PhysicalParams, "
+            f"got {type(start).__name__}"
+        )
+    param = Parametrisation(phys, free, range_scale)
+    theta0 = np.asarray(_from_physical(param, phys), np.float64)
+    _check_prior_support(param, theta0, config.priors)
+    log_prob = make_log_prob(model, data, param, config.priors, noise=noise)
+    nw = sc.n_walkers
+    # every call has the walkers' batch shape (one compilation)
+    lp0 = log_prob(np.tile(theta0, (nw, 1)))[0]
+    if not np.isfinite(lp0):
+        raise ValueError(
+            f"log-posterior is not finite at the start (value {lp0}); the model or noise "
+            f"variance may be invalid there"
+        )
+    rng = np.random.default_rng(sc.seed)
+    ndim = theta0.size
+    root = _ball_root(cov, ndim)
+    p0 = theta0 + sc.init_scale * rng.normal(size=(nw, ndim)) @ root.T
+    for _ in range(50):
+        bad = ~np.isfinite(log_prob(p0))
+        if not bad.any():
+            break
+        # pull walkers outside the support halfway back toward the optimum
+        p0[bad] = theta0 + 0.5 * (p0[bad] - theta0)
+    else:
+        p0[bad] = theta0 + 1e-8 * rng.normal(size=(int(bad.sum()), ndim))
+
+    backend = None
+    if path is not None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        backend = emcee.backends.HDFBackend(str(path))
+        backend.reset(sc.n_walkers, ndim)
+    sampler = emcee.EnsembleSampler(
+        sc.n_walkers, ndim, log_prob, vectorize=True, backend=backend, seed=sc.seed
+    )
+    sampler.random_state = np.random.RandomState(sc.seed).get_state()
+    sampler.run_mcmc(p0, sc.n_steps, progress=sc.progress)
+
+    chain = sampler.get_chain()
+    lps = sampler.get_log_prob()
+    kept = chain[sc.burn_in :: sc.thin]
+    tau, converged = _autocorr(kept, sc.autocorr_tol)
+    n_kept = kept.shape[0]
+    ess = n_kept * sc.thin * sc.n_walkers / np.maximum(tau, 1.0)
+    flat = kept.reshape(-1, ndim)
+    samples = np.asarray(_physical_vectors(param, jnp.asarray(flat)))
+    return MCMCResult(
+        chain=chain,
+        log_prob=lps,
+        samples=samples,
+        labels=param.labels,
+        parametrisation=param,
+        acceptance_fraction=np.asarray(sampler.acceptance_fraction),
+        tau=tau,
+        ess=ess,
+        converged=converged,
+        burn_in=sc.burn_in,
+        thin=sc.thin,
+        elapsed_s=time.perf_counter() - t0,
+        path=path,
+    )
+
+
+@eqx.filter_jit
+def _physical_vectors(param, thetas):
+    return jax.vmap(param.physical_vector)(thetas)
+
+
+def _ball_root(cov, ndim):
+    """Matrix square root of the starting-ball covariance (each direction capped at 1 in theta
+    units so that an unconstrained direction stays sane); identity * 1e-2 without one."""
+    if cov is None or not np.all(np.isfinite(cov)):
+        return np.eye(ndim) * 1e-2
+    w, v = np.linalg.eigh(0.5 * (cov + cov.T))
+    sd = np.sqrt(np.clip(w, 0.0, None))
+    return v * np.minimum(sd, 1.0)
+
+
+def _sub_covariance(ref: RefineResult, param: Parametrisation):
+    """Block of the refined covariance (solver coordinates) for the groups of ``param``."""
+    labels = ref.parametrisation.theta_labels
+    try:
+        idx = [labels.index(lab) for lab in param.theta_labels]
+    except ValueError:
+        return None
+    return ref.covariance_theta[np.ix_(idx, idx)]
+
+
+def _autocorr(kept: np.ndarray, tol: float) -> tuple[np.ndarray, bool]:
+    """Integrated autocorrelation time (in steps of ``kept``) and whether it is reliable."""
+    try:
+        tau = emcee.autocorr.integrated_time(kept, tol=tol, quiet=False)
+        return np.asarray(tau), True
+    except emcee.autocorr.AutocorrError:
+        import logging
+
+        logger = logging.getLogger("emcee.autocorr")
+        level = logger.level
+        logger.setLevel(logging.ERROR)
+        try:
+            tau = np.asarray(emcee.autocorr.integrated_time(kept, tol=tol, quiet=True))
+        finally:
+            logger.setLevel(level)
+        need = int(np.ceil(tol * np.max(tau)))
+        warnings.warn(
+            ChainTooShortWarning(
+                f"chain too short for a reliable autocorrelation time: {kept.shape[0]} kept steps "
+                f"< {tol:g} x tau_max = {need} (tau estimates {np.round(tau, 1).tolist()}); "
+                "run longer "
+                f"(n_steps) or lower sampler.autocorr_tol; ESS and intervals are approximate"
+            ),
+            stacklevel=3,
+        )
+        return tau, False
+
+
+__all__ += ["ConfigError", "mcmc_config_from_dict"]

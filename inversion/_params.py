@@ -1,0 +1,405 @@
+r"""Inversion parameters: physical values and the unconstrained vector the solvers move.
+
+Physical parameters (:class:`PhysicalParams`) are what the forward model takes and what the
+user reads: attitude quaternion, Blinn-Phong exponent ``m``, complex index ``n = n' + i n''``
+(one per material slot), surface correlation length, range offset (one-way metres) and
+overall gain. Optimistix has no bounded least-squares solver (STYLE.md section 7), so the
+solvers work on an unconstrained vector ``theta`` (:class:`Parametrisation`):
+
+=================  ==============================  ======================================
+group              theta entries                   physical value
+=================  ==============================  ======================================
+``attitude``       rotation vector ``w`` (rad, 3)  ``q = exp(w) (x) q_ref``
+``m``              ``log m``                       ``m = exp(max(., c))`` (> 0)
+``n``              ``log n'``, ``u``               ``n' = exp(.)``, ``n'' = softplus(max(u, c))``
+``corr_length``    ``log d``                       ``d = exp(.)`` (> 0)
+``range_offset``   ``r / range_scale``             ``r`` (metres)
+``gain``           ``log g``                       ``g = exp(.)`` (> 0)
+=================  ==============================  ======================================
+
+Quaternions are scalar-first ``(w, x, y, z)``, Hamilton product, active rotation body ->
+sensor frame (``v_sensor = q v_body q*``). The attitude perturbation is applied on the left,
+i.e. ``w`` is a small rotation expressed in the *sensor* frame about the reference attitude
+``q_ref``; near the optimum the covariance of ``w`` is the attitude error (reported in degrees).
+
+The clamps at ``-20.72`` (``m``, ``n''`` = ``1e-9``, physically zero) give a flat region so
+that a damped solver stops when the optimum lies on the boundary (a dielectric's ``n'' = 0``);
+``from_physical`` maps ``m, n'' < 1e-9`` to ``1e-9``. The refiners lift *starting points*
+to ``m, n'' >= 1e-6`` (:func:`lift_start`), where the coordinates still have a gradient.
+
+Only the groups listed in ``free`` enter ``theta``; the others keep the reference's values.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ppr._types import Array, ArrayLike, Complex, Float
+
+__all__ = [
+    "GROUPS",
+    "PhysicalParams",
+    "Parametrisation",
+    "quat_multiply",
+    "quat_from_rotvec",
+    "rotvec_from_quat",
+    "quat_angle_deg",
+    "lift_start",
+]
+
+GROUPS = ("attitude", "m", "n", "corr_length", "range_offset", "gain")
+DEFAULT_FREE = ("attitude", "m", "n", "range_offset", "gain")
+
+# Physical values 0 of m and n'' are mapped to these floors by ``from_physical`` (equal to the
+# clamps below, so a round trip through theta never moves a point).
+N_IMAG_FLOOR = 1e-9
+M_FLOOR = 1e-9
+# Inside ``to_physical`` the log/softplus coordinates are clamped from below (values ~1e-9,
+# physically zero). The flat region makes a damped solver *stop* when the optimum is on the
+# boundary (n'' = 0 for a dielectric, m = 0): with a pure softplus/exp map the coordinate
+# would run to -inf and the solver never meet its step tolerance.
+U_N_IMAG_MIN = -20.72326583694641  # softplus^-1(1e-9) = log(expm1(1e-9))
+LOG_M_MIN = -20.72326583694641  # log(1e-9)
+
+
+# --------------------------------------------------------------------------- quaternions
+def quat_multiply(a: Float[Array, "*b 4"], b: Float[Array, "*b 4"]) -> Float[Array, "*b 4"]:
+    """Hamilton product ``a (x) b`` of scalar-first quaternions."""
+    aw, ax, ay, az = (a[..., i] for i in range(4))
+    bw, bx, by, bz = (b[..., i] for i in range(4))
+    return jnp.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_from_rotvec(w: Float[Array, "*b 3"]) -> Float[Array, "*b 4"]:
+    """Unit quaternion ``exp(w/2)`` of a rotation vector (radians); smooth at ``w = 0``."""
+    w = jnp.asarray(w)
+    a2 = jnp.sum(w * w, axis=-1)
+    small = a2 < 1e-12
+    a = jnp.sqrt(jnp.where(small, 1.0, a2))
+    half = 0.5 * a
+    # sin(a/2)/a and cos(a/2) with Taylor branches at a -> 0 (double where: finite gradients).
+    s_big = jnp.sin(half) / a
+    s_small = 0.5 - a2 / 48.0
+    c_big = jnp.cos(half)
+    c_small = 1.0 - a2 / 8.0
+    s = jnp.where(small, s_small, s_big)
+    c = jnp.where(small, c_small, c_big)
+    return jnp.concatenate([c[..., None], s[..., None] * w], axis=-1)
+
+
+def rotvec_from_quat(q: Float[Array, "*b 4"]) -> Float[Array, "*b 3"]:
+    """Rotation vector (radians, angle in [0, pi]) of a quaternion (sign and norm ignored)."""
+    q = jnp.asarray(q)
+    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+    q = jnp.where(q[..., :1] < 0, -q, q)
+    v = q[..., 1:]
+    sv2 = jnp.sum(v * v, axis=-1)
+    small = sv2 < 1e-24
+    sv = jnp.sqrt(jnp.where(small, 1.0, sv2))
+    angle = 2.0 * jnp.arctan2(sv, q[..., 0])
+    factor = jnp.where(small, 2.0 / q[..., 0], angle / sv)
+    return factor[..., None] * v
+
+
+def quat_angle_deg(q1: ArrayLike, q2: ArrayLike) -> np.ndarray | float:
+    """Angle (degrees) of the rotation taking ``q1`` to ``q2`` (sign-invariant, accurate near 0)."""
+    q1 = np.asarray(q1, float)
+    q2 = np.asarray(q2, float)
+    q1 = q1 / np.linalg.norm(q1, axis=-1, keepdims=True)
+    q2 = q2 / np.linalg.norm(q2, axis=-1, keepdims=True)
+    d = np.asarray(quat_multiply(jnp.asarray(q2), jnp.asarray(q1 * np.array([1.0, -1, -1, -1]))))
+    ang = np.degrees(2.0 * np.arctan2(np.linalg.norm(d[..., 1:], axis=-1), np.abs(d[..., 0])))
+    return float(ang) if np.ndim(ang) == 0 else ang
+
+
+# --------------------------------------------------------------------------- physical
+def _softplus(u):
+    return jnp.logaddexp(u, 0.0)
+
+
+def _softplus_inv(x):
+    x = jnp.maximum(x, N_IMAG_FLOOR)
+    # log(expm1(x)) written to stay accurate for small and large x.
+    return x + jnp.log(-jnp.expm1(-x))
+
+
+class PhysicalParams(eqx.Module):
+    """Continuous object parameters in physical units (what the forward model consumes).
+
+    **Fields:**
+
+    - `quaternion`: attitude, scalar-first unit quaternion ``(4,)``, body -> sensor frame.
+    - `m`: Blinn-Phong exponent per material slot ``(K,)``.
+    - `n`: complex refractive index per material slot ``(K,)``, ``n'' >= 0``.
+    - `corr_length`: surface correlation length per material slot ``(K,)``, metres.
+    - `range_offset`: one-way range offset, metres (shifts the profile to larger range).
+    - `gain`: overall gain (extinction x calibration), dimensionless, > 0.
+    """
+
+    quaternion: Float[Array, "4"]
+    m: Float[Array, " K"]
+    n: Complex[Array, " K"]
+    corr_length: Float[Array, " K"]
+    range_offset: Float[Array, ""]
+    gain: Float[Array, ""]
+
+    def __init__(self, quaternion, m, n, corr_length=5e-6, range_offset=0.0, gain=1.0):
+        dt = jnp.result_type(float)
+        q = jnp.asarray(quaternion)
+        if not jnp.issubdtype(q.dtype, jnp.floating):
+            q = q.astype(dt)
+        dt = q.dtype
+        m = jnp.atleast_1d(jnp.asarray(m, dt))
+        cdt = jnp.result_type(dt, jnp.complex64)
+        n = jnp.atleast_1d(jnp.asarray(n)).astype(cdt)
+        corr = jnp.broadcast_to(jnp.asarray(corr_length, dt), m.shape)
+        self.quaternion = q
+        self.m = m
+        self.n = jnp.broadcast_to(n, m.shape)
+        self.corr_length = corr
+        self.range_offset = jnp.asarray(range_offset, dt)
+        self.gain = jnp.asarray(gain, dt)
+
+    def __check_init__(self):
+        concrete = not any(
+            isinstance(x, jax.core.Tracer)
+            for x in (self.quaternion, self.m, self.n, self.corr_length, self.gain)
+        )
+        if self.quaternion.shape != (4,):
+            raise ValueError(
+                f"PhysicalParams.quaternion must have shape (4,), got {self.quaternion.shape}"
+            )
+        if not concrete:
+            return
+        q = np.asarray(self.quaternion)
+        if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-12:
+            raise ValueError(f"PhysicalParams.quaternion must be finite and non-zero, got {q!r}")
+        for name in ("m", "corr_length", "range_offset", "gain"):
+            a = np.asarray(getattr(self, name))
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"PhysicalParams.{name} must be finite, got {a!r}")
+        n = np.asarray(self.n)
+        if not np.all(np.isfinite(n)) or np.any(n.imag < 0) or np.any(n.real <= 0):
+            raise ValueError(f"PhysicalParams.n must be finite with n' > 0 and n'' >= 0, got {n!r}")
+        if np.any(np.asarray(self.m) < 0):
+            raise ValueError(f"PhysicalParams.m must be >= 0, got {np.asarray(self.m)!r}")
+        if np.any(np.asarray(self.gain) <= 0) or np.any(np.asarray(self.corr_length) <= 0):
+            raise ValueError(
+                "PhysicalParams.gain and corr_length must be > 0, got "
+                f"gain={np.asarray(self.gain)!r}, "
+                f"corr_length={np.asarray(self.corr_length)!r}"
+            )
+
+    @property
+    def n_materials(self) -> int:
+        return int(self.m.shape[0])
+
+    def unit_quaternion(self) -> Float[Array, "4"]:
+        q = self.quaternion / jnp.linalg.norm(self.quaternion)
+        return jnp.where(q[0] < 0, -q, q)
+
+
+# --------------------------------------------------------------------------- reparametrisation
+class Parametrisation(eqx.Module):
+    """Map between the unconstrained solver vector ``theta`` and :class:`PhysicalParams`.
+
+    **Arguments:**
+
+    - `reference`: physical parameters giving the reference attitude ``q_ref`` (``theta``'s
+      rotation vector is measured from it) and the values of the groups that are not free.
+    - `free`: names from :data:`GROUPS` that are fitted (static; order in ``theta`` follows
+      :data:`GROUPS`). Default: everything but ``corr_length``.
+    - `range_scale`: metres per unit of the range-offset entry of ``theta`` (keeps all entries
+      O(1) for the damped solvers; default 1 cm).
+
+    ``to_physical`` / ``from_physical`` are jittable and differentiable. ``physical_vector``
+    gives a flat vector in user units (attitude as a rotation vector in *degrees* about
+    ``q_ref``, ``m``, ``n'``, ``n''``, corr. length in metres, range offset in metres, gain);
+    ``labels`` names its entries; covariances are reported in that vector's coordinates.
+    """
+
+    reference: PhysicalParams
+    free: tuple[str, ...] = eqx.field(static=True, default=DEFAULT_FREE)
+    range_scale: float = eqx.field(static=True, default=0.01)
+
+    def __check_init__(self):
+        bad = [g for g in self.free if g not in GROUPS]
+        if bad:
+            raise ValueError(f"Parametrisation.free: unknown group(s) {bad}; known: {GROUPS}")
+        if len(set(self.free)) != len(self.free):
+            raise ValueError(f"Parametrisation.free has duplicates: {self.free}")
+        if not self.range_scale > 0:
+            raise ValueError(f"Parametrisation.range_scale must be > 0, got {self.range_scale}")
+
+    # -- layout
+    @property
+    def ordered_free(self) -> tuple[str, ...]:
+        return tuple(g for g in GROUPS if g in self.free)
+
+    def _sizes(self) -> dict[str, int]:
+        k = self.reference.n_materials
+        return {"attitude": 3, "m": k, "n": 2 * k, "corr_length": k, "range_offset": 1, "gain": 1}
+
+    @property
+    def size(self) -> int:
+        s = self._sizes()
+        return sum(s[g] for g in self.ordered_free)
+
+    @property
+    def labels(self) -> list[str]:
+        """Names (with units) of the entries of :meth:`physical_vector` / the covariance."""
+        k = self.reference.n_materials
+        out: list[str] = []
+        for g in self.ordered_free:
+            if g == "attitude":
+                out += ["rot_x [deg]", "rot_y [deg]", "rot_z [deg]"]
+            elif g == "m":
+                out += [f"m[{i}]" for i in range(k)]
+            elif g == "n":
+                out += [f"n_re[{i}]" for i in range(k)] + [f"n_im[{i}]" for i in range(k)]
+            elif g == "corr_length":
+                out += [f"corr_length[{i}] [m]" for i in range(k)]
+            elif g == "range_offset":
+                out += ["range_offset [m]"]
+            elif g == "gain":
+                out += ["gain"]
+        return out
+
+    @property
+    def theta_labels(self) -> list[str]:
+        k = self.reference.n_materials
+        out: list[str] = []
+        for g in self.ordered_free:
+            if g == "attitude":
+                out += ["rotvec_x", "rotvec_y", "rotvec_z"]
+            elif g == "m":
+                out += [f"log_m[{i}]" for i in range(k)]
+            elif g == "n":
+                out += [f"log_n_re[{i}]" for i in range(k)] + [
+                    f"softplus_inv_n_im[{i}]" for i in range(k)
+                ]
+            elif g == "corr_length":
+                out += [f"log_corr_length[{i}]" for i in range(k)]
+            elif g == "range_offset":
+                out += ["range_offset/range_scale"]
+            elif g == "gain":
+                out += ["log_gain"]
+        return out
+
+    def _split(self, theta: Array) -> dict[str, Array]:
+        sizes = self._sizes()
+        out, i = {}, 0
+        for g in self.ordered_free:
+            out[g] = theta[i : i + sizes[g]]
+            i += sizes[g]
+        return out
+
+    # -- maps
+    def to_physical(self, theta: Float[Array, " P"]) -> PhysicalParams:
+        """Physical parameters of an unconstrained vector (jittable, differentiable)."""
+        ref = self.reference
+        parts = self._split(theta)
+        k = ref.n_materials
+        q = ref.unit_quaternion().astype(theta.dtype)
+        if "attitude" in parts:
+            q = quat_multiply(quat_from_rotvec(parts["attitude"]), q)
+        m = (
+            jnp.exp(jnp.maximum(parts["m"], LOG_M_MIN))
+            if "m" in parts
+            else ref.m.astype(theta.dtype)
+        )
+        if "n" in parts:
+            n_re = jnp.exp(parts["n"][:k])
+            n_im = _softplus(jnp.maximum(parts["n"][k:], U_N_IMAG_MIN))
+            n = jax.lax.complex(n_re, n_im)
+        else:
+            n = ref.n
+        corr = jnp.exp(parts["corr_length"]) if "corr_length" in parts else ref.corr_length
+        off = (
+            parts["range_offset"][0] * self.range_scale
+            if "range_offset" in parts
+            else ref.range_offset
+        )
+        gain = jnp.exp(parts["gain"][0]) if "gain" in parts else ref.gain
+        return PhysicalParams(q, m, n, corr, off, gain)
+
+    def from_physical(self, phys: PhysicalParams) -> Float[Array, " P"]:
+        """Unconstrained vector of physical parameters (``m = 0`` and ``n'' = 0`` are mapped to
+        the floors ``1e-6`` of their log/softplus coordinates)."""
+        ref = self.reference
+        pieces = []
+        dt = phys.m.dtype
+        for g in self.ordered_free:
+            if g == "attitude":
+                dq = quat_multiply(phys.unit_quaternion(), _conj(ref.unit_quaternion().astype(dt)))
+                pieces.append(rotvec_from_quat(dq))
+            elif g == "m":
+                pieces.append(jnp.log(jnp.maximum(phys.m, M_FLOOR)))
+            elif g == "n":
+                pieces.append(jnp.log(jnp.real(phys.n)))
+                pieces.append(_softplus_inv(jnp.imag(phys.n)))
+            elif g == "corr_length":
+                pieces.append(jnp.log(phys.corr_length))
+            elif g == "range_offset":
+                pieces.append(jnp.reshape(phys.range_offset / self.range_scale, (1,)))
+            elif g == "gain":
+                pieces.append(jnp.reshape(jnp.log(phys.gain), (1,)))
+        return jnp.concatenate([jnp.asarray(p, dt) for p in pieces])
+
+    def physical_vector(self, theta: Float[Array, " P"]) -> Float[Array, " P"]:
+        """Flat vector in user units (see :attr:`labels`) of ``theta`` (differentiable)."""
+        parts = self._split(theta)
+        phys = self.to_physical(theta)
+        k = self.reference.n_materials
+        pieces = []
+        for g in self.ordered_free:
+            if g == "attitude":
+                pieces.append(jnp.degrees(parts["attitude"]))
+            elif g == "m":
+                pieces.append(phys.m)
+            elif g == "n":
+                pieces.append(jnp.real(phys.n)[:k])
+                pieces.append(jnp.imag(phys.n)[:k])
+            elif g == "corr_length":
+                pieces.append(phys.corr_length)
+            elif g == "range_offset":
+                pieces.append(jnp.reshape(phys.range_offset, (1,)))
+            elif g == "gain":
+                pieces.append(jnp.reshape(phys.gain, (1,)))
+        return jnp.concatenate(pieces)
+
+    def recentred(self, phys: PhysicalParams) -> Parametrisation:
+        """Same layout with the reference moved to ``phys`` (so its rotation vector is 0)."""
+        return Parametrisation(phys, self.free, self.range_scale)
+
+    def with_reference(self, phys: PhysicalParams) -> Parametrisation:
+        return self.recentred(phys)
+
+
+def lift_start(phys: PhysicalParams, floor: float = 1e-6) -> PhysicalParams:
+    """``phys`` with ``m`` and ``n''`` raised to at least ``floor`` (a start off the clamp)."""
+    n = jnp.asarray(phys.n)
+    n = jax.lax.complex(jnp.real(n), jnp.maximum(jnp.imag(n), floor))
+    return PhysicalParams(
+        phys.quaternion,
+        jnp.maximum(phys.m, floor),
+        n,
+        phys.corr_length,
+        phys.range_offset,
+        phys.gain,
+    )
+
+
+def _conj(q):
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0], q.dtype)

@@ -1,0 +1,906 @@
+r"""Gradient refiners: weighted least squares on the continuous parameters, multi-start.
+
+**Forward-model interface.** A forward model is any object (ideally an ``eqx.Module`` holding
+its arrays, so that jit traces rather than bakes them in) with
+
+- ``prepare(phys: PhysicalParams) -> aux``: host-side, *not* traced, no gradients. Returns a
+  pytree of arrays the pure model needs and that is piecewise constant in the parameters
+  (per-face visibility fractions from ray casting). Called between refinement rounds.
+- ``expected(phys: PhysicalParams, aux) -> Float[Array, "C B"]``: pure, jittable,
+  differentiable expected counts per channel and range bin.
+
+A noise model is any object with ``variance(expected, phys) -> Float[Array, "C B"]`` (jittable);
+:class:`PoissonNoise` and :class:`GaussianNoise` are provided.
+
+**Algorithm.** Each start (e.g. one of the classifier's top-k candidates) is refined in a few
+*rounds*. At the start of a round the host recomputes ``aux`` (visibility) and the weights
+``1/sigma = 1/sqrt(variance(expected))`` at the current parameters; inside the round the
+residuals ``(data - expected(theta)) / sigma`` have fixed weights and are minimised with
+``optimistix.least_squares`` (Levenberg-Marquardt by default, Dogleg optional) with
+``throw=False``. Re-weighting between rounds is iteratively re-weighted least squares: for
+Poisson counts its fixed point is the maximum-likelihood estimate. The solver's result code
+is surfaced in :class:`RefineResult` (``success``, ``result``, ``message``), never swallowed.
+
+The covariance at the optimum is the Gauss-Newton inverse ``(J^T J)^{-1}`` of the weighted
+residual Jacobian in the solver coordinates, propagated to physical units (attitude as a
+rotation vector in degrees, ``m``, ``n'``, ``n''``, metres, gain) with the delta method.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+
+from ppr._types import Array, Float
+
+from ._params import DEFAULT_FREE, Parametrisation, PhysicalParams, lift_start
+
+__all__ = [
+    "GaussianNoise",
+    "PoissonNoise",
+    "RefineResult",
+    "StartSummary",
+    "check_observation",
+    "refine",
+    "covariance_at",
+    "PhysicalBounds",
+    "refine_bounded",
+    "predicted",
+    "SimulatorModel",
+    "SimulatorKernel",
+]
+
+
+# --------------------------------------------------------------------------- noise models
+class PoissonNoise(eqx.Module):
+    """Photon counting (+ optional speckle) variance: ``mu + mu^2 / M + floor``.
+
+    **Arguments:**
+
+    - `floor`: variance floor in counts^2 (background, read noise; keeps weights finite where
+      the model predicts no signal). Default 1.
+    - `speckle_cells`: number of speckle cells per bin ``M`` (gamma-distributed intensity adds
+      ``mu^2 / M``); ``None`` for pure Poisson.
+    - `counts_per_photon`: ``"one"`` (data are photo-counts) or ``"gain"`` (data are
+      photo-counts times the fitted overall gain, as in :mod:`inversion._noise`: the Poisson
+      part of the variance is then ``gain * mu``).
+    """
+
+    floor: float = 1.0
+    speckle_cells: float | None = None
+    counts_per_photon: str = eqx.field(static=True, default="one")
+
+    def __check_init__(self):
+        if self.counts_per_photon not in ("one", "gain"):
+            raise ValueError(
+                "PoissonNoise.counts_per_photon must be 'one' or 'gain', "
+                f"got {self.counts_per_photon!r}"
+            )
+
+    def variance(self, expected: Array, phys: PhysicalParams | None = None) -> Array:
+        mu = jnp.maximum(expected, 0.0)
+        g = 1.0
+        if self.counts_per_photon == "gain" and phys is not None:
+            g = phys.gain
+        var = g * mu + self.floor
+        if self.speckle_cells is not None:
+            var = var + mu * mu / self.speckle_cells
+        return var
+
+
+class GaussianNoise(eqx.Module):
+    """Known Gaussian noise: ``variance = sigma**2`` (broadcast to the data shape)."""
+
+    sigma: Array = eqx.field(converter=jnp.asarray)
+
+    def variance(self, expected: Array, phys: PhysicalParams | None = None) -> Array:
+        return jnp.broadcast_to(self.sigma**2, expected.shape).astype(expected.dtype)
+
+
+# --------------------------------------------------------------------------- validation
+def check_observation(data: Any, shape: tuple[int, ...], name: str = "data") -> np.ndarray:
+    """Validate an observation against the model's output shape; return it as float64 NumPy.
+
+    Raises ``ValueError`` naming the problem: wrong number of channels or range bins, or
+    non-finite entries (with the count and the first position).
+    """
+    arr = np.asarray(data)
+    if arr.dtype == object or not np.issubdtype(arr.dtype, np.number):
+        raise ValueError(f"{name}: expected a numeric array, got dtype {arr.dtype}")
+    if arr.shape != tuple(shape):
+        if arr.ndim == len(shape) and arr.shape[:-1] == tuple(shape[:-1]):
+            raise ValueError(
+                f"{name}: observation has {arr.shape[-1]} range bins but the model predicts "
+                f"{shape[-1]} (shape {arr.shape} vs {tuple(shape)}); re-bin the observation or "
+                f"build the model with the observation's range bins"
+            )
+        raise ValueError(
+            f"{name}: observation shape {arr.shape} does not match the model's (channels, bins) "
+            f"= {tuple(shape)}"
+        )
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        first = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(
+            f"{name}: observation contains {int(bad.sum())} non-finite value(s) (NaN/inf), "
+            f"first at index {first} (channel, bin); mask or drop those bins before fitting"
+        )
+    return arr.astype(np.float64)
+
+
+# --------------------------------------------------------------------------- results
+RESULT_NAMES = {int(v._value): k for k, v in optx.RESULTS._name_to_item.items()}
+
+
+@dataclasses.dataclass(frozen=True)
+class StartSummary:
+    """Outcome of one start of a multi-start refinement."""
+
+    index: int
+    start: PhysicalParams
+    params: PhysicalParams
+    cost: float
+    success: bool
+    result: str
+    message: str
+    n_steps: int
+    n_rounds: int
+
+
+@dataclasses.dataclass(frozen=True)
+class RefineResult:
+    """Best fit of a (multi-start) refinement, with the solver's verdict and uncertainties.
+
+    - `params`: best physical parameters; `theta` their solver coordinates in
+      `parametrisation` (whose reference is ``params``, so the attitude entries are 0).
+    - `cost`: ``chi^2 = sum(residual^2)`` at the optimum; `dof` = n_data - n_params;
+      `reduced_chi2` = cost / dof (about 1 when the noise model is right).
+    - `success`: the solver reported success and the cost is finite; `result` the optimistix
+      (or adapter) result name; `message` a human-readable explanation; `n_steps` total solver
+      steps over all rounds; `n_rounds` visibility/weight rounds used.
+    - `covariance`: ``(J^T J)^{-1}`` in physical units (`labels`); `covariance_theta` the same
+      in solver coordinates; `sigma` the 1-sigma errors; `condition` the condition number of
+      ``J^T J`` (large: some parameter is not constrained by the data).
+    - `starts`: summaries of every start, best first; `elapsed_s`: wall time.
+    """
+
+    params: PhysicalParams
+    theta: np.ndarray
+    parametrisation: Parametrisation
+    cost: float
+    dof: int
+    success: bool
+    result: str
+    message: str
+    n_steps: int
+    n_rounds: int
+    covariance: np.ndarray
+    covariance_theta: np.ndarray
+    labels: list[str]
+    condition: float
+    starts: tuple[StartSummary, ...]
+    elapsed_s: float
+    method: str = "levenberg_marquardt"
+
+    @property
+    def reduced_chi2(self) -> float:
+        return self.cost / max(self.dof, 1)
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+
+    @property
+    def attitude_sigma_deg(self) -> float | None:
+        """Root-sum-square 1-sigma attitude error (degrees), if the attitude was fitted."""
+        if "attitude" not in self.parametrisation.free:
+            return None
+        i = self.labels.index("rot_x [deg]")
+        return float(np.sqrt(np.trace(self.covariance[i : i + 3, i : i + 3])))
+
+    def summary(self) -> str:
+        lines = [
+            f"refine[{self.method}]: success={self.success} ({self.result}) cost={self.cost:.4g} "
+            f"reduced_chi2={self.reduced_chi2:.3g} steps={self.n_steps} rounds={self.n_rounds} "
+            f"time={self.elapsed_s:.2f}s cond={self.condition:.2g}"
+        ]
+        if not self.success:
+            lines.append(f"  solver message: {self.message}")
+        vec = np.asarray(self.parametrisation.physical_vector(jnp.asarray(self.theta)))
+        for lab, v, s in zip(self.labels, vec, self.sigma, strict=True):
+            lines.append(f"  {lab:>22s} = {v: .6g} +- {s:.3g}")
+        return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- core
+def _residuals(theta, param, model, aux, inv_sigma, data):
+    phys = param.to_physical(theta)
+    mu = model.expected(phys, aux)
+    return (data - mu) * inv_sigma
+
+
+def _make_solver(solver, rtol, atol):
+    # Tolerances as arrays: traced under filter_jit, so changing them does not recompile.
+    rtol = jnp.asarray(rtol, jnp.result_type(float))
+    atol = jnp.asarray(atol, jnp.result_type(float))
+    if isinstance(solver, str):
+        key = solver.lower()
+        if key in ("lm", "levenberg_marquardt", "levenbergmarquardt"):
+            return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+        # rank-revealing linear solves: a parameter the data do not constrain (or one sitting
+        # on a reparametrisation clamp) makes J singular, which the default (QR) turns into NaN
+        if key == "dogleg":
+            return optx.Dogleg(
+                rtol=rtol, atol=atol, linear_solver=lx.AutoLinearSolver(well_posed=False)
+            )
+        if key in ("gauss_newton", "gn"):
+            return optx.GaussNewton(
+                rtol=rtol, atol=atol, linear_solver=lx.AutoLinearSolver(well_posed=False)
+            )
+        raise ValueError(
+            f"solver={solver!r}: expected 'lm', 'dogleg', 'gauss_newton' or an optimistix solver"
+        )
+    return solver
+
+
+@eqx.filter_jit
+def _solve_round(model, param, aux, inv_sigma, data, theta0, solver, max_steps):
+    def fn(theta, args):
+        return _residuals(theta, param, model, aux, inv_sigma, data)
+
+    sol = optx.least_squares(fn, solver, theta0, None, max_steps=max_steps, throw=False)
+    r = fn(sol.value, None)
+    return sol.value, sol.result, sol.stats["num_steps"], jnp.sum(r * r)
+
+
+@eqx.filter_jit
+def _to_physical(param, theta):
+    return param.to_physical(theta)
+
+
+@eqx.filter_jit
+def _from_physical(param, phys):
+    return param.from_physical(phys)
+
+
+@eqx.filter_jit
+def _weights(model, noise, phys, aux):
+    mu = model.expected(phys, aux)
+    return 1.0 / jnp.sqrt(noise.variance(mu, phys)), mu
+
+
+@eqx.filter_jit
+def _jacobians(model, param, aux, inv_sigma, data, theta):
+    J = jax.jacfwd(lambda t: _residuals(t, param, model, aux, inv_sigma, data).ravel())(theta)
+    G = jax.jacfwd(param.physical_vector)(theta)
+    r = _residuals(theta, param, model, aux, inv_sigma, data)
+    return J, G, jnp.sum(r * r)
+
+
+def covariance_at(
+    model, noise, data, phys: PhysicalParams, free=DEFAULT_FREE, aux=None, range_scale=0.01
+):
+    """Gauss-Newton covariance at ``phys``: ``(cov_physical, cov_theta, labels, condition, chi2)``.
+
+    ``aux`` (visibility) is recomputed with ``model.prepare`` when not given. Uses a
+    pseudo-inverse (relative cutoff 1e-12) so an unconstrained direction shows as a huge
+    condition number rather than a crash.
+    """
+    param = Parametrisation(phys, tuple(free), range_scale)
+    if aux is None:
+        aux = model.prepare(phys)
+    inv_sigma, _ = _weights(_pure(model), noise, phys, aux)
+    theta = _from_physical(param, phys)
+    J, G, chi2 = _jacobians(_pure(model), param, aux, inv_sigma, jnp.asarray(data), theta)
+    J = np.asarray(J, np.float64)
+    G = np.asarray(G, np.float64)
+    if not np.all(np.isfinite(J)):
+        raise FloatingPointError(
+            "covariance_at: the residual Jacobian has non-finite entries at the optimum "
+            f"(columns {sorted(set(np.argwhere(~np.isfinite(J))[:, 1].tolist()))})"
+        )
+    JTJ = J.T @ J
+    ev = np.linalg.eigvalsh(JTJ)
+    cond = float(ev[-1] / max(ev[0], 1e-300)) if ev[-1] > 0 else np.inf
+    cov_theta = np.linalg.pinv(JTJ, rcond=1e-12, hermitian=True)
+    cov = G @ cov_theta @ G.T
+    return cov, cov_theta, param.labels, cond, float(chi2)
+
+
+def _as_starts(starts) -> list[PhysicalParams]:
+    if isinstance(starts, PhysicalParams):
+        return [starts]
+    starts = list(starts)
+    if not starts:
+        raise ValueError(
+            "refine: starts is empty; pass at least one PhysicalParams "
+            "(e.g. the classifier's top-k)"
+        )
+    for i, s in enumerate(starts):
+        if not isinstance(s, PhysicalParams):
+            raise ValueError(f"refine: starts[{i}] is {type(s).__name__}, expected PhysicalParams")
+    return starts
+
+
+def _model_shape(model, phys, aux):
+    out = jax.eval_shape(_pure(model).expected, phys, aux)
+    return tuple(out.shape)
+
+
+def refine(
+    model,
+    data,
+    starts: PhysicalParams | Sequence[PhysicalParams],
+    *,
+    noise=None,
+    free: Sequence[str] = DEFAULT_FREE,
+    solver: str | Any = "lm",
+    rtol: float = 1e-8,
+    atol: float = 1e-8,
+    max_steps: int = 200,
+    rounds: int = 4,
+    range_scale: float = 0.01,
+) -> RefineResult:
+    """Multi-start weighted least-squares refinement (see the module docstring).
+
+    **Arguments:**
+
+    - `model`: forward model (``prepare``/``expected``, module docstring).
+    - `data`: observed counts ``(C, B)``; checked against the model's output shape and for NaN.
+    - `starts`: one or several starting points (e.g. the classifier's top-k candidates
+      converted to :class:`PhysicalParams`).
+    - `noise`: noise model with ``variance(expected)``; default ``PoissonNoise(floor=1)``.
+    - `free`: parameter groups to fit (see :mod:`inversion._params`).
+    - `solver`: ``"lm"`` (Levenberg-Marquardt, default), ``"dogleg"``, ``"gauss_newton"`` or
+      an optimistix least-squares solver instance; `rtol`/`atol` its tolerances.
+    - `max_steps`: solver steps per round; `rounds`: max visibility/weight rounds per start.
+
+    **Returns:** :class:`RefineResult` for the lowest-cost start (successful starts preferred),
+    with every start summarised in ``starts``.
+    """
+    t0 = time.perf_counter()
+    noise = PoissonNoise() if noise is None else noise
+    starts = _as_starts(starts)
+    solv = _make_solver(solver, rtol, atol)
+    free = tuple(free)
+    if rounds < 1 or max_steps < 1:
+        raise ValueError(f"refine: rounds={rounds} and max_steps={max_steps} must be >= 1")
+
+    aux0 = model.prepare(starts[0])
+    shape = _model_shape(model, starts[0], aux0)
+    data_np = check_observation(data, shape)
+    dt = starts[0].m.dtype
+    data_j = jnp.asarray(data_np, dt)
+
+    summaries = []
+    for idx, start in enumerate(starts):
+        phys = lift_start(start)
+        param = Parametrisation(phys, free, range_scale)
+        total_steps, used_rounds = 0, 0
+        prev_cost = np.inf
+        res_code, cost = 0, np.inf
+        aux = aux0 if idx == 0 else model.prepare(phys)
+        for rnd in range(rounds):
+            if rnd > 0:
+                aux = model.prepare(phys)
+            inv_sigma, _ = _weights(_pure(model), noise, phys, aux)
+            theta0 = _from_physical(param, phys)
+            theta, result, nsteps, cost_j = _solve_round(
+                _pure(model), param, aux, inv_sigma, data_j, theta0, solv, max_steps
+            )
+            used_rounds += 1
+            total_steps += int(nsteps)
+            res_code = int(result._value)
+            cost = float(cost_j)
+            if not np.all(np.isfinite(np.asarray(theta))):
+                res_code = RESULT_NAMES_INV["nonfinite"]
+                cost = np.inf
+                break
+            phys = _to_physical(param, theta)
+            param = param.recentred(phys)
+            if abs(prev_cost - cost) <= 1e-9 * max(cost, 1.0) and rnd > 0:
+                break
+            prev_cost = cost
+        name = RESULT_NAMES.get(res_code, str(res_code))
+        ok = name == "successful" and np.isfinite(cost)
+        summaries.append(
+            StartSummary(
+                index=idx,
+                start=start,
+                params=phys,
+                cost=cost,
+                success=bool(ok),
+                result=name,
+                message=_message(res_code),
+                n_steps=total_steps,
+                n_rounds=used_rounds,
+            )
+        )
+
+    order = sorted(
+        range(len(summaries)), key=lambda i: (not summaries[i].success, summaries[i].cost)
+    )
+    ordered = tuple(summaries[i] for i in order)
+    best = ordered[0]
+    return _finish(
+        model,
+        noise,
+        data_j,
+        best,
+        ordered,
+        free,
+        range_scale,
+        t0,
+        "levenberg_marquardt" if isinstance(solv, optx.LevenbergMarquardt) else type(solv).__name__,
+    )
+
+
+RESULT_NAMES_INV = {v: k for k, v in RESULT_NAMES.items()}
+
+
+def _message(code: int) -> str:
+    name = RESULT_NAMES.get(code)
+    if name is None:
+        return f"unknown result code {code}"
+    if name == "successful":
+        return "converged"
+    return str(optx.RESULTS[getattr(optx.RESULTS, name)])
+
+
+def _finish(model, noise, data_j, best: StartSummary, ordered, free, range_scale, t0, method):
+    phys = best.params
+    if np.isfinite(best.cost):
+        cov, cov_theta, labels, cond, chi2 = covariance_at(
+            model, noise, data_j, phys, free=free, range_scale=range_scale
+        )
+    else:
+        param = Parametrisation(phys, free, range_scale)
+        p = param.size
+        cov = cov_theta = np.full((p, p), np.nan)
+        labels, cond, chi2 = param.labels, np.inf, np.inf
+    param = Parametrisation(phys, free, range_scale)
+    n_data = int(np.prod(data_j.shape))
+    return RefineResult(
+        params=phys,
+        theta=np.asarray(_from_physical(param, phys)),
+        parametrisation=param,
+        cost=float(chi2),
+        dof=n_data - param.size,
+        success=best.success,
+        result=best.result,
+        message=best.message,
+        n_steps=best.n_steps,
+        n_rounds=best.n_rounds,
+        covariance=cov,
+        covariance_theta=cov_theta,
+        labels=labels,
+        condition=cond,
+        starts=ordered,
+        elapsed_s=time.perf_counter() - t0,
+        method=method,
+    )
+
+
+def predicted(model, phys: PhysicalParams) -> Float[Array, "C B"]:
+    """Expected counts at ``phys`` (visibility recomputed on the host)."""
+    return model.expected(phys, model.prepare(phys))
+
+
+# --------------------------------------------------------------------------- bounded (jaxopt)
+@dataclasses.dataclass(frozen=True)
+class PhysicalBounds:
+    """Box bounds in physical units for :func:`refine_bounded` (``(low, high)`` pairs).
+
+    Defaults: ``n'`` in [0.05, 5] (not [1, 5]: metals have ``n' < 1``, e.g. aluminium 0.94,
+    gold 0.54, silver 0.054 at 532 nm, PHYSICS.md section 11), ``n''`` in [0, 15], ``m`` in
+    [0, 1e6], correlation length in [1e-8, 1e-2] m, range offset in [-1, 1] m, gain in
+    [1e-8, 1e8]; the attitude rotation vector is bounded by ``max_rotation_deg`` about the start.
+    """
+
+    n_re: tuple[float, float] = (0.05, 5.0)
+    n_im: tuple[float, float] = (0.0, 15.0)
+    m: tuple[float, float] = (0.0, 1e6)
+    corr_length: tuple[float, float] = (1e-8, 1e-2)
+    range_offset: tuple[float, float] = (-1.0, 1.0)
+    gain: tuple[float, float] = (1e-8, 1e8)
+    max_rotation_deg: float = 180.0
+
+    def __post_init__(self):
+        for f in ("n_re", "n_im", "m", "corr_length", "range_offset", "gain"):
+            lo, hi = getattr(self, f)
+            if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+                raise ValueError(
+                    f"PhysicalBounds.{f} must be finite with low < high, got {(lo, hi)}"
+                )
+        for f in ("n_re", "corr_length", "gain"):
+            if getattr(self, f)[0] <= 0:
+                raise ValueError(
+                    f"PhysicalBounds.{f} lower bound must be > 0, got {getattr(self, f)}"
+                )
+        if self.n_im[0] < 0 or self.m[0] < 0:
+            raise ValueError(
+                f"PhysicalBounds: n_im and m lower bounds must be >= 0, got {self.n_im}, {self.m}"
+            )
+
+
+class _BoxMap(eqx.Module):
+    """Bounded coordinates z: rotvec (rad), log1p(m), n', n'', log d, offset/scale, log g."""
+
+    reference: PhysicalParams
+    free: tuple[str, ...] = eqx.field(static=True)
+    range_scale: float = eqx.field(static=True)
+
+    def _sizes(self):
+        k = self.reference.n_materials
+        return {"attitude": 3, "m": k, "n": 2 * k, "corr_length": k, "range_offset": 1, "gain": 1}
+
+    def ordered(self):
+        from ._params import GROUPS
+
+        return tuple(g for g in GROUPS if g in self.free)
+
+    def to_physical(self, z):
+        from ._params import quat_from_rotvec, quat_multiply
+
+        ref, k, i, parts = self.reference, self.reference.n_materials, 0, {}
+        for g in self.ordered():
+            parts[g] = z[i : i + self._sizes()[g]]
+            i += self._sizes()[g]
+        q = ref.unit_quaternion().astype(z.dtype)
+        if "attitude" in parts:
+            q = quat_multiply(quat_from_rotvec(parts["attitude"]), q)
+        m = jnp.expm1(parts["m"]) if "m" in parts else ref.m
+        n = jax.lax.complex(parts["n"][:k], parts["n"][k:]) if "n" in parts else ref.n
+        d = jnp.exp(parts["corr_length"]) if "corr_length" in parts else ref.corr_length
+        off = (
+            parts["range_offset"][0] * self.range_scale
+            if "range_offset" in parts
+            else ref.range_offset
+        )
+        gain = jnp.exp(parts["gain"][0]) if "gain" in parts else ref.gain
+        return PhysicalParams(q, m, n, d, off, gain)
+
+    def from_physical(self, phys):
+        from ._params import _conj, quat_multiply, rotvec_from_quat
+
+        out = []
+        for g in self.ordered():
+            if g == "attitude":
+                dq = quat_multiply(phys.unit_quaternion(), _conj(self.reference.unit_quaternion()))
+                out.append(rotvec_from_quat(dq))
+            elif g == "m":
+                out.append(jnp.log1p(phys.m))
+            elif g == "n":
+                out += [jnp.real(phys.n), jnp.imag(phys.n)]
+            elif g == "corr_length":
+                out.append(jnp.log(phys.corr_length))
+            elif g == "range_offset":
+                out.append(jnp.reshape(phys.range_offset / self.range_scale, (1,)))
+            elif g == "gain":
+                out.append(jnp.reshape(jnp.log(phys.gain), (1,)))
+        return jnp.concatenate([jnp.asarray(o, phys.m.dtype) for o in out])
+
+    def bounds(self, b: PhysicalBounds):
+        k = self.reference.n_materials
+        lo, hi = [], []
+        for g in self.ordered():
+            if g == "attitude":
+                r = np.radians(b.max_rotation_deg)
+                lo += [-r] * 3
+                hi += [r] * 3
+            elif g == "m":
+                lo += [np.log1p(b.m[0])] * k
+                hi += [np.log1p(b.m[1])] * k
+            elif g == "n":
+                lo += [b.n_re[0]] * k + [b.n_im[0]] * k
+                hi += [b.n_re[1]] * k + [b.n_im[1]] * k
+            elif g == "corr_length":
+                lo += [np.log(b.corr_length[0])] * k
+                hi += [np.log(b.corr_length[1])] * k
+            elif g == "range_offset":
+                lo.append(b.range_offset[0] / self.range_scale)
+                hi.append(b.range_offset[1] / self.range_scale)
+            elif g == "gain":
+                lo.append(np.log(b.gain[0]))
+                hi.append(np.log(b.gain[1]))
+        return np.asarray(lo), np.asarray(hi)
+
+
+@eqx.filter_jit
+def _bounded_round(model, box, aux, inv_sigma, data, z0, lower, upper, maxiter, tol):
+    from ._jaxopt_adapter import lbfgsb_minimize
+
+    def chi2(z):
+        r = (data - model.expected(box.to_physical(z), aux)) * inv_sigma
+        return jnp.sum(r * r)
+
+    scale = jnp.maximum(chi2(z0), 1.0)
+    sol = lbfgsb_minimize(lambda z: chi2(z) / scale, z0, lower, upper, maxiter=maxiter, tol=tol)
+    return sol, chi2(sol.x)
+
+
+@eqx.filter_jit
+def _box_from(box, phys):
+    return box.from_physical(phys)
+
+
+@eqx.filter_jit
+def _box_to(box, z):
+    return box.to_physical(z)
+
+
+def refine_bounded(
+    model,
+    data,
+    starts: PhysicalParams | Sequence[PhysicalParams],
+    *,
+    noise=None,
+    bounds: PhysicalBounds | None = None,
+    free: Sequence[str] = DEFAULT_FREE,
+    maxiter: int = 500,
+    tol: float = 1e-9,
+    rounds: int = 3,
+    range_scale: float = 0.01,
+) -> RefineResult:
+    """Box-bounded weighted least squares with L-BFGS-B (jaxopt, via :mod:`._jaxopt_adapter`).
+
+    Same interface, rounds and result as :func:`refine`; the parameters are kept inside
+    ``bounds`` (:class:`PhysicalBounds`). ``result`` is ``"successful"`` when the projected
+    gradient of the normalised chi^2 fell below ``tol``, ``"max_steps_reached"`` or
+    ``"linesearch_failed"`` otherwise. The covariance is the unconstrained Gauss-Newton one at
+    the optimum (not meaningful for a parameter sitting on a bound: check ``at_bounds`` in
+    the message).
+    """
+    t0 = time.perf_counter()
+    noise = PoissonNoise() if noise is None else noise
+    bounds = PhysicalBounds() if bounds is None else bounds
+    starts = _as_starts(starts)
+    free = tuple(free)
+    aux0 = model.prepare(starts[0])
+    data_np = check_observation(data, _model_shape(model, starts[0], aux0))
+    dt = starts[0].m.dtype
+    data_j = jnp.asarray(data_np, dt)
+
+    summaries = []
+    for idx, start in enumerate(starts):
+        phys = start
+        steps, used, name, cost, msg = 0, 0, "successful", np.inf, ""
+        for rnd in range(rounds):
+            box = _BoxMap(phys, free, range_scale)
+            lower, upper = (jnp.asarray(a, dt) for a in box.bounds(bounds))
+            aux = aux0 if (idx == 0 and rnd == 0) else model.prepare(phys)
+            inv_sigma, _ = _weights(_pure(model), noise, phys, aux)
+            z0 = _box_from(box, phys)
+            sol, cost_j = _bounded_round(
+                _pure(model), box, aux, inv_sigma, data_j, z0, lower, upper, maxiter, tol
+            )
+            used += 1
+            steps += int(sol.n_iter)
+            new_cost = float(cost_j)
+            if not np.all(np.isfinite(np.asarray(sol.x))) or not np.isfinite(new_cost):
+                name, msg, cost = (
+                    "nonfinite",
+                    "non-finite parameters or cost during L-BFGS-B",
+                    np.inf,
+                )
+                break
+            phys = _box_to(box, sol.x)
+            if bool(sol.converged):
+                name, msg = "successful", "converged"
+            elif bool(sol.failed_linesearch):
+                name, msg = (
+                    "linesearch_failed",
+                    (
+                        "L-BFGS-B line search failed (projected gradient "
+                        f"{float(sol.error):.3g} > tol {tol:g})"
+                    ),
+                )
+            else:
+                name, msg = (
+                    "max_steps_reached",
+                    (
+                        f"L-BFGS-B reached maxiter={maxiter} (projected gradient "
+                        f"{float(sol.error):.3g} > tol {tol:g})"
+                    ),
+                )
+            done = abs(cost - new_cost) <= 1e-9 * max(new_cost, 1.0)
+            cost = new_cost
+            if done:
+                break
+        at = _at_bounds(_BoxMap(phys, free, range_scale), phys, bounds)
+        if at and name == "successful":
+            msg = f"converged; at bounds: {', '.join(at)}"
+        summaries.append(
+            StartSummary(idx, start, phys, cost, name == "successful", name, msg, steps, used)
+        )
+    order = sorted(
+        range(len(summaries)), key=lambda i: (not summaries[i].success, summaries[i].cost)
+    )
+    ordered = tuple(summaries[i] for i in order)
+    return _finish(
+        model, noise, data_j, ordered[0], ordered, free, range_scale, t0, "lbfgsb_jaxopt"
+    )
+
+
+def _at_bounds(box: _BoxMap, phys: PhysicalParams, bounds: PhysicalBounds) -> list[str]:
+    labels = []
+    k = phys.n_materials
+    for g in box.ordered():
+        if g == "attitude":
+            labels += ["rotvec"] * 3
+        elif g == "m":
+            labels += [f"m[{i}]" for i in range(k)]
+        elif g == "n":
+            labels += [f"n_re[{i}]" for i in range(k)] + [f"n_im[{i}]" for i in range(k)]
+        elif g == "corr_length":
+            labels += [f"corr_length[{i}]" for i in range(k)]
+        else:
+            labels.append(g)
+    z = np.asarray(box.from_physical(phys))
+    lo, hi = box.bounds(bounds)
+    tol = 1e-9 * np.maximum(1.0, np.abs(z))
+    hit = (np.abs(z - lo) <= tol) | (np.abs(z - hi) <= tol)
+    return [lab for lab, h in zip(labels, hit, strict=True) if h and lab != "rotvec"]
+
+
+# --------------------------------------------------------------------------- ppr simulator
+class SimulatorKernel(eqx.Module):
+    """The pure, jittable part of :class:`SimulatorModel` (arrays + static sizes only, so
+    meshes padded to the same capacity share one compilation)."""
+
+    arrays: Any
+    sensor: Any
+    sigma_r: Array
+    start: Array
+    width: Array
+    projection: Array
+    background: Array
+    position: Array
+    n_bins: int = eqx.field(static=True)
+    window: int = eqx.field(static=True)
+    brdf: Any = eqx.field(static=True)
+    terms: Any = eqx.field(static=True)
+
+    def prepare(self, phys):  # pragma: no cover - the host part lives in SimulatorModel
+        raise TypeError("SimulatorKernel has no visibility caster; use SimulatorModel")
+
+    def expected(self, phys: PhysicalParams, vis):
+        import ppr
+
+        dt = self.arrays.tri.dtype
+        pose = ppr.Pose(phys.unit_quaternion().astype(dt), self.position)
+        mats = ppr.Material(phys.n, phys.m.astype(dt), phys.corr_length.astype(dt))
+        out = ppr.render(
+            self.arrays,
+            vis,
+            pose,
+            mats,
+            self.sensor,
+            self.sigma_r,
+            self.start - phys.range_offset.astype(dt),
+            self.width,
+            n_bins=self.n_bins,
+            window=self.window,
+            projection=self.projection,
+            brdf=self.brdf,
+            terms=self.terms,
+        )
+        return phys.gain.astype(dt) * out + self.background
+
+
+class SimulatorModel:
+    """Forward model backed by ppr's pulse synthesis (:func:`ppr.render`) and a PSG/PSA
+    measurement model: expected counts ``gain * P . M(b) + background`` per channel and bin.
+
+    ``prepare`` ray-casts the per-face lit-and-visible fractions at the given attitude on the
+    host (embree, :class:`ppr.VisibilityCaster`); ``expected`` is pure and differentiable in
+    the attitude, ``m``, ``n``, correlation length, range offset (moves the range gate) and
+    gain. Material slot ``k`` of :class:`PhysicalParams` is mesh part ``k``. The jitted
+    solvers see only :attr:`pure_model` (a :class:`SimulatorKernel`).
+
+    **Arguments:**
+
+    - `scene`: :class:`ppr.Scene` (mesh, sensor, pulse, bins, position; its attitude and
+      materials are ignored).
+    - `channel_matrix`: ``(C, 4, 4)``, ``I_c = sum_ij P[c, i, j] M[i, j]``
+      (:meth:`inversion.MeasurementModel.channel_matrix`).
+    - `brdf`, `terms`: Mueller BRDF (default :func:`ppr.mueller_brdf`) and its terms.
+    - `background`: expected background counts per (channel, bin).
+    - `dense`: evaluate every facet on every bin (window = n_bins): slower per call for large
+      meshes, but every mesh of the same padded capacity shares one compilation.
+    - `capacity`: padded face capacity (default :func:`ppr.mesh_arrays`'s).
+    """
+
+    def __init__(
+        self,
+        scene,
+        channel_matrix,
+        *,
+        brdf=None,
+        terms=None,
+        background=0.0,
+        dtype=None,
+        dense=False,
+        capacity=None,
+    ):
+        import ppr
+        from ppr._conventions import C_LIGHT
+        from ppr._pulse import _default_brdf
+
+        dt = jnp.result_type(float) if dtype is None else dtype
+        mesh, sensor, pulse, bins = scene.mesh, scene.sensor, scene.pulse, scene.bins
+        P = np.asarray(channel_matrix, np.float64)
+        if P.ndim != 3 or P.shape[1:] != (4, 4):
+            raise ValueError(f"channel_matrix must have shape (C, 4, 4), got {P.shape}")
+        arrays = ppr.mesh_arrays(mesh, capacity, dtype=dt)
+        sigma_r = 0.5 * C_LIGHT * float(pulse.sigma_t)
+        shift = 0.5 * C_LIGHT * float(pulse.t0)
+        tri = mesh.triangles()
+        w = np.asarray(sensor.bisector, np.float64)
+        max_edge = float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max())
+        if dense:
+            window = int(bins.n_bins)
+        else:
+            window = ppr.window_size(
+                max_edge * float(np.linalg.norm(w)), sigma_r, float(bins.width), bins.n_bins
+            )
+        cast = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, dt), t)  # noqa: E731
+        self.scene = scene
+        self.caster = ppr.VisibilityCaster(mesh, scene.vis_samples)
+        self.n_faces = mesh.n_faces
+        self.pure_model = SimulatorKernel(
+            arrays=arrays,
+            sensor=cast(sensor),
+            sigma_r=jnp.asarray(sigma_r, dt),
+            start=jnp.asarray(float(bins.start) - shift, dt),
+            width=jnp.asarray(float(bins.width), dt),
+            projection=jnp.asarray(P.reshape(P.shape[0], 16).T, dt),
+            background=jnp.asarray(background, dt),
+            position=jnp.asarray(np.asarray(scene.pose.position, np.float64), dt),
+            n_bins=int(bins.n_bins),
+            window=int(window),
+            brdf=_default_brdf() if brdf is None else brdf,
+            terms=terms,
+        )
+
+    @property
+    def n_channels(self) -> int:
+        return int(self.pure_model.projection.shape[1])
+
+    @property
+    def n_bins(self) -> int:
+        return self.pure_model.n_bins
+
+    def prepare(self, phys: PhysicalParams):
+        import ppr
+
+        q = np.asarray(phys.unit_quaternion(), np.float64)
+        rot = np.asarray(ppr.quat_to_matrix(q))
+        u_in = np.asarray(self.pure_model.sensor.laser_dir, np.float64)
+        u_out = np.asarray(self.pure_model.sensor.receiver_dir, np.float64)
+        vis = self.caster.fractions(rot.T @ u_in, rot.T @ u_out)
+        full = np.zeros(self.pure_model.arrays.valid.shape[0])
+        full[: vis.shape[0]] = vis
+        return jnp.asarray(full, self.pure_model.arrays.tri.dtype)
+
+    def expected(self, phys: PhysicalParams, vis):
+        return _expected_jit(self.pure_model, phys, vis)
+
+
+@eqx.filter_jit
+def _expected_jit(kernel, phys, vis):
+    return kernel.expected(phys, vis)
+
+
+def _pure(model):
+    """What the jitted functions see: ``model.pure_model`` if present, else the model."""
+    return getattr(model, "pure_model", model)

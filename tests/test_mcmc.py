@@ -1,0 +1,160 @@
+"""Posterior sampling (inversion._mcmc): coverage, diagnostics, outputs, configs, bad input.
+
+Uses the analytic toy forward model of ``tests/test_refine.py`` (independent of the pulse
+simulator). The likelihood is Gaussian with the noise model's variance, so data drawn from
+exactly that Gaussian make the coverage check exact up to the sampler's Monte Carlo error.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import emcee
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_refine import TRUTH, TRUTH_INTERIOR, make_toy, perturbed
+
+from inversion._mcmc import (
+    ChainTooShortWarning,
+    MCMCConfig,
+    load_mcmc_config,
+    make_log_prob,
+    mcmc_config_from_dict,
+    sample_posterior,
+)
+from inversion._params import Parametrisation
+from inversion._refine import PoissonNoise, refine
+from ppr._config import ConfigError
+
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "inversion" / "default.toml"
+NW = 32  # one walker count everywhere: the vmapped log-probability compiles once
+
+
+def _fast_config(**sampler):
+    base = {"n_walkers": NW, "n_steps": 1500, "burn_in": 500, "init_scale": 0.5, "progress": False}
+    base.update(sampler)
+    return mcmc_config_from_dict({"sampler": base}, "test")
+
+
+def _noisy(model, seed, noise, truth=TRUTH_INTERIOR):
+    mu = np.asarray(model.expected(truth, model.prepare(truth)))
+    sig = np.sqrt(np.asarray(noise.variance(jnp.asarray(mu))))
+    return mu + sig * np.random.default_rng(seed).normal(size=mu.shape)
+
+
+def test_default_config_loads_and_bad_configs_are_clear(tmp_path):
+    cfg = load_mcmc_config(CONFIG)
+    assert cfg.priors.m.kind == "loguniform" and cfg.sampler.n_walkers == 32
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[priors.m]\nkind = "uniform"\nlow = 10.0\nhigh = 1.0\n')
+    with pytest.raises(ConfigError, match=r"bad.toml.*priors.m.*low < high"):
+        load_mcmc_config(bad)
+    bad.write_text("[sampler]\nn_walkerz = 3\n")
+    with pytest.raises(ConfigError, match=r"sampler.n_walkerz.*unknown key"):
+        load_mcmc_config(bad)
+    bad.write_text('[priors.gain]\nkind = "loguniform"\nlow = nan\nhigh = 1.0\n')
+    with pytest.raises(ConfigError, match=r"priors.gain.low is not finite"):
+        load_mcmc_config(bad)
+    bad.write_text("[sampler]\nn_steps = 100\nburn_in = 200\n")
+    with pytest.raises(ConfigError, match="burn_in"):
+        load_mcmc_config(bad)
+
+
+def test_log_prob_vectorised_equals_single_and_respects_support():
+    model = make_toy()
+    noise = PoissonNoise()
+    data = _noisy(model, 0, noise)
+    par = Parametrisation(TRUTH_INTERIOR)
+    lp = make_log_prob(model, data, par, MCMCConfig().priors, noise=noise)
+    rng = np.random.default_rng(0)
+    th = np.asarray(par.from_physical(TRUTH_INTERIOR))[None] + 0.01 * rng.normal(
+        size=(NW, par.size)
+    )
+    batch = lp(th)
+    single = jax.jit(lp.single)
+    singles = np.array([float(single(jnp.asarray(t))) for t in th[:4]])
+    np.testing.assert_allclose(batch[:4], singles, rtol=1e-12)  # same float64 arithmetic
+    assert batch.dtype == np.float64 and np.all(np.isfinite(batch))
+    out = th.copy()
+    out[0, 3] = np.log(2e6)  # m above the prior's upper bound 1e6
+    out[1, 7] = -30.0  # n''[0] below the reparametrisation clamp: no mass there
+    assert lp(out)[0] == -np.inf and lp(out)[1] == -np.inf and np.isfinite(lp(out)[2])
+
+
+def test_prior_without_support_at_start_is_a_clear_error():
+    model = make_toy()
+    data = _noisy(model, 1, PoissonNoise())
+    cfg = mcmc_config_from_dict({"priors": {"m": {"kind": "uniform", "low": 50.0, "high": 100.0}}})
+    with pytest.raises(
+        ValueError, match=r"no support.*m\[0\] = 6 outside the uniform prior's support \[50, 100\]"
+    ):
+        sample_posterior(model, data, TRUTH, config=cfg)
+
+
+def test_bad_observation_is_a_clear_error():
+    model = make_toy()
+    data = _noisy(model, 1, PoissonNoise())
+    with pytest.raises(ValueError, match="range bins"):
+        sample_posterior(model, data[:, :-1], TRUTH, config=_fast_config())
+    data[0, 0] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        sample_posterior(model, data, TRUTH, config=_fast_config())
+
+
+def test_short_chain_warns_and_outputs_are_written(tmp_path):
+    model = make_toy()
+    noise = PoissonNoise()
+    data = _noisy(model, 2, noise)
+    ref = refine(model, data, perturbed(TRUTH_INTERIOR, 1.0), noise=noise)
+    assert ref.success, ref.summary()
+    h5 = tmp_path / "chain.h5"
+    with pytest.warns(ChainTooShortWarning, match="too short"):
+        res = sample_posterior(
+            model, data, ref, config=_fast_config(n_steps=60, burn_in=10), noise=noise, path=h5
+        )
+    assert not res.converged
+    assert res.chain.shape == (60, NW, 11) and res.samples.shape == (50 * NW, 11)
+    # the chain on disk is emcee's HDF5 format and equals the returned chain
+    back = emcee.backends.HDFBackend(str(h5), read_only=True)
+    np.testing.assert_array_equal(back.get_chain(), res.chain)
+    assert 0.05 < np.mean(res.acceptance_fraction) < 0.9
+    assert np.all(res.ess > 0) and np.all(np.isfinite(res.tau))
+    iv = res.interval(0.95)
+    assert iv.shape == (11, 2) and np.all(iv[:, 0] <= iv[:, 1])
+    png = res.corner_plot(tmp_path / "corner.png", truth=TRUTH_INTERIOR)
+    assert png.stat().st_size > 1000
+    assert "acceptance" in res.summary()
+
+
+def test_posterior_coverage_small():
+    """Truth inside the 99% (and 68%) intervals at the expected rate over seeded trials.
+
+    The truth is interior (n'' > 0: an equal-tailed interval cannot contain a truth on the
+    n'' = 0 boundary) and well constrained (gain 30). 6 trials x 11 parameters = 66 interval
+    checks (not independent within a trial: the binomial bound is approximate). 99%: expected
+    0.66 misses; P(misses >= 5) = 0.0006 under Binomial(66, 0.01) -> allow <= 4. 68%: expected
+    44.9 hits, sd 3.8 -> allow 34..56 (~3 sd), which also fails if the intervals are far too
+    wide (the 99% check alone would not).
+    """
+    model = make_toy()
+    noise = PoissonNoise(floor=1.0)
+    cfg = _fast_config()
+    miss99 = hit68 = total = 0
+    for seed in range(6):
+        data = _noisy(model, 100 + seed, noise)
+        ref = refine(model, data, perturbed(TRUTH_INTERIOR, 1.5, seed=seed), noise=noise)
+        assert ref.success, ref.summary()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ChainTooShortWarning)  # judged by coverage here
+            res = sample_posterior(model, data, ref, config=cfg, noise=noise)
+        tv = res.truth_vector(TRUTH_INTERIOR)
+        miss99 += int(np.sum(~res.contains(tv, 0.99)))
+        hit68 += int(np.sum(res.contains(tv, 0.68)))
+        total += tv.size
+        assert np.min(res.ess) > 100, res.summary()
+    assert total == 66
+    assert miss99 <= 4, (miss99, hit68)
+    assert 34 <= hit68 <= 56, (miss99, hit68)

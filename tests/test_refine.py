@@ -1,0 +1,412 @@
+"""Refiners (inversion._refine, _params, _jaxopt_adapter): recovery, gradients, bad input.
+
+The forward model here is a small analytic *toy* with the physical shape of a PPR return
+(facets with Blinn-Phong lobes, Fresnel Mueller matrices rotated into the sensor frame,
+Gaussian range pulses, 16 PSG x PSA channels, gain and range offset), so the inversion
+machinery is tested independently of the pulse simulator; the simulator-backed tests are at
+the end (skipped when ``ppr.simulate`` is not available).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from inversion._params import (
+    Parametrisation,
+    PhysicalParams,
+    quat_angle_deg,
+    quat_from_rotvec,
+    quat_multiply,
+    rotvec_from_quat,
+)
+from inversion._refine import GaussianNoise, PoissonNoise, check_observation, refine
+from ppr._fresnel import fresnel_mueller_params
+from ppr._safe import safe_div, safe_pow
+
+STATES = np.array([[1, 1, 0, 0], [1, -1, 0, 0], [1, 0, 1, 0], [1, 0, 0, 1]], float)
+
+
+def quat_to_matrix(q):
+    q = q / jnp.linalg.norm(q)
+    w, x, y, z = q
+    return jnp.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+class ToyFacetModel(eqx.Module):
+    """Toy PPR forward model: F flat facets, sensor looking along -z (k toward sensor = +z).
+
+    Facet f (unit normal N_f, centre c_f, area A_f, material slot) returns
+    ``A_f vis_f (m+2)/(2 pi) cos^m(theta_f) / 4`` times a Fresnel Mueller matrix at the facet's
+    incidence angle rotated by the azimuth of its normal, spread over range as a Gaussian of
+    width ``sigma_r`` centred at ``-z(c_f) + range_offset``. Channels: 16 PSG x PSA pairs of
+    {H, V, D, R}. Visibility ``vis_f = [cos theta_f > 0]`` is computed on the host (prepare).
+    """
+
+    normals: jax.Array
+    centers: jax.Array
+    areas: jax.Array
+    mat_ids: jax.Array
+    bins: jax.Array
+    photons: float = eqx.field(static=True, default=2e4)
+    sigma_r: float = eqx.field(static=True, default=0.03)
+
+    def prepare(self, phys):
+        R = np.asarray(quat_to_matrix(jnp.asarray(phys.quaternion)))
+        cos = np.asarray(self.normals) @ R.T[:, 2]
+        return jnp.asarray((cos > 0).astype(np.float64))
+
+    def expected(self, phys, vis):
+        R = quat_to_matrix(phys.quaternion)
+        nrm = self.normals @ R.T
+        cen = self.centers @ R.T
+        cos = jnp.clip(nrm[:, 2], 0.0, 1.0)
+        m = phys.m[self.mat_ids]
+        n = phys.n[self.mat_ids]
+        lobe = (m + 2) / (2 * jnp.pi) * safe_pow(cos, m) / 4
+        a, b, c, d = fresnel_mueller_params(jnp.real(n), jnp.imag(n), cos)
+        nx, ny = nrm[:, 0], nrm[:, 1]
+        rho2 = nx * nx + ny * ny
+        c2 = safe_div(nx * nx - ny * ny, rho2, 1.0)
+        s2 = safe_div(2 * nx * ny, rho2, 0.0)
+        z = jnp.zeros_like(a)
+        o = jnp.ones_like(a)
+        MF = jnp.stack(
+            [
+                jnp.stack([a, b, z, z], -1),
+                jnp.stack([b, a, z, z], -1),
+                jnp.stack([z, z, c, d], -1),
+                jnp.stack([z, z, -d, c], -1),
+            ],
+            -2,
+        )
+        Rot = jnp.stack(
+            [
+                jnp.stack([o, z, z, z], -1),
+                jnp.stack([z, c2, s2, z], -1),
+                jnp.stack([z, -s2, c2, z], -1),
+                jnp.stack([z, z, z, o], -1),
+            ],
+            -2,
+        )
+        RotT = jnp.swapaxes(Rot, -1, -2)
+        M = RotT @ MF @ Rot  # (F, 4, 4)
+        amp = self.photons * phys.gain * self.areas * vis * lobe
+        r_f = -cen[:, 2] + phys.range_offset
+        prof = jnp.exp(-0.5 * ((self.bins[None, :] - r_f[:, None]) / self.sigma_r) ** 2)
+        S = jnp.asarray(STATES, M.dtype)
+        ch = 0.5 * jnp.einsum("ai,fij,gj->fga", S, M, S).reshape(M.shape[0], 16)
+        return jnp.einsum("f,fk,fb->kb", amp, ch, prof)
+
+
+def make_toy(n_bins=48, seed=0, edge_on=False):
+    rng = np.random.default_rng(seed)
+    F = 7
+    normals = rng.normal(size=(F, 3))
+    normals[:, 2] = np.abs(normals[:, 2]) + 0.8
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    if edge_on:
+        normals[0] = [1.0, 0.0, 0.0]  # exactly edge-on at the identity attitude
+    centers = rng.uniform(-0.2, 0.2, size=(F, 3))
+    areas = rng.uniform(0.5, 1.5, size=F)
+    mat_ids = np.array([0, 0, 0, 0, 1, 1, 1])
+    bins = np.linspace(-0.45, 0.45, n_bins)
+    return ToyFacetModel(
+        jnp.asarray(normals),
+        jnp.asarray(centers),
+        jnp.asarray(areas),
+        jnp.asarray(mat_ids),
+        jnp.asarray(bins),
+    )
+
+
+class TinyModel(eqx.Module):
+    """A cheap model (fast to compile) for solver plumbing tests: 12 channels of Fresnel
+    Mueller parameters (a, b, c) at 4 incidence angles times a Gaussian pulse whose width
+    depends on m, shifted by the range offset, times the gain. Attitude does not enter."""
+
+    bins: jax.Array
+
+    def prepare(self, phys):
+        return jnp.ones((), self.bins.dtype)
+
+    def expected(self, phys, aux):
+        cos_t = jnp.array([1.0, 0.8, 0.5, 0.2], self.bins.dtype)
+        a, b, c, _ = fresnel_mueller_params(jnp.real(phys.n[0]), jnp.imag(phys.n[0]), cos_t)
+        amp = jnp.concatenate([a, b, c])
+        width = 0.02 * (1.0 + 3.0 / jnp.sqrt(phys.m[0] + 1.0))
+        prof = jnp.exp(-0.5 * ((self.bins - phys.range_offset) / width) ** 2)
+        return 1e3 * phys.gain * amp[:, None] * prof[None, :] * aux
+
+
+TINY_FREE = ("m", "n", "range_offset", "gain")
+TINY_TRUTH = PhysicalParams([1.0, 0, 0, 0], [12.0], [1.3 + 0.4j], range_offset=0.01, gain=2.0)
+
+
+def tiny_start():
+    return PhysicalParams([1.0, 0, 0, 0], [8.0], [1.6 + 0.2j], range_offset=0.0, gain=1.0)
+
+
+TRUTH = PhysicalParams(
+    quaternion=np.array([1.0, 0.0, 0.0, 0.0]),
+    m=np.array([6.0, 20.0]),
+    n=np.array([1.5 + 0.0j, 1.2 + 5.0j]),
+    range_offset=0.012,
+    gain=1.3,
+)
+
+
+# All parameters away from boundaries and well constrained (for covariance / coverage checks).
+TRUTH_INTERIOR = PhysicalParams(
+    quaternion=np.array([1.0, 0.0, 0.0, 0.0]),
+    m=np.array([6.0, 20.0]),
+    n=np.array([1.5 + 0.5j, 1.2 + 5.0j]),
+    range_offset=0.012,
+    gain=30.0,
+)
+
+
+def perturbed(truth: PhysicalParams, deg=3.0, seed=1) -> PhysicalParams:
+    """A classifier-like start: attitude off by ``deg`` degrees, material and nuisances off."""
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    q = quat_multiply(
+        quat_from_rotvec(jnp.asarray(np.radians(deg) * axis)), truth.unit_quaternion()
+    )
+    return PhysicalParams(
+        q,
+        truth.m * np.exp(rng.normal(0, 0.25, truth.m.shape)),
+        np.real(truth.n) * 1.1 + 1j * (np.imag(truth.n) * 0.8 + 0.05),
+        truth.corr_length,
+        truth.range_offset + 0.01,
+        truth.gain * 0.7,
+    )
+
+
+# --------------------------------------------------------------------------- parameters
+def test_params_roundtrip_and_constraints():
+    par = Parametrisation(perturbed(TRUTH))
+    theta = par.from_physical(TRUTH)
+    back = par.to_physical(theta)
+    # round trip to float64 rounding (a few ulps through exp/log/softplus/atan2)
+    assert quat_angle_deg(back.quaternion, TRUTH.quaternion) < 1e-6
+    np.testing.assert_allclose(back.m, TRUTH.m, rtol=1e-12)
+    np.testing.assert_allclose(np.real(back.n), np.real(TRUTH.n), rtol=1e-12)
+    # n'' = 0 maps to the clamp 1e-9 (documented), others exactly
+    np.testing.assert_allclose(np.imag(back.n), [1e-9, 5.0], rtol=1e-9)
+    np.testing.assert_allclose([back.range_offset, back.gain], [0.012, 1.3], rtol=1e-12)
+    # any theta gives physical values inside the constraints
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        p = par.to_physical(jnp.asarray(rng.normal(0, 5, par.size)))
+        assert (
+            np.all(np.asarray(p.m) > 0) and np.all(np.imag(p.n) >= 0) and np.all(np.real(p.n) > 0)
+        )
+    assert len(par.labels) == par.size == len(par.theta_labels) == 3 + 2 + 4 + 1 + 1
+
+
+def test_rotvec_quaternion_inverse_and_smooth_at_zero():
+    rng = np.random.default_rng(3)
+    for w in rng.normal(0, 0.8, (5, 3)):  # angles < pi (the log map returns [0, pi])
+        np.testing.assert_allclose(
+            rotvec_from_quat(quat_from_rotvec(jnp.asarray(w))), w, atol=1e-12
+        )
+    g = jax.jacfwd(quat_from_rotvec)(jnp.zeros(3))
+    np.testing.assert_allclose(g, np.vstack([np.zeros(3), 0.5 * np.eye(3)]), atol=1e-15)
+    assert np.all(np.isfinite(jax.jacrev(lambda w: quat_from_rotvec(w).sum())(jnp.zeros(3))))
+
+
+# --------------------------------------------------------------------------- recovery
+def _physical_error(res, truth):
+    p = res.params
+    return {
+        "att_deg": float(quat_angle_deg(p.quaternion, truth.quaternion)),
+        "m": np.max(np.abs(np.asarray(p.m) / np.asarray(truth.m) - 1)),
+        "n_re": np.max(np.abs(np.real(p.n) - np.real(truth.n))),
+        "n_im": np.max(np.abs(np.imag(p.n) - np.imag(truth.n))),
+        "off": abs(float(p.range_offset) - float(truth.range_offset)),
+        "gain": abs(float(p.gain) / float(truth.gain) - 1),
+    }
+
+
+def test_noise_free_recovery_from_classifier_like_start():
+    model = make_toy()
+    data = model.expected(TRUTH, model.prepare(TRUTH))
+    res = refine(
+        model,
+        data,
+        [perturbed(TRUTH, 4.0, seed=2), perturbed(TRUTH, 2.0, seed=5)],
+        noise=PoissonNoise(floor=1.0),
+    )
+    assert res.success, res.summary()
+    assert res.result == "successful" and res.n_steps > 0
+    err = _physical_error(res, TRUTH)
+    # noise-free data, float64: limited by the solver's step tolerance (rtol=atol=1e-8 on
+    # theta) times the conditioning of each direction (n is the least constrained)
+    assert err["att_deg"] < 1e-5, err
+    assert err["m"] < 1e-6 and err["off"] < 1e-8 and err["gain"] < 1e-7, err
+    # n''[0] = 0 is on the boundary, where the data constrain n'' only quadratically
+    assert err["n_re"] < 1e-5 and err["n_im"] < 1e-5, err
+    assert res.cost < 1e-9  # chi^2 of noise-free data at the optimum (~n''^4 near n'' = 0)
+    assert len(res.starts) == 2 and all(s.success for s in res.starts)
+    assert np.all(np.isfinite(res.covariance)) and res.covariance.shape == (11, 11)
+
+
+@pytest.mark.parametrize("solver", ["lm", "dogleg"])
+def test_solvers_on_tiny_model(solver):
+    """LM (default) and Dogleg recover the truth of a cheap model; result codes surfaced."""
+    model = TinyModel(jnp.linspace(-0.2, 0.2, 24))
+    data = model.expected(TINY_TRUTH, model.prepare(TINY_TRUTH))
+    res = refine(
+        model,
+        data,
+        tiny_start(),
+        noise=GaussianNoise(jnp.asarray(1.0)),
+        free=TINY_FREE,
+        solver=solver,
+    )
+    assert res.success and res.result == "successful", res.summary()
+    p = res.params
+    # noise-free, float64, well-conditioned: solver step tolerance 1e-8 relative
+    np.testing.assert_allclose(np.asarray(p.m), [12.0], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(p.n), [1.3 + 0.4j], rtol=1e-6)
+    np.testing.assert_allclose([float(p.range_offset), float(p.gain)], [0.01, 2.0], rtol=1e-6)
+    assert res.labels == ["m[0]", "n_re[0]", "n_im[0]", "range_offset [m]", "gain"]
+
+
+def test_gradients_finite_along_the_path_including_edge_on_facet():
+    """Residual Jacobians are finite along a straight path from a start to the optimum, with
+    one facet exactly edge-on at the optimum (cos theta = 0 with m > 0: the 0**m guard)."""
+    from inversion._refine import _jacobians
+
+    model = make_toy(edge_on=True)
+    data = model.expected(TRUTH, model.prepare(TRUTH))
+    w = jnp.ones_like(data)
+    start = perturbed(TRUTH, 5.0)
+    par = Parametrisation(start)
+    th0, th1 = par.from_physical(start), par.from_physical(TRUTH)
+    for t in np.linspace(0.0, 1.0, 5):
+        th = (1 - t) * th0 + t * th1
+        aux = model.prepare(par.to_physical(th))
+        J, G, _ = _jacobians(model, par, aux, w, data, th)
+        assert np.all(np.isfinite(np.asarray(J))) and np.all(np.isfinite(np.asarray(G)))
+        assert np.any(np.asarray(J) != 0)
+    res = refine(model, data, start)
+    assert res.success and np.all(np.isfinite(res.covariance))
+    assert quat_angle_deg(res.params.quaternion, TRUTH.quaternion) < 1e-5
+
+
+def test_covariance_matches_scatter_of_noisy_fits():
+    """(J^T J)^-1 in physical units agrees with the spread of fits over noise realisations."""
+    model = make_toy()
+    mu = model.expected(TRUTH_INTERIOR, model.prepare(TRUTH_INTERIOR))
+    noise = PoissonNoise(floor=1.0)
+    sig = np.sqrt(np.asarray(noise.variance(mu)))
+    vecs, covs = [], []
+    rng = np.random.default_rng(11)
+    par0 = Parametrisation(TRUTH_INTERIOR)
+    for _ in range(12):
+        d = np.asarray(mu) + sig * rng.normal(size=mu.shape)
+        res = refine(model, d, TRUTH_INTERIOR, noise=noise, rounds=2)
+        assert res.success
+        th = par0.from_physical(res.params)
+        vecs.append(np.asarray(par0.physical_vector(th)))
+        covs.append(res.covariance)
+    vecs = np.array(vecs)
+    pred = np.sqrt(np.diag(np.mean(covs, axis=0)))
+    emp = vecs.std(axis=0, ddof=1)
+    ratio = emp / pred
+    # 12 samples: the sample std has ~21% relative scatter; allow a factor 2 either way
+    assert np.all((ratio > 0.45) & (ratio < 2.0)), ratio
+
+
+def test_failure_is_reported_not_silent():
+    model = make_toy()
+    data = model.expected(TRUTH, model.prepare(TRUTH))
+    # zero tolerances: the step criterion can never be met, the solver runs out of steps
+    res = refine(model, data, perturbed(TRUTH, 10.0), rtol=0.0, atol=0.0, max_steps=200, rounds=1)
+    assert not res.success
+    assert res.result == "nonlinear_max_steps_reached"
+    assert "maximum number of steps" in res.message
+    assert "success=False" in res.summary()
+
+
+# --------------------------------------------------------------------------- bad input
+def test_bad_inputs_name_the_problem():
+    model = make_toy()
+    data = np.asarray(model.expected(TRUTH, model.prepare(TRUTH)))
+    with pytest.raises(ValueError, match="range bins"):
+        refine(model, data[:, :40], TRUTH)
+    with pytest.raises(ValueError, match="shape"):
+        refine(model, data[:8], TRUTH)
+    bad = data.copy()
+    bad[3, 7] = np.nan
+    with pytest.raises(ValueError, match=r"non-finite.*\(3, 7\)"):
+        refine(model, bad, TRUTH)
+    with pytest.raises(ValueError, match="starts is empty"):
+        refine(model, data, [])
+    with pytest.raises(ValueError, match="solver="):
+        refine(model, data, TRUTH, solver="newton")
+    with pytest.raises(ValueError, match="unknown group"):
+        Parametrisation(TRUTH, free=("attitude", "colour"))
+    with pytest.raises(ValueError, match="n' > 0"):
+        PhysicalParams([1, 0, 0, 0], 5.0, -1.5 + 0j)
+    with pytest.raises(ValueError, match="shape"):
+        check_observation(np.zeros((16, 48, 1)), (16, 48))
+
+
+# --------------------------------------------------------------------------- jaxopt adapter
+def test_jaxopt_version_pinned():
+    """The L-BFGS-B adapter is tested with these jaxopt versions (archived upstream)."""
+    import warnings
+
+    from inversion._jaxopt_adapter import JAXOPT_TESTED, jaxopt_version
+
+    assert jaxopt_version() in JAXOPT_TESTED, (
+        f"jaxopt {jaxopt_version()} is not in the tested set {JAXOPT_TESTED}: re-run "
+        "tests/test_refine.py and update JAXOPT_TESTED, or swap the adapter's backend"
+    )
+    with warnings.catch_warnings():  # importing the adapter must not leak jaxopt's warning
+        warnings.simplefilter("error")
+        import importlib
+
+        import inversion._jaxopt_adapter as ad
+
+        importlib.reload(ad)
+
+
+def test_bounded_refine_recovers_truth_and_respects_bounds():
+    from inversion._refine import PhysicalBounds, refine_bounded
+
+    model = TinyModel(jnp.linspace(-0.2, 0.2, 24))
+    data = model.expected(TINY_TRUTH, model.prepare(TINY_TRUTH))
+    noise = GaussianNoise(jnp.asarray(1.0))
+    res = refine_bounded(model, data, tiny_start(), noise=noise, free=TINY_FREE)
+    assert res.method == "lbfgsb_jaxopt" and res.success, res.summary()
+    p = res.params
+    # L-BFGS-B stops on the projected gradient of the normalised chi^2 (tol 1e-9): looser
+    # than the LM step tolerance
+    np.testing.assert_allclose(np.asarray(p.m), [12.0], rtol=1e-3)
+    np.testing.assert_allclose(np.asarray(p.n), [1.3 + 0.4j], rtol=1e-3)
+    np.testing.assert_allclose([float(p.range_offset), float(p.gain)], [0.01, 2.0], rtol=1e-3)
+    # a box that excludes the truth (n' <= 1.2 < 1.3): ends on the bound and says so
+    tight = PhysicalBounds(n_re=(0.5, 1.2))
+    res2 = refine_bounded(model, data, tiny_start(), noise=noise, free=TINY_FREE, bounds=tight)
+    nre = float(np.real(np.asarray(res2.params.n))[0])
+    assert 0.5 <= nre <= 1.2
+    assert abs(nre - 1.2) < 1e-9, res2.summary()
+    assert res2.cost > 1.0  # the truth is outside the box: the fit cannot be exact
+    if res2.success:
+        assert "at bounds: n_re[0]" in res2.message
+    with pytest.raises(ValueError, match="n_re"):
+        PhysicalBounds(n_re=(2.0, 1.0))
