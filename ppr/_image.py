@@ -349,6 +349,54 @@ def _brdf_eval_fn(terms, wavelength: float) -> Callable:
     return many
 
 
+def evaluate_mueller(
+    k_in: np.ndarray,
+    k_out: np.ndarray,
+    normal: np.ndarray,
+    frame_in: np.ndarray,
+    frame_out: np.ndarray,
+    materials: Sequence,
+    material_idx: np.ndarray,
+    *,
+    terms="auto",
+    wavelength: float = 532e-9,
+    dtype=np.float32,
+    chunk: int = 8192,
+    progress: bool = False,
+    desc: str = "Mueller BRDF",
+) -> np.ndarray:
+    """:func:`ppr.mueller_brdf` over ``N`` rows (``(N, 3)`` arrays; row ``i`` uses
+    ``materials[material_idx[i]]``) in padded chunks of ``chunk`` rows through one jitted
+    function, so every caller with the same (terms, wavelength, dtype, chunk) shares one
+    compilation. Returns ``(N, 4, 4)`` float64 (1/sr)."""
+    import jax.numpy as jnp
+    from tqdm.auto import tqdm
+
+    n = len(material_idx)
+    out = np.empty((n, 4, 4))
+    if n == 0:
+        return out
+    evaluate = _brdf_eval_fn(supported_terms(terms), float(wavelength))
+    mats = _stack_materials([_cast_material(m, dtype) for m in materials])
+    idx_all = np.asarray(material_idx, np.int32)
+    arrays = [np.asarray(a, float) for a in (k_in, k_out, normal, frame_in, frame_out)]
+    for a in tqdm(range(0, n, chunk), desc=desc, unit="chunk", disable=not progress):
+        b = min(a + chunk, n)
+        pad = chunk - (b - a)
+
+        def block(x, pad=pad, a=a, b=b):
+            x = x[a:b]
+            if pad:
+                x = np.concatenate([x, np.broadcast_to(x[:1], (pad, *x.shape[1:]))])
+            return x
+
+        res = evaluate(
+            *(jnp.asarray(block(x), dtype) for x in arrays), jnp.asarray(block(idx_all)), mats
+        )
+        out[a:b] = np.asarray(res, dtype=float)[: b - a]
+    return out
+
+
 def _stack_materials(materials: Sequence):
     """Stack per-part materials (same structure, scalar fields) along a new leading axis."""
     import equinox as eqx
@@ -415,8 +463,6 @@ def render_mueller_image(
 
     **Returns:** a :class:`MuellerImage` with the polarimetric maps in ``quantities``.
     """
-    import jax.numpy as jnp
-    from tqdm.auto import tqdm
 
     if len(materials) != len(mesh.part_names):
         raise ValueError(
@@ -496,24 +542,21 @@ def render_mueller_image(
     sel = np.nonzero(lit)[0]
     mueller[ray] = 0.0
     if len(sel):
-        evaluate = _brdf_eval_fn(supported_terms(terms), wavelength)
-        mats = _stack_materials([_cast_material(m, dtype) for m in materials])
-        starts = range(0, len(sel), chunk)
-        for a in tqdm(starts, desc="Mueller image", unit="chunk", disable=not progress):
-            idx = sel[a : a + chunk]
-            pad = chunk - len(idx)
-            idx_p = np.concatenate([idx, np.full(pad, idx[0])]) if pad else idx
-            cnt = len(idx_p)
-            out = evaluate(
-                jnp.asarray(np.broadcast_to(s_tx, (cnt, 3)), dtype),
-                jnp.asarray(np.broadcast_to(s, (cnt, 3)), dtype),
-                jnp.asarray(nrm[idx_p], dtype),
-                jnp.asarray(np.broadcast_to(x_in, (cnt, 3)), dtype),
-                jnp.asarray(np.broadcast_to(x_out, (cnt, 3)), dtype),
-                jnp.asarray(pid[idx_p]),
-                mats,
-            )
-            mueller[ray[idx]] = np.asarray(out, dtype=float)[: len(idx)]
+        n_sel = len(sel)
+        mueller[ray[sel]] = evaluate_mueller(
+            np.broadcast_to(s_tx, (n_sel, 3)),
+            np.broadcast_to(s, (n_sel, 3)),
+            nrm[sel],
+            np.broadcast_to(x_in, (n_sel, 3)),
+            np.broadcast_to(x_out, (n_sel, 3)),
+            materials,
+            pid[sel],
+            terms=terms,
+            wavelength=wavelength,
+            dtype=dtype,
+            chunk=chunk,
+            progress=progress,
+        )
 
     def to_img(vals, fill, shape=()):
         img = np.full((n_pix, *shape), fill, dtype=np.asarray(vals).dtype if len(vals) else float)

@@ -99,7 +99,7 @@ def _jsonable(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     if isinstance(obj, np.generic):
-        return obj.item()
+        return _jsonable(obj.item())
     if isinstance(obj, np.ndarray):
         return _jsonable(obj.tolist())
     if isinstance(obj, complex):
@@ -122,22 +122,30 @@ Vec3 = tuple[float, float, float]
 
 
 def resolve_material(spec: Any, wavelength: float, field: str, cfg_path: Path):
-    """A config material spec (library name, or inline table ``{n_real, n_imag, m,
-    corr_length_m}`` as in scene configs) -> :class:`ppr.Material`; errors name the field."""
+    """A config material spec -> :class:`ppr.Material`; errors name the file and field.
+
+    Specs: a library name (``"aluminium"``, default finish) or ``"name/finish"``
+    (``"aluminium/rough"``; see configs/materials.toml), or an inline table
+    ``{n_real, n_imag, m, corr_length_m}`` as in scene configs."""
     sc = _scene_schema()
     if isinstance(spec, dict):
         spec = _sub_model(sc.InlineMaterial, spec, cfg_path, field)
-    elif not isinstance(spec, str):
-        raise ConfigError(
-            f"{cfg_path}: {field} = {spec!r}: expected a library material name or an inline "
-            "table {n_real, n_imag, m, corr_length_m}"
-        )
-    try:
         return sc._material_from_config(spec, wavelength, f"{cfg_path}: {field}")
-    except ValueError as err:
-        if isinstance(err, ConfigError):
-            raise
-        raise ConfigError(f"{cfg_path}: {field} = {spec!r}: {err}") from None
+    if not isinstance(spec, str):
+        raise ConfigError(
+            f"{cfg_path}: {field} = {spec!r}: expected a library material name ('name' or "
+            "'name/finish') or an inline table {n_real, n_imag, m, corr_length_m}"
+        )
+    import ppr
+
+    name, _, finish = spec.partition("/")
+    load = getattr(ppr, "load_material", None)
+    if load is None:  # pragma: no cover - library always present once issue 2 landed
+        return sc._material_from_config(spec, wavelength, f"{cfg_path}: {field}")
+    try:
+        return load(name, wavelength, finish or None)
+    except (ValueError, KeyError) as err:
+        raise ConfigError(f"{cfg_path}: {field} = {spec!r}: {str(err).strip(chr(39))}") from None
 
 
 Terms = Literal["auto", "all"] | list[Literal["single", "double", "multiple"]]
@@ -319,9 +327,7 @@ def cmd_brdf(args) -> int:
     names = ["brdf.npz", "brdf.json", "brdf.png"]
     with outputs(args.out, names, args.overwrite) as out:
         _maybe_x64(cfg.dtype)
-        import jax.numpy as jnp
-
-        from ._image import api
+        from ._image import evaluate_mueller
 
         mat = resolve_material(cfg.material, cfg.wavelength_nm * 1e-9, "material", cfg_path)
         bis = (
@@ -331,20 +337,24 @@ def cmd_brdf(args) -> int:
         )
         inc = np.asarray(cfg.incidence_deg, float)
         k_in, k_out, f_in, f_out, valid = brdf_geometry(inc, bis, cfg.plane)
-        dt = _dtype(cfg.dtype)
         safe_out = np.where(valid[..., None], k_out, k_in)
         t0 = time.perf_counter()
-        mueller = api("mueller_brdf")(
-            jnp.asarray(k_in, dt),
-            jnp.asarray(safe_out, dt),
-            jnp.asarray([0.0, 0.0, 1.0], dt),
-            mat,
+        flat = [x.reshape(-1, 3) for x in (k_in, safe_out)]
+        n_rows = len(flat[0])
+        mueller = evaluate_mueller(
+            flat[0],
+            flat[1],
+            np.broadcast_to([0.0, 0.0, 1.0], (n_rows, 3)),
+            f_in.reshape(-1, 3),
+            f_out.reshape(-1, 3),
+            [mat],
+            np.zeros(n_rows, np.int32),
             terms=_terms_arg(cfg.terms),
-            frame_in=jnp.asarray(f_in, dt),
-            frame_out=jnp.asarray(f_out, dt),
             wavelength=cfg.wavelength_nm * 1e-9,
-        )
-        mueller = np.where(valid[..., None, None], np.asarray(mueller, float), np.nan)
+            dtype=_dtype(cfg.dtype),
+            progress=_progress(args),
+        ).reshape(*valid.shape, 4, 4)
+        mueller = np.where(valid[..., None, None], mueller, np.nan)
         elapsed = time.perf_counter() - t0
         quants = polarimetry(mueller)
         np.savez_compressed(
@@ -405,7 +415,7 @@ def _plot_brdf(path, inc, bis, mueller, quants, cfg, mat) -> None:
             ax.plot(bis, data[i], label=f"incidence {a:g} deg")
         ax.set_xlabel("bistatic angle [deg]")
         ax.set_title(label)
-        if label.startswith("M00"):
+        if label.startswith("M00") and np.any(np.nan_to_num(data) > 0):
             ax.set_yscale("log")
     axes[0].legend(fontsize=8)
     n = complex(np.asarray(mat.n).reshape(-1)[0])
@@ -487,15 +497,7 @@ def image_inputs(cfg: ImageConfig, cfg_path: Path):
                 f"{cfg_path}: materials: no material for mesh part {part!r} (parts: "
                 f"{', '.join(mesh.part_names)}; add materials.{part} or materials.default)"
             )
-        spec = cfg.materials[key]
-        if isinstance(spec, dict):
-            spec = _sub_model(sc.InlineMaterial, spec, cfg_path, f"materials.{key}")
-        elif not isinstance(spec, str):
-            raise ConfigError(
-                f"{cfg_path}: materials.{key} = {spec!r}: expected a library material name or "
-                "an inline table {n_real, n_imag, m, corr_length_m}"
-            )
-        mats.append(sc._material_from_config(spec, wl, f"{cfg_path}: materials.{key}"))
+        mats.append(resolve_material(cfg.materials[key], wl, f"materials.{key}", cfg_path))
     unknown = sorted(set(cfg.materials) - set(mesh.part_names) - {"default"})
     if unknown:
         raise ConfigError(
@@ -602,6 +604,108 @@ def cmd_image(args) -> int:
     return 0
 
 
+# ============================================================================= simulate
+SIMULATE_OUTPUTS = ["simulate.npz", "simulate.json", "simulate.png"]
+
+
+def cmd_simulate(args) -> int:
+    import ppr
+
+    cfg_path = Path(args.config) if args.config else CONFIG_DIR / "scenes" / "cubesat3u_panels.toml"
+    scene = ppr.load_scene(cfg_path, _overrides(args))
+    states = [s.strip() for s in args.states.split(",") if s.strip()] if args.states else None
+    terms = None if args.terms == "all" else args.terms
+    if terms not in (None, "auto"):
+        terms = tuple(t.strip() for t in terms.split(","))
+    with outputs(args.out, SIMULATE_OUTPUTS, args.overwrite) as out:
+        _maybe_x64(args.dtype)
+        from ._image import supported_terms
+
+        t0 = time.perf_counter()
+        try:
+            prof = ppr.simulate(
+                scene, states=states, terms=supported_terms(terms), dtype=_dtype(args.dtype)
+            )
+            data = np.asarray(prof.data, float)
+        except ValueError as err:
+            raise ConfigError(f"{cfg_path}: {err}") from None
+        seconds = time.perf_counter() - t0
+        arrays = {
+            "data": data,
+            "range_m": np.asarray(prof.range_m, float),
+            "time_s": np.asarray(prof.time_s, float),
+            "edges_m": np.asarray(prof.edges_m, float),
+            "visibility": np.asarray(prof.visibility, float),
+            "labels": np.array([str(x) for x in prof.labels]),
+        }
+        np.savez_compressed(out.path("simulate.npz"), **arrays)
+        width = float(np.diff(arrays["edges_m"]).mean())
+        energy = data.sum(-1)
+        r = arrays["range_m"]
+        w00 = data[0, 0] if prof.kind == "mueller" else data.reshape(-1, data.shape[-1])[0]
+        tot = float(w00.sum())
+        summary = {
+            "command": "simulate",
+            "config_file": str(cfg_path),
+            "overrides": _overrides(args),
+            "kind": prof.kind,
+            "labels": list(prof.labels),
+            "shape": list(data.shape),
+            "units": {
+                "data": "m^2/sr per bin (bin-integrated)",
+                "range_m": "m (one-way)",
+                "time_s": "s (round trip)",
+            },
+            "reference_range_m": prof.reference_range_m,
+            "bin_width_m": width,
+            "n_faces": int(scene.mesh.n_faces),
+            "lit_visible_faces": int((arrays["visibility"] > 0).sum()),
+            "energy": energy,
+            "mean_range_m": float((w00 * r).sum() / tot) if tot > 0 else None,
+            "rms_depth_m": float(np.sqrt((w00 * (r - (w00 * r).sum() / tot) ** 2).sum() / tot))
+            if tot > 0
+            else None,
+            "seconds": seconds,
+        }
+        write_json(out.path("simulate.json"), summary)
+        _plot_profiles(out.path("simulate.png"), arrays, prof.kind, list(prof.labels), cfg_path)
+    _say(
+        args, f"ppr simulate: wrote {', '.join(str(Path(args.out) / n) for n in SIMULATE_OUTPUTS)}"
+    )
+    return 0
+
+
+def _plot_profiles(path, arrays, kind, labels, title) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    data, r = arrays["data"], arrays["range_m"]
+    if kind == "mueller":
+        fig, axes = plt.subplots(4, 4, figsize=(12, 9), sharex=True)
+        fig.subplots_adjust(left=0.07, right=0.98, bottom=0.07, top=0.93, hspace=0.3, wspace=0.3)
+        for i in range(4):
+            for j in range(4):
+                ax = axes[i, j]
+                ax.plot(r, data[i, j], lw=1)
+                ax.set_title(f"M{i}{j}", fontsize=9)
+                ax.tick_params(labelsize=7)
+        for ax in axes[-1]:
+            ax.set_xlabel("range [m]")
+    else:
+        rows = data.reshape(-1, data.shape[-1]) if kind == "channels" else data[:, 0]
+        fig, ax = plt.subplots(figsize=(8, 4.5))
+        for lab, row in zip(labels, rows, strict=False):
+            ax.plot(r, row, label=str(lab))
+        ax.set_xlabel("range [m]")
+        ax.set_ylabel("return per bin [m^2/sr]")
+        ax.legend(fontsize=8)
+    fig.suptitle(f"{title}: range-resolved return ({kind})")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 # ================================================================================= demo
 def _find(module: str, names: Sequence[str]) -> Callable | None:
     try:
@@ -617,23 +721,41 @@ def _find(module: str, names: Sequence[str]) -> Callable | None:
     return None
 
 
-DEMO_STEPS: list[tuple[str, str, tuple[str, ...]]] = [
-    ("BRDF figures", "ppr.demo", ("brdf_figures",)),
-    ("double-bounce figures", "ppr.demo", ("double_bounce_figures", "enhancement_figures")),
-    ("double-bounce figures", "ppr._double", ("double_bounce_figures", "enhancement_figures")),
-    ("pulse figures", "ppr.demo", ("pulse_figures",)),
-    ("pulse figures", "ppr._pulse", ("pulse_figures",)),
+DEMO_STEPS: list[tuple[str, str, str, tuple[str, ...]]] = [
+    # (key, label, module, candidate function names); the first one found per key runs
+    ("brdf", "BRDF figures", "ppr.demo", ("brdf_figures",)),
+    (
+        "double",
+        "double-bounce figures",
+        "ppr.demo",
+        ("double_bounce_figures", "enhancement_figures"),
+    ),
+    (
+        "double",
+        "double-bounce figures",
+        "ppr._double",
+        ("double_bounce_figures", "enhancement_figures"),
+    ),
+    ("pulse", "pulse figures", "ppr.demo", ("pulse_figures",)),
+    ("pulse", "pulse figures", "ppr._pulse", ("pulse_figures",)),
 ]
+DEMO_KEYS = ("brdf", "double", "pulse", "image")
 
 
 def cmd_demo(args) -> int:
     out = Path(args.out)
+    only = DEMO_KEYS if not args.only else tuple(k.strip() for k in args.only.split(","))
+    bad = [k for k in only if k not in DEMO_KEYS]
+    if bad:
+        raise CLIError(
+            f"--only {args.only!r}: unknown step {bad[0]!r} (steps: {', '.join(DEMO_KEYS)})"
+        )
     out.mkdir(parents=True, exist_ok=True)
     done: dict[str, float] = {}
     skipped: list[str] = []
     t_all = time.perf_counter()
-    for label, module, names in DEMO_STEPS:
-        if label in done:
+    for key, label, module, names in DEMO_STEPS:
+        if key not in only or label in done:
             continue
         fn = _find(module, names)
         if fn is None:
@@ -642,12 +764,14 @@ def cmd_demo(args) -> int:
         t0 = time.perf_counter()
         fn(out)
         done[label] = time.perf_counter() - t0
-    for label, _, _ in DEMO_STEPS:
-        if label not in done and label not in skipped:
+    for key, label, _, _ in DEMO_STEPS:
+        if key in only and label not in done and label not in skipped:
             skipped.append(label)
     from ._image import api
 
-    if api("mueller_brdf") is None or api("retardance") is None:
+    if "image" not in only:
+        pass
+    elif api("mueller_brdf") is None or api("retardance") is None:
         skipped.append("Mueller image")
     else:
         _say(args, "ppr demo: Mueller image of the example satellite ...")
@@ -707,8 +831,9 @@ BRDF_HELP = """\
 Evaluate the Mueller BRDF of one material over a grid of incidence and bistatic angles.
 
 Config fields (configs/cli/brdf.toml):
-  material       library name (e.g. "aluminium") or inline {n_real, n_imag,
-                 m = <Blinn-Phong exponent, 0..1e6>, corr_length_m = <metres>}
+  material       library name ("aluminium", or "aluminium/rough" with a finish; see
+                 configs/materials.toml) or inline {n_real, n_imag, m = <Blinn-Phong
+                 exponent, 0..1e6>, corr_length_m = <metres>}
   wavelength_nm  nanometres (default 532)
   terms          "auto", "all", or a list of "single", "double", "multiple"
   incidence_deg  incidence angles from the normal, degrees in [0, 90)
@@ -733,8 +858,9 @@ Config fields (configs/cli/image.toml); exactly one of scene, mesh, [shape]:
   mesh           "example" (the shipped example satellite) or a mesh file trimesh reads
                  (metres; one part per geometry), relative to the config's folder
   shape          {name = "sphere", params = {radius = 0.5}} (ppr.shapes)
-  materials      part -> library material name or inline {n_real, n_imag, m (Blinn-Phong
-                 exponent, 0..1e6), corr_length_m}; "default" covers unlisted parts
+  materials      part -> library material ("name" or "name/finish", configs/materials.toml)
+                 or inline {n_real, n_imag, m (Blinn-Phong exponent, 0..1e6),
+                 corr_length_m}; "default" covers unlisted parts
   pose           quaternion = [w, x, y, z] (body -> world), position_m
   view           wavelength_nm; line_of_sight (laser propagation, sensor -> object, world);
                  polarization_reference (sensor x axis, world); bistatic_angle_urad
@@ -745,6 +871,20 @@ Config fields (configs/cli/image.toml); exactly one of scene, mesh, [shape]:
                  list of "single", "double", "multiple"; dtype "float32" | "float64"
 Outputs: image.npz (mueller (H, W, 4, 4) in 1/sr, NaN off the object; cos_in, normal, part,
 lit, quantities), image.png, image_mueller.png, image.json."""
+
+SIMULATE_HELP = """\
+Simulate the range-resolved return of a scene: the Gaussian pulse stretched by the posed
+mesh's range-depth profile, every lit and visible facet contributing its Mueller BRDF times
+its projected area (closed-form triangle range-area density convolved with the pulse).
+
+Config: a scene file (configs/scenes/*.toml: sensor, shape or mesh, materials per part,
+pose.quaternion [w, x, y, z] body -> world, pose.position_m, visibility.samples_per_face)
+referencing a sensor file (configs/sensors/*.toml: wavelength_nm, line_of_sight,
+polarization_reference, bistatic_angle_urad [microradians], reference_range_km,
+pulse.fwhm_ps, pulse.jitter_ps [picoseconds], bins.width_mm, bins.count, bins.start_m).
+--set overrides apply to the scene file (e.g. --set pose.quaternion=[1,0,0,0]).
+Outputs: simulate.npz (data in m^2/sr per bin, range_m one-way, time_s round trip, edges_m,
+visibility per face), simulate.json (energies, mean range, rms depth), simulate.png."""
 
 DEMO_HELP = """\
 Write every demo figure into --out: the BRDF figures, the double-bounce (enhancement peak)
@@ -772,6 +912,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", "-o", metavar="DIR", default="out/demo", help="output folder")
     p.add_argument("--pixels", type=int, default=160, help="Mueller image size (pixels per side)")
+    p.add_argument(
+        "--only",
+        metavar="STEPS",
+        default=None,
+        help=f"comma-separated subset of the steps {', '.join(DEMO_KEYS)} (default: all)",
+    )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars or messages")
     p.set_defaults(func=cmd_demo)
 
@@ -792,6 +938,30 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _common(p, "cli/image.toml", "out/image")
     p.set_defaults(func=cmd_image)
+
+    p = sub.add_parser(
+        "simulate",
+        help="range-resolved Mueller/Stokes return of a scene",
+        description=SIMULATE_HELP,
+        formatter_class=_Formatter,
+    )
+    _common(p, "scenes/cubesat3u_panels.toml", "out/simulate")
+    p.add_argument(
+        "--states",
+        metavar="NAMES",
+        default=None,
+        help="transmitted states, comma-separated from H,V,D,A,R,L (Stokes profiles "
+        "(S, 4, bins)); default: the full Mueller profile (4, 4, bins)",
+    )
+    p.add_argument(
+        "--terms",
+        default="auto",
+        help="BRDF terms: auto, all, or a comma list of single,double,multiple",
+    )
+    p.add_argument(
+        "--dtype", choices=["float32", "float64"], default="float32", help="kernel float precision"
+    )
+    p.set_defaults(func=cmd_simulate)
 
     for extra in _EXTRA_COMMANDS:
         extra(sub)
