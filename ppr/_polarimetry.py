@@ -62,8 +62,9 @@ class LuChipman(NamedTuple):
     - `depolarization_power`: ``Delta = 1 - |tr m_Delta| / 3`` (0: none, 1: ideal depolarizer).
     - `M_D`, `M_R`, `M_Delta`: the factors, ``M = M_Delta @ M_R @ M_D`` (``M_D`` carries M00).
     - `valid`: False where ``M00 <= 0`` (no light; quantities are 0, factors identity).
-    - `singular`: True where ``m'`` is (numerically) singular, e.g. an ideal depolarizer:
-      retardance is then undefined and reported as that of ``M_R = I``.
+    - `singular`: True where ``m'`` is (numerically) singular, e.g. an ideal depolarizer or
+      an ideal polarizer (``D = 1``, where ``M_D`` itself is singular): the decomposition is
+      then not unique; ``M_R = I`` is reported (retardance 0) and ``M_Delta = M'``.
     """
 
     m00: Array

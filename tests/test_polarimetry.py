@@ -137,6 +137,7 @@ def test_pure_diattenuator():
     assert float(degree_of_polarization(Mp, np.array([1.0, 0, 0, 0]))) == pytest.approx(1.0)
     rp = lu_chipman(Mp)
     assert float(rp.diattenuation) == pytest.approx(1.0)
+    assert bool(rp.singular)  # M_D singular at D = 1: flagged, not NaN
     assert all(np.all(np.isfinite(np.asarray(x))) for x in rp)
 
 
