@@ -2,6 +2,7 @@
 
 from ._microfacet import (
     DEFAULT_ORDER,
+    DEFAULT_ORDER_F32,
     joint_visibility,
     mean_cosine_n,
     mean_cosine_plus,
@@ -11,6 +12,7 @@ from ._microfacet import (
 
 __all__ = [
     "DEFAULT_ORDER",
+    "DEFAULT_ORDER_F32",
     "ndf",
     "mean_cosine_n",
     "mean_cosine_plus",
