@@ -29,20 +29,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._types import Array, ArrayLike, Bool, Float, Int
+from ._types import Array, Bool, Float, Int
 
 AREA_RTOL = 1e-12
 """Faces with area below ``AREA_RTOL * (bounding-box diagonal)^2`` count as degenerate."""
 
 
-def _as_vertices(x: ArrayLike) -> Array:
+def _as_vertices(x) -> Array:
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
     return x
 
 
-def _as_int(x: ArrayLike) -> Array:
+def _as_int(x) -> Array:
     return jnp.asarray(x, dtype=jnp.int32)
 
 
@@ -103,7 +103,8 @@ class Mesh(eqx.Module):
             fa = np.asarray(f)
             if fa.min() < 0 or fa.max() >= v.shape[0]:
                 raise ValueError(
-                    f"Mesh.faces index out of range [0, {v.shape[0]}): min {fa.min()}, max {fa.max()}"
+                    f"Mesh.faces index out of range [0, {v.shape[0]}): "
+                    f"min {fa.min()}, max {fa.max()}"
                 )
         if _concrete(mid):
             ma = np.asarray(mid)
@@ -125,7 +126,9 @@ class Mesh(eqx.Module):
         import trimesh
 
         return trimesh.Trimesh(
-            vertices=np.asarray(self.vertices, np.float64), faces=np.asarray(self.faces), process=False
+            vertices=np.asarray(self.vertices, np.float64),
+            faces=np.asarray(self.faces),
+            process=False,
         )
 
     def max_edge(self) -> float:
@@ -202,7 +205,9 @@ def check_mesh(mesh: Mesh, on_degenerate: str = "error", name: str = "mesh") -> 
     keep = ~(deg | dup)
     if not keep.any():
         raise ValueError(f"{name}: every face is degenerate or duplicate; nothing left")
-    return Mesh(mesh.vertices, np.asarray(mesh.faces)[keep], np.asarray(mesh.material_ids)[keep], mesh.parts)
+    return Mesh(
+        mesh.vertices, np.asarray(mesh.faces)[keep], np.asarray(mesh.material_ids)[keep], mesh.parts
+    )
 
 
 def concatenate(meshes: Sequence[Mesh]) -> Mesh:
@@ -230,7 +235,10 @@ def subdivide(mesh: Mesh, max_edge: float) -> Mesh:
     if not (max_edge > 0 and np.isfinite(max_edge)):
         raise ValueError(f"max_edge must be a positive finite length in metres, got {max_edge!r}")
     v, f, idx = trimesh.remesh.subdivide_to_size(
-        np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces), max_edge, max_iter=30,
+        np.asarray(mesh.vertices, np.float64),
+        np.asarray(mesh.faces),
+        max_edge,
+        max_iter=30,
         return_index=True,
     )
     return Mesh(v, f, np.asarray(mesh.material_ids)[idx], mesh.parts)
@@ -277,7 +285,9 @@ def load_mesh(
             name = mat.name
         if part_names:
             name = part_names.get(name, name)
-        pieces.append(Mesh(np.asarray(g.vertices, np.float64) * scale, np.asarray(g.faces), None, (name,)))
+        pieces.append(
+            Mesh(np.asarray(g.vertices, np.float64) * scale, np.asarray(g.faces), None, (name,))
+        )
     if not pieces:
         raise ValueError(f"mesh file {path!r} contains no triangles")
     return check_mesh(concatenate(pieces), on_degenerate, name=f"mesh file {path!r}")

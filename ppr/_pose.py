@@ -20,7 +20,7 @@ QUAT_NORM_TOL = 1e-3
 """Largest accepted | |q| - 1 | of a concrete attitude quaternion."""
 
 
-def check_quaternion(q: ArrayLike, name: str = "quaternion", tol: float = QUAT_NORM_TOL) -> np.ndarray:
+def check_quaternion(q, name: str = "quaternion", tol: float = QUAT_NORM_TOL) -> np.ndarray:
     """Validate a concrete quaternion (or batch ``(..., 4)``) on the host; return it normalized.
 
     Raises ``ValueError`` naming ``name`` and the offending value if it is not finite, has
@@ -62,7 +62,7 @@ def quat_to_matrix(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"
     return jnp.stack(rows, axis=-2)
 
 
-def quat_from_axis_angle(axis: ArrayLike, angle: float) -> np.ndarray:
+def quat_from_axis_angle(axis, angle: float) -> np.ndarray:
     """Host helper: quaternion of a right-handed rotation by ``angle`` (rad) about ``axis``."""
     a = np.asarray(axis, dtype=np.float64)
     n = np.linalg.norm(a)
@@ -72,7 +72,7 @@ def quat_from_axis_angle(axis: ArrayLike, angle: float) -> np.ndarray:
     return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * a])
 
 
-def quat_multiply(q1: ArrayLike, q2: ArrayLike) -> Array:
+def quat_multiply(q1, q2) -> Array:
     """Hamilton product ``q1 * q2`` (apply ``q2`` first, then ``q1``)."""
     q1 = jnp.asarray(q1)
     q2 = jnp.asarray(q2)
@@ -89,7 +89,7 @@ def quat_multiply(q1: ArrayLike, q2: ArrayLike) -> Array:
     )
 
 
-def matrix_to_quat(r: ArrayLike) -> np.ndarray:
+def matrix_to_quat(r) -> np.ndarray:
     """Host helper: quaternion ``(w, x, y, z)`` (w >= 0) of a proper rotation matrix."""
     r = np.asarray(r, dtype=np.float64)
     tr = np.trace(r)

@@ -53,7 +53,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.special import ndtr
 
 from ._conventions import C_LIGHT
 from ._material import Material
@@ -68,6 +67,7 @@ NSIG = 7.0
 COVER_NSIG = 3.0
 """The range gate must contain every visible facet's depth interval +- this many sigmas."""
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+_INV_SQRT_2 = 1.0 / math.sqrt(2.0)
 
 STOKES_STATES = {
     "H": (1.0, 1.0, 0.0, 0.0),
@@ -88,8 +88,24 @@ def _phi(u):
     return _INV_SQRT_2PI * jnp.exp(-0.5 * u * u)
 
 
-def _q(u):
-    return (u * u + 1.0) * ndtr(u) + u * _phi(u)
+def _ncdf(u):
+    # one erfc (accurate in the lower tail, absolute accuracy in the upper): cheaper to
+    # compile and run than ndtr's two-branch form
+    return 0.5 * jax.lax.erfc(-u * _INV_SQRT_2)
+
+
+@jax.custom_jvp
+def _cdf_pdf(u):
+    """(Phi(u), phi(u)) with the analytic JVP (phi du, -u phi du): the tangent reuses the
+    primal exp instead of differentiating erfc (keeps the gradient's compile small)."""
+    return _ncdf(u), _phi(u)
+
+
+@_cdf_pdf.defjvp
+def _cdf_pdf_jvp(primals, tangents):
+    (u,), (du,) = primals, tangents
+    c, p = _cdf_pdf(u)
+    return (c, p), (p * du, -u * p * du)
 
 
 def _thresholds(dtype) -> tuple[float, float]:
@@ -99,45 +115,55 @@ def _thresholds(dtype) -> tuple[float, float]:
     return 0.02, 0.05
 
 
-def _dd1(ua, ub, h):
-    """[ua, ub] Q with h = |ua - ub| (double-where: Taylor below tau_1)."""
-    _, tau1 = _thresholds(ua.dtype)
-    small = h < tau1
-    diff = ua - ub
-    safe = jnp.where(small, 1.0, diff)
-    direct = (_q(ua) - _q(ub)) / safe
-    m = 0.5 * (ua + ub)
-    pm = _phi(m)
-    h2 = h * h
-    taylor = 2.0 * (m * ndtr(m) + pm) + h2 * pm / 12.0 + h2 * h2 * (m * m - 1.0) * pm / 960.0
-    return jnp.where(small, taylor, direct)
+_N_TAYLOR = 8
+
+
+def _q_derivatives(u, cdf, pdf):
+    """Q^(k)(u) for k = 1..8: Q' = 2(u Phi + phi), Q'' = 2 Phi, Q^(j+3) = 2 (-1)^j He_j phi."""
+    u2 = u * u
+    he = [
+        1.0,
+        u,
+        u2 - 1.0,
+        u2 * u - 3.0 * u,
+        u2 * u2 - 6.0 * u2 + 3.0,
+        u2 * u2 * u - 10.0 * u2 * u + 15.0 * u,
+    ]
+    d = [2.0 * (u * cdf + pdf), 2.0 * cdf]
+    d += [2.0 * (-1.0) ** j * he[j] * pdf for j in range(_N_TAYLOR - 2)]
+    return d  # d[k-1] = Q^(k)
 
 
 def _dd2(u0, u1, u2, g01, g12):
-    """[u0, u1, u2] Q for u sorted monotonically, gaps g01 = |u0-u1|, g12 = |u1-u2|."""
-    tau, _ = _thresholds(u0.dtype)
-    s = g01 + g12
-    thin = s < tau
-    # direct branch
-    d01 = _dd1(u0, u1, g01)
-    d12 = _dd1(u1, u2, g12)
-    span = u0 - u2
-    direct = (d01 - d12) / jnp.where(thin, 1.0, span)
-    # thin branch: moment expansion about the mean
-    c = (u0 + u1 + u2) / 3.0
-    e0, e1, e2 = u0 - c, u1 - c, u2 - c
-    p2 = e0 * e0 + e1 * e1 + e2 * e2
-    p3 = e0**3 + e1**3 + e2**3
-    p4 = (e0 * e0) ** 2 + (e1 * e1) ** 2 + (e2 * e2) ** 2
-    pc = _phi(c)
-    c2 = c * c
-    thin_val = (
-        ndtr(c)
-        - p2 / 24.0 * c * pc
-        + p3 / 180.0 * (c2 - 1.0) * pc
-        - (p2 * p2 + 2.0 * p4) / 2880.0 * (c2 * c - 3.0 * c) * pc
-    )
-    return jnp.where(thin, thin_val, direct)
+    """[u0, u1, u2] Q for monotonically sorted u, gaps g01 = |u0-u1|, g12 = |u1-u2|.
+
+    Direct divided differences, with Taylor series about the middle point ``u1`` (derivatives
+    in closed form from the same Phi, phi) for close pairs (< tau_1) and thin facets (< tau):
+    three erfc and three exp per evaluation.
+    """
+    tau, tau1 = _thresholds(u0.dtype)
+    cdf, pdf = zip(*(_cdf_pdf(u) for u in (u0, u1, u2)), strict=True)
+    q = [(u * u + 1.0) * c + u * p for u, c, p in zip((u0, u1, u2), cdf, pdf, strict=True)]
+    d = _q_derivatives(u1, cdf[1], pdf[1])
+    e0 = u0 - u1
+    e2 = u2 - u1
+    fact = [math.factorial(k) for k in range(_N_TAYLOR + 1)]
+
+    def first(e):  # [u1 + e, u1] Q as a series in e
+        return sum(d[k - 1] * e ** (k - 1) / fact[k] for k in range(1, _N_TAYLOR + 1))
+
+    small01 = g01 < tau1
+    small12 = g12 < tau1
+    dd01 = jnp.where(small01, first(e0), (q[0] - q[1]) / jnp.where(small01, 1.0, u0 - u1))
+    dd12 = jnp.where(small12, first(e2), (q[1] - q[2]) / jnp.where(small12, 1.0, u1 - u2))
+    thin = (g01 + g12) < tau
+    direct = (dd01 - dd12) / jnp.where(thin, 1.0, u0 - u2)
+    # [u0, u1, u2] Q = sum_k Q^(k)(u1) / k! h_{k-2}(e0, e2), h complete homogeneous
+    h = [jnp.ones_like(e0)]
+    for j in range(1, _N_TAYLOR - 1):
+        h.append(e0**j + e2 * h[-1])
+    series = sum(d[k - 1] * h[k - 2] / fact[k] for k in range(2, _N_TAYLOR + 1))
+    return jnp.where(thin, series, direct)
 
 
 def tent_gaussian_cdf(
@@ -169,8 +195,9 @@ def tent_gaussian_cdf(
 # ----------------------------------------------------------------------------- stand-in BRDFs
 
 
-def lambertian_mueller(k_in, k_out, normal, material, *, frame_in=None, frame_out=None,
-                       wavelength=532e-9, terms=None):
+def lambertian_mueller(
+    k_in, k_out, normal, material, *, frame_in=None, frame_out=None, wavelength=532e-9, terms=None
+):
     """Stand-in BRDF: ideal depolarizing Lambertian ``diag(1, 0, 0, 0) / pi`` (albedo 1),
     same signature as :func:`ppr.mueller_brdf`. For tests and geometry checks."""
     del k_out, material, frame_in, frame_out, wavelength, terms
@@ -178,6 +205,26 @@ def lambertian_mueller(k_in, k_out, normal, material, *, frame_in=None, frame_ou
     dt = jnp.result_type(k_in, normal)
     m = jnp.zeros((4, 4), dt).at[0, 0].set(1.0 / jnp.pi)
     return jnp.broadcast_to(m, (*batch, 4, 4))
+
+
+def glossy_fresnel_mueller(
+    k_in, k_out, normal, material, *, frame_in=None, frame_out=None, wavelength=532e-9, terms=None
+):
+    """Stand-in polarizing BRDF for tests and benchmarks (not the model): the Fresnel Mueller
+    matrix of the half-vector facet in the beam frames times ``(m + 2)/(2 pi) (h.n)^m / pi``.
+    Smooth in attitude, ``m`` and ``n``; no shadowing, no normalization claims."""
+    from ._frames import facet_mueller_in_beam_frames  # noqa: PLC0415
+    from ._safe import safe_pow  # noqa: PLC0415
+
+    del wavelength, terms
+    h = k_in + k_out
+    h = h / jnp.linalg.norm(h, axis=-1, keepdims=True)
+    cos_h = jnp.sum(h * normal, axis=-1)
+    m = material.m
+    lobe = (m + 2.0) / (2.0 * jnp.pi) * safe_pow(jnp.clip(cos_h, 0.0, 1.0), m) / jnp.pi
+    n = material.n
+    mm = facet_mueller_in_beam_frames(jnp.real(n), jnp.imag(n), k_in, k_out, h, frame_in, frame_out)
+    return mm * lobe[..., None, None]
 
 
 def _default_brdf():
@@ -196,12 +243,12 @@ def stack_materials(materials: Sequence[Material]) -> Material:
     mats = list(materials)
     if not mats:
         raise ValueError("need at least one material")
-    return Material(
-        jnp.stack([jnp.asarray(m.n) for m in mats]),
-        jnp.stack([jnp.asarray(m.m) for m in mats]),
-        jnp.stack([jnp.asarray(m.corr_length) for m in mats]),
-        name="stacked",
-    )
+
+    def st(field):  # strongly typed (weak types would change the jit cache key)
+        a = jnp.stack([jnp.asarray(getattr(m, field)) for m in mats])
+        return a.astype(a.dtype)
+
+    return Material(st("n"), st("m"), st("corr_length"), name="stacked")
 
 
 def window_size(max_depth_extent: float, sigma_r: float, width: float, n_bins: int) -> int:
@@ -264,7 +311,10 @@ def facet_weights(
     k_in = jnp.broadcast_to(u_in, (f_count, 3))
     k_out = jnp.broadcast_to(u_out, (f_count, 3))
     m = brdf(
-        k_in, k_out, safe_n, mat,
+        k_in,
+        k_out,
+        safe_n,
+        mat,
         frame_in=jnp.broadcast_to(x_tx, (f_count, 3)),
         frame_out=jnp.broadcast_to(x_rx, (f_count, 3)),
         wavelength=sensor.wavelength,
@@ -277,7 +327,6 @@ def facet_weights(
     return wch * g[:, None], w
 
 
-@eqx.filter_jit
 def render(
     arrays: MeshArrays,
     vis: Float[Array, " F"],
@@ -311,12 +360,49 @@ def render(
     - `brdf` (static): Mueller BRDF with the signature of :func:`ppr.mueller_brdf`.
 
     Facets deeper than the window lose the part of their return beyond it: choose
-    ``window`` from the longest edge (``simulate`` does).
+    ``window`` from the longest edge (``simulate`` does). Python scalars are converted to
+    arrays here, so new values never recompile.
     """
     dt = arrays.tri.dtype
+    return _render_jit(
+        arrays,
+        vis,
+        pose,
+        materials,
+        sensor,
+        jnp.asarray(sigma_r, dt),
+        jnp.asarray(start, dt),
+        jnp.asarray(width, dt),
+        n_bins=int(n_bins),
+        window=int(window),
+        projection=projection,
+        brdf=brdf,
+        terms=terms,
+    )
+
+
+@eqx.filter_jit
+def _render_jit(
+    arrays,
+    vis,
+    pose,
+    materials,
+    sensor,
+    sigma_r,
+    start,
+    width,
+    *,
+    n_bins,
+    window,
+    projection,
+    brdf,
+    terms,
+):
+    dt = arrays.tri.dtype
     rot = quat_to_matrix(pose.quaternion.astype(dt))
-    wch, w_body = facet_weights(arrays, vis, rot, materials, sensor, projection=projection,
-                                brdf=brdf, terms=terms)
+    wch, w_body = facet_weights(
+        arrays, vis, rot, materials, sensor, projection=projection, brdf=brdf, terms=terms
+    )
     w_world = rot @ w_body
     sigma = jnp.asarray(sigma_r, dt)
     start = jnp.asarray(start, dt)
@@ -427,15 +513,24 @@ def simulate(
         vis = caster.fractions(rot.T @ u_in, rot.T @ u_out)
     else:
         vis = np.asarray(visibility, np.float64)
-        if vis.shape != (mesh.n_faces,) or not np.all(np.isfinite(vis)) or np.any(vis < 0) or np.any(vis > 1):
-            raise ValueError(f"visibility must be ({mesh.n_faces},) fractions in [0, 1], got shape {vis.shape}")
+        if (
+            vis.shape != (mesh.n_faces,)
+            or not np.all(np.isfinite(vis))
+            or np.any(vis < 0)
+            or np.any(vis > 1)
+        ):
+            raise ValueError(
+                f"visibility must be ({mesh.n_faces},) fractions in [0, 1], got shape {vis.shape}"
+            )
     # projection / labels
     if states is not None:
         names = [s if isinstance(s, str) else None for s in states]
         if all(isinstance(s, str) for s in states):
             bad = [s for s in states if s not in STOKES_STATES]
             if bad:
-                raise ValueError(f"unknown transmitted state(s) {bad}; known: {sorted(STOKES_STATES)}")
+                raise ValueError(
+                    f"unknown transmitted state(s) {bad}; known: {sorted(STOKES_STATES)}"
+                )
             svec = np.asarray([STOKES_STATES[s] for s in states])
             labels = tuple(names)
         else:
@@ -477,7 +572,9 @@ def simulate(
         keep[0] = True  # a zero-weight facet keeps the shapes valid (vis = 0)
     from ._mesh import Mesh  # noqa: PLC0415
 
-    sub = Mesh(mesh.vertices, np.asarray(mesh.faces)[keep], np.asarray(mesh.material_ids)[keep], mesh.parts)
+    sub = Mesh(
+        mesh.vertices, np.asarray(mesh.faces)[keep], np.asarray(mesh.material_ids)[keep], mesh.parts
+    )
     dt = jnp.result_type(float) if dtype is None else dtype
     arrays = mesh_arrays(sub, capacity_for(int(keep.sum())), dt)
     vis_k = np.zeros(arrays.valid.shape[0])
@@ -486,18 +583,28 @@ def simulate(
     # window from the longest edge (pose independent, so new poses reuse the compilation)
     sub_tri = tri[keep]
     max_edge = float(np.linalg.norm(sub_tri - np.roll(sub_tri, 1, axis=1), axis=-1).max())
-    window = window_size(max(max_edge * float(np.linalg.norm(w)), max_ext), sigma_r, float(bins.width),
-                         bins.n_bins)
+    window = window_size(
+        max(max_edge * float(np.linalg.norm(w)), max_ext), sigma_r, float(bins.width), bins.n_bins
+    )
     mats = stack_materials(scene.materials)
     mats = jax.tree_util.tree_map(
         lambda a: a.astype(jnp.result_type(dt, jnp.complex64) if jnp.iscomplexobj(a) else dt), mats
     )
     cast = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, dt), t)  # noqa: E731
     out = render(
-        arrays, jnp.asarray(vis_k, dt), cast(pose), mats, cast(sensor),
-        jnp.asarray(sigma_r, dt), jnp.asarray(float(bins.start) - shift, dt), jnp.asarray(bins.width, dt),
-        n_bins=bins.n_bins, window=window,
-        projection=None if proj is None else jnp.asarray(proj, dt), brdf=brdf, terms=terms,
+        arrays,
+        jnp.asarray(vis_k, dt),
+        cast(pose),
+        mats,
+        cast(sensor),
+        jnp.asarray(sigma_r, dt),
+        jnp.asarray(float(bins.start) - shift, dt),
+        jnp.asarray(bins.width, dt),
+        n_bins=bins.n_bins,
+        window=window,
+        projection=None if proj is None else jnp.asarray(proj, dt),
+        brdf=brdf,
+        terms=terms,
     )
     data = out.reshape(*out_shape, bins.n_bins)
     centres = bins.centres()
@@ -519,6 +626,7 @@ __all__ = [
     "STOKES_STATES",
     "channel_projection",
     "facet_weights",
+    "glossy_fresnel_mueller",
     "lambertian_mueller",
     "render",
     "simulate",

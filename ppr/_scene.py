@@ -56,7 +56,7 @@ FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 UNIT_TOL = 1e-6
 
 
-def _f(x) -> Array:
+def _f(x):
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
@@ -105,20 +105,27 @@ class Sensor(eqx.Module):
                 raise ValueError(f"Sensor.{name} must have shape (..., 3), got {v.shape}")
             if _concrete(v):
                 a = np.asarray(v, np.float64)
-                if not np.all(np.isfinite(a)) or np.any(np.abs(np.linalg.norm(a, axis=-1) - 1) > 1e-4):
-                    raise ValueError(f"Sensor.{name} must be a finite unit vector, got {a.tolist()}")
+                if not np.all(np.isfinite(a)) or np.any(
+                    np.abs(np.linalg.norm(a, axis=-1) - 1) > 1e-4
+                ):
+                    raise ValueError(
+                        f"Sensor.{name} must be a finite unit vector, got {a.tolist()}"
+                    )
         for f, d in (("frame_tx", "laser_dir"), ("frame_rx", "receiver_dir")):
             a, b = getattr(self, f), getattr(self, d)
             if _concrete(a) and _concrete(b):
                 dot = np.abs(np.sum(np.asarray(a, np.float64) * np.asarray(b, np.float64), -1))
                 if np.any(dot > 1e-4):
                     raise ValueError(
-                        f"Sensor.{f} must be perpendicular to Sensor.{d}, got |dot| = {dot.tolist()}"
+                        f"Sensor.{f} must be perpendicular to Sensor.{d}, "
+                        f"got |dot| = {dot.tolist()}"
                     )
         if _concrete(self.wavelength):
             wl = np.asarray(self.wavelength)
             if not np.all(np.isfinite(wl)) or np.any(wl <= 0):
-                raise ValueError(f"Sensor.wavelength must be a positive length in metres, got {wl!r}")
+                raise ValueError(
+                    f"Sensor.wavelength must be a positive length in metres, got {wl!r}"
+                )
 
     @classmethod
     def make(
@@ -152,7 +159,9 @@ class Sensor(eqx.Module):
             u_out = np.cos(b) * u_in + np.sin(b) * (np.cos(az) * x_tx + np.sin(az) * y_tx)
             u_out /= np.linalg.norm(u_out)
         if np.dot(u_in, u_out) <= 0:
-            raise ValueError(f"receiver_dir {u_out.tolist()} is more than 90 deg from the laser direction")
+            raise ValueError(
+                f"receiver_dir {u_out.tolist()} is more than 90 deg from the laser direction"
+            )
         x_rx = _perp(xr, u_out, "x_ref")
         return cls(u_in, u_out, x_tx, x_rx, wavelength)
 
@@ -184,7 +193,9 @@ class Pulse(eqx.Module):
         if not np.all(np.isfinite(fw)) or np.any(fw <= 0):
             raise ValueError(f"pulse fwhm must be a positive duration in seconds, got {fwhm!r}")
         if not np.all(np.isfinite(jt)) or np.any(jt < 0):
-            raise ValueError(f"pulse jitter must be a non-negative duration in seconds, got {jitter!r}")
+            raise ValueError(
+                f"pulse jitter must be a non-negative duration in seconds, got {jitter!r}"
+            )
         return cls(np.sqrt((fw * FWHM_TO_SIGMA) ** 2 + jt**2), t0)
 
     @property
@@ -212,7 +223,9 @@ class RangeBins(eqx.Module):
         if _concrete(self.start) and not np.all(np.isfinite(np.asarray(self.start))):
             raise ValueError(f"RangeBins.start must be finite, got {np.asarray(self.start)!r}")
         if not math.isfinite(self.reference_range) or self.reference_range < 0:
-            raise ValueError(f"RangeBins.reference_range must be >= 0 m, got {self.reference_range!r}")
+            raise ValueError(
+                f"RangeBins.reference_range must be >= 0 m, got {self.reference_range!r}"
+            )
 
     @classmethod
     def centred(cls, width: float, n_bins: int, reference_range: float = 0.0) -> RangeBins:
@@ -240,7 +253,9 @@ class Pose(eqx.Module):
         if self.position.shape[-1:] != (3,):
             raise ValueError(f"Pose.position must have shape (..., 3), got {self.position.shape}")
         if _concrete(self.position) and not np.all(np.isfinite(np.asarray(self.position))):
-            raise ValueError(f"Pose.position must be finite, got {np.asarray(self.position).tolist()}")
+            raise ValueError(
+                f"Pose.position must be finite, got {np.asarray(self.position).tolist()}"
+            )
 
 
 class Scene(eqx.Module):
@@ -269,10 +284,14 @@ class Scene(eqx.Module):
             )
         for i, m in enumerate(self.materials):
             if not isinstance(m, Material):
-                raise ValueError(f"Scene.materials[{i}] must be a ppr.Material, got {type(m).__name__}")
+                raise ValueError(
+                    f"Scene.materials[{i}] must be a ppr.Material, got {type(m).__name__}"
+                )
         r = math.isqrt(int(self.vis_samples))
         if r * r != self.vis_samples or r < 1:
-            raise ValueError(f"Scene.vis_samples must be a perfect square >= 1, got {self.vis_samples!r}")
+            raise ValueError(
+                f"Scene.vis_samples must be a perfect square >= 1, got {self.vis_samples!r}"
+            )
 
 
 # --------------------------------------------------------------------------- config schema
@@ -354,7 +373,9 @@ class SceneConfig(StrictModel):
 
 def _material_from_config(spec, wavelength: float, where: str) -> Material:
     if isinstance(spec, InlineMaterial):
-        return Material(complex(spec.n_real, spec.n_imag), spec.m, spec.corr_length_m, name="inline")
+        return Material(
+            complex(spec.n_real, spec.n_imag), spec.m, spec.corr_length_m, name="inline"
+        )
     try:
         from ._library import load_material  # noqa: PLC0415 - optional until the library lands
     except ImportError as exc:  # pragma: no cover - depends on the material library
@@ -377,7 +398,9 @@ def _find_sensor(name: str, scene_path: Path) -> Path:
     raise ConfigError(f"{scene_path}: sensor = {name!r}: no such sensor config (looked in {root})")
 
 
-def sensor_from_config(cfg: SensorConfig, source: str = "sensor") -> tuple[Sensor, Pulse, RangeBins]:
+def sensor_from_config(
+    cfg: SensorConfig, source: str = "sensor"
+) -> tuple[Sensor, Pulse, RangeBins]:
     try:
         sensor = Sensor.make(
             cfg.line_of_sight,
@@ -421,20 +444,29 @@ def load_scene(path: str | os.PathLike, overrides: dict | None = None) -> Scene:
             mpath = Path(cfg.mesh.path)
             if not mpath.is_absolute():
                 mpath = path.parent / mpath
-            mesh = load_mesh(mpath, scale=cfg.mesh.scale, on_degenerate=cfg.mesh.on_degenerate,
-                             part_names=cfg.mesh.part_names)
+            mesh = load_mesh(
+                mpath,
+                scale=cfg.mesh.scale,
+                on_degenerate=cfg.mesh.on_degenerate,
+                part_names=cfg.mesh.part_names,
+            )
     except ValueError as exc:
         raise ConfigError(f"{path}: {'shape' if cfg.shape else 'mesh'}: {exc}") from None
     missing = [p for p in mesh.parts if p not in cfg.materials]
     if missing:
         raise ConfigError(
-            f"{path}: materials: no material for mesh parts {missing} (parts are {list(mesh.parts)})"
+            f"{path}: materials: no material for mesh parts {missing} "
+            f"(parts are {list(mesh.parts)})"
         )
     extra = [k for k in cfg.materials if k not in mesh.parts]
     if extra:
-        raise ConfigError(f"{path}: materials: {extra} are not parts of the mesh {list(mesh.parts)}")
+        raise ConfigError(
+            f"{path}: materials: {extra} are not parts of the mesh {list(mesh.parts)}"
+        )
     wl = float(sensor.wavelength)
-    mats = tuple(_material_from_config(cfg.materials[p], wl, f"{path}: materials.{p}") for p in mesh.parts)
+    mats = tuple(
+        _material_from_config(cfg.materials[p], wl, f"{path}: materials.{p}") for p in mesh.parts
+    )
     try:
         q = check_quaternion(cfg.pose.quaternion, "pose.quaternion")
     except ValueError as exc:
@@ -446,5 +478,12 @@ def load_scene(path: str | os.PathLike, overrides: dict | None = None) -> Scene:
             f"{path}: visibility.samples_per_face = {cfg.visibility.samples_per_face}: must be a "
             "perfect square (1, 4, 9, 16, ...)"
         )
-    return Scene(check_mesh(mesh, name=str(path)), mats, pose, sensor, pulse, bins,
-                 cfg.visibility.samples_per_face)
+    return Scene(
+        check_mesh(mesh, name=str(path)),
+        mats,
+        pose,
+        sensor,
+        pulse,
+        bins,
+        cfg.visibility.samples_per_face,
+    )

@@ -62,7 +62,9 @@ class VisibilityCaster:
 
         k = math.isqrt(int(samples))
         if k * k != samples or k < 1:
-            raise ValueError(f"samples must be a perfect square >= 1 (1, 4, 9, 16, ...), got {samples!r}")
+            raise ValueError(
+                f"samples must be a perfect square >= 1 (1, 4, 9, 16, ...), got {samples!r}"
+            )
         tri = mesh.triangles()
         self.n_faces = tri.shape[0]
         self.samples = samples
@@ -71,16 +73,21 @@ class VisibilityCaster:
         diag = float(np.linalg.norm(tri.reshape(-1, 3).max(0) - tri.reshape(-1, 3).min(0)))
         self._offset = RAY_OFFSET_REL * max(diag, 1e-9)
         self.points = np.einsum("sk,fkd->fsd", bary, tri)  # (F, S, 3)
-        tm = trimesh.Trimesh(vertices=tri.reshape(-1, 3), faces=np.arange(3 * self.n_faces).reshape(-1, 3),
-                             process=False)
+        tm = trimesh.Trimesh(
+            vertices=tri.reshape(-1, 3),
+            faces=np.arange(3 * self.n_faces).reshape(-1, 3),
+            process=False,
+        )
         if trimesh.ray.has_embree:
             from trimesh.ray.ray_pyembree import RayMeshIntersector
 
             self._ray = RayMeshIntersector(tm, scale_to_box=False)
             self.backend = "embree"
         else:
-            msg = ("Embree (embreex) is not available: trimesh's pure-Python ray tracer is ~1000x "
-                   "slower. Install embreex, or pass allow_slow=True to accept the fallback.")
+            msg = (
+                "Embree (embreex) is not available: trimesh's pure-Python ray tracer is ~1000x "
+                "slower. Install embreex, or pass allow_slow=True to accept the fallback."
+            )
             if not allow_slow:
                 raise RuntimeError(msg)
             warnings.warn(msg, RuntimeWarning, stacklevel=2)

@@ -40,8 +40,9 @@ def _from_trimesh(tm, part: str) -> Mesh:
     return Mesh(np.asarray(tm.vertices, np.float64), np.asarray(tm.faces), None, (part,))
 
 
-def plate(width: float = 1.0, height: float | None = None, *, subdivisions: int = 1,
-          part: str = "body") -> Mesh:
+def plate(
+    width: float = 1.0, height: float | None = None, *, subdivisions: int = 1, part: str = "body"
+) -> Mesh:
     """Rectangular plate ``width x height`` (x by y) centred at the origin in z = 0, normal +z,
     split into ``subdivisions^2`` squares of two triangles each."""
     w = _positive("width", width)
@@ -54,7 +55,12 @@ def plate(width: float = 1.0, height: float | None = None, *, subdivisions: int 
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
     verts = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1)
     idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+        idx[:-1, 1:].ravel(),
+    )
     faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
     return check_mesh(Mesh(verts, faces, None, (part,)), name="plate")
 
@@ -80,23 +86,31 @@ def cubesat(units: int = 1, *, max_edge: float | None = None, part: str = "body"
     return box(ext, max_edge=max_edge, part=part)
 
 
-def cylinder(radius: float = 0.5, height: float = 1.0, *, sections: int = 32,
-             part: str = "body") -> Mesh:
+def cylinder(
+    radius: float = 0.5, height: float = 1.0, *, sections: int = 32, part: str = "body"
+) -> Mesh:
     """Closed cylinder along z, centred at the origin."""
     import trimesh
 
-    tm = trimesh.creation.cylinder(radius=_positive("radius", radius),
-                                   height=_positive("height", height), sections=int(sections))
+    tm = trimesh.creation.cylinder(
+        radius=_positive("radius", radius),
+        height=_positive("height", height),
+        sections=int(sections),
+    )
     return check_mesh(_from_trimesh(tm, part), name="cylinder")
 
 
-def cone(radius: float = 0.5, height: float = 1.0, *, sections: int = 32,
-         part: str = "body") -> Mesh:
+def cone(
+    radius: float = 0.5, height: float = 1.0, *, sections: int = 32, part: str = "body"
+) -> Mesh:
     """Closed cone along z, base at z = 0, apex at z = height."""
     import trimesh
 
-    tm = trimesh.creation.cone(radius=_positive("radius", radius),
-                               height=_positive("height", height), sections=int(sections))
+    tm = trimesh.creation.cone(
+        radius=_positive("radius", radius),
+        height=_positive("height", height),
+        sections=int(sections),
+    )
     return check_mesh(_from_trimesh(tm, part), name="cone")
 
 
@@ -104,7 +118,9 @@ def sphere(radius: float = 0.5, *, subdivisions: int = 3, part: str = "body") ->
     """Icosphere (20 * 4^subdivisions faces) of circumradius ``radius``."""
     import trimesh
 
-    tm = trimesh.creation.icosphere(subdivisions=int(subdivisions), radius=_positive("radius", radius))
+    tm = trimesh.creation.icosphere(
+        subdivisions=int(subdivisions), radius=_positive("radius", radius)
+    )
     return check_mesh(_from_trimesh(tm, part), name="sphere")
 
 
@@ -134,8 +150,9 @@ def cubesat_with_panels(
         tri = v[np.asarray(pm.faces)]
         nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         front = nrm[:, 0] > 0.5 * np.linalg.norm(nrm, axis=1)
-        panels.append(Mesh(v, pm.faces, np.where(front, 0, 1).astype(np.int32),
-                           ("solar_panel", "panel_back")))
+        panels.append(
+            Mesh(v, pm.faces, np.where(front, 0, 1).astype(np.int32), ("solar_panel", "panel_back"))
+        )
     m = concatenate([body, *panels])
     if max_edge is not None:
         m = subdivide(m, max_edge)

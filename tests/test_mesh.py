@@ -1,0 +1,277 @@
+"""Meshes, shapes, poses and visibility (host-side geometry of issue 4)."""
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+import ppr
+from ppr import shapes
+from ppr._mesh import capacity_for
+from ppr._pose import check_quaternion, matrix_to_quat, quat_multiply
+from ppr._visibility import VisibilityCaster, barycentric_samples
+
+# ----------------------------------------------------------------------------- shapes
+
+
+@pytest.mark.parametrize(
+    "mesh, area, volume",
+    [
+        (shapes.plate(2.0, 0.5, subdivisions=3), 1.0, None),
+        (shapes.cubesat(1), 0.06, 1e-3),
+        (shapes.cubesat(3), 2 * 0.01 + 4 * 0.034, 0.1 * 0.1 * 0.34),
+        (shapes.box((0.2, 0.3, 0.4), max_edge=0.05), 2 * (0.06 + 0.08 + 0.12), 0.024),
+    ],
+)
+def test_flat_shapes_area_volume(mesh, area, volume):
+    tm = mesh.to_trimesh()
+    # exact geometry: float64 rounding only (vertices may be stored float32 without x64)
+    assert tm.area == pytest.approx(area, rel=1e-6)
+    if volume is not None:
+        assert tm.is_watertight
+        assert tm.volume == pytest.approx(volume, rel=1e-6)  # positive: normals point outward
+
+
+@pytest.mark.parametrize(
+    "maker, exact",
+    [
+        (lambda: shapes.sphere(0.5, subdivisions=4), 4 / 3 * np.pi * 0.125),
+        (lambda: shapes.cylinder(0.5, 1.0, sections=128), np.pi * 0.25),
+        (lambda: shapes.cone(0.5, 1.0, sections=128), np.pi * 0.25 / 3),
+    ],
+)
+def test_curved_shapes_converge(maker, exact):
+    tm = maker().to_trimesh()
+    assert tm.is_watertight
+    # inscribed polyhedra: volume deficit ~ (edge / radius)^2, below 1 % at these resolutions
+    assert tm.volume == pytest.approx(exact, rel=1e-2)
+    assert tm.volume < exact
+
+
+def test_cubesat_with_panels_parts_and_shape():
+    m = shapes.cubesat_with_panels(3, panel_span=0.3)
+    assert m.parts == ("body", "solar_panel", "panel_back")
+    tm = m.to_trimesh()
+    mid = np.asarray(m.material_ids)
+    area = tm.area_faces
+    # solar cells: the two +x panel faces, 0.3 x 0.34 m each
+    assert area[mid == 1].sum() == pytest.approx(2 * 0.3 * 0.34, rel=1e-6)
+    assert area[mid == 0].sum() == pytest.approx(2 * 0.01 + 4 * 0.034, rel=1e-6)
+    assert np.ptp(np.asarray(m.vertices)[:, 1]) == pytest.approx(0.1 + 2 * 0.3, rel=1e-6)
+    assert not tm.is_convex  # the panel-body dihedrals are concave
+
+
+def test_subdivide_keeps_area_and_parts():
+    m = shapes.cubesat_with_panels(3)
+    s = ppr.subdivide(m, 0.05)
+    assert ppr.Mesh.max_edge(s) <= 0.05 + 1e-9
+    a0 = m.to_trimesh().area_faces
+    a1 = s.to_trimesh().area_faces
+    for k in range(3):
+        assert a1[np.asarray(s.material_ids) == k].sum() == pytest.approx(
+            a0[np.asarray(m.material_ids) == k].sum(), rel=1e-6
+        )
+
+
+def test_shape_errors():
+    with pytest.raises(ValueError, match="radius"):
+        shapes.sphere(-1.0)
+    with pytest.raises(ValueError, match="unknown shape 'torus'"):
+        shapes.by_name("torus")
+    with pytest.raises(ValueError, match="units"):
+        shapes.cubesat(5)
+
+
+# ----------------------------------------------------------------------------- validation
+
+TRI = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+
+
+def test_empty_mesh_rejected():
+    with pytest.raises(ValueError, match="empty"):
+        ppr.Mesh(np.zeros((0, 3)), np.zeros((0, 3), int))
+
+
+def test_nonfinite_vertices_rejected():
+    v = TRI.copy()
+    v[2, 1] = np.nan
+    with pytest.raises(ValueError, match="vertices must be finite.*vertex 2"):
+        ppr.Mesh(v, [[0, 1, 2]])
+
+
+def test_face_index_out_of_range():
+    with pytest.raises(ValueError, match="out of range"):
+        ppr.Mesh(TRI, [[0, 1, 7]])
+    with pytest.raises(ValueError, match="material_ids out of range"):
+        ppr.Mesh(TRI, [[0, 1, 2]], [1], ("body",))
+
+
+def test_degenerate_faces_error_or_drop():
+    m = ppr.Mesh(np.vstack([TRI, [[2.0, 0, 0]]]), [[0, 1, 2], [0, 1, 4]])  # 0, 1, 4 collinear
+    with pytest.raises(ValueError, match="1 degenerate .*face 1"):
+        ppr.check_mesh(m)
+    d = ppr.check_mesh(m, on_degenerate="drop")
+    assert d.n_faces == 1
+
+
+def test_duplicate_faces_error_or_drop_but_two_sided_kept():
+    dup = ppr.Mesh(TRI, [[0, 1, 2], [1, 2, 0]])  # same face, rotated indices
+    with pytest.raises(ValueError, match="1 duplicate faces"):
+        ppr.check_mesh(dup)
+    assert ppr.check_mesh(dup, on_degenerate="drop").n_faces == 1
+    # duplicate positions through different vertex indices
+    v = np.vstack([TRI, TRI[:3]])
+    with pytest.raises(ValueError, match="duplicate"):
+        ppr.check_mesh(ppr.Mesh(v, [[0, 1, 2], [4, 5, 6]]))
+    two_sided = ppr.Mesh(TRI, [[0, 1, 2], [0, 2, 1]])
+    assert ppr.check_mesh(two_sided).n_faces == 2
+
+
+def test_mesh_arrays_padding():
+    m = shapes.sphere(1.0, subdivisions=2)  # 320 faces
+    a = ppr.mesh_arrays(m)
+    cap = capacity_for(320)
+    assert a.tri.shape == (cap, 3, 3) and cap >= 320 and cap <= 1.25 * 320 + 64
+    assert int(a.valid.sum()) == 320
+    assert float(a.areas[320:].sum()) == 0.0
+    assert float(a.areas.sum()) == pytest.approx(m.to_trimesh().area, rel=1e-9)
+    with pytest.raises(ValueError, match="overflow"):
+        ppr.mesh_arrays(m, capacity=100)
+    assert [capacity_for(n) for n in (1, 64, 65, 1000, 1024, 1025)] == [
+        64,
+        64,
+        80,
+        1024,
+        1024,
+        1280,
+    ]
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+@pytest.mark.parametrize("ext", ["obj", "stl", "ply", "glb"])
+def test_load_formats_roundtrip(tmp_path, ext):
+    m = shapes.cubesat(3)
+    path = tmp_path / f"sat.{ext}"
+    m.to_trimesh().export(path)
+    got = ppr.load_mesh(path)
+    assert got.n_faces == 12
+    assert got.to_trimesh().area == pytest.approx(0.156, rel=1e-6)
+    got_mm = ppr.load_mesh(path, scale=1e-3)
+    assert got_mm.to_trimesh().area == pytest.approx(0.156e-6, rel=1e-6)
+
+
+def test_load_multipart_glb_names_parts(tmp_path):
+    scene = trimesh.Scene()
+    scene.add_geometry(shapes.cubesat(1).to_trimesh(), geom_name="bus")
+    panel = shapes.plate(0.3).to_trimesh()
+    panel.apply_translation([0, 0.3, 0])
+    scene.add_geometry(panel, geom_name="wing")
+    path = tmp_path / "sat.glb"
+    scene.export(path)
+    m = ppr.load_mesh(path, part_names={"wing": "solar_panel"})
+    assert set(m.parts) == {"bus", "solar_panel"}
+    mid = np.asarray(m.material_ids)
+    assert (mid == m.parts.index("solar_panel")).sum() == 2
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(ValueError, match="not found"):
+        ppr.load_mesh(tmp_path / "nope.obj")
+    bad = tmp_path / "bad.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\nv 0 1 0\nf 1 2 4\n")
+    with pytest.raises(ValueError, match="degenerate"):
+        ppr.load_mesh(bad)
+    assert ppr.load_mesh(bad, on_degenerate="drop").n_faces == 1
+
+
+# ----------------------------------------------------------------------------- pose
+
+
+def test_quaternion_matches_scipy_and_sign():
+    rng = np.random.default_rng(1)
+    q = rng.normal(size=(20, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    r = np.asarray(ppr.quat_to_matrix(q))
+    ref = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()  # scipy is (x, y, z, w)
+    np.testing.assert_allclose(r, ref, atol=1e-12)  # float64 rounding
+    np.testing.assert_allclose(np.asarray(ppr.quat_to_matrix(-q)), r, atol=1e-15)
+    for i in range(3):
+        np.testing.assert_allclose(np.abs(matrix_to_quat(r[i])), np.abs(q[i]), atol=1e-12)
+    q12 = np.asarray(quat_multiply(q[0], q[1]))
+    np.testing.assert_allclose(np.asarray(ppr.quat_to_matrix(q12)), r[0] @ r[1], atol=1e-12)
+
+
+def test_quaternion_validation():
+    with pytest.raises(ValueError, match=r"Pose.quaternion must be a unit quaternion.*norm 2.0"):
+        ppr.Pose([2.0, 0, 0, 0])
+    with pytest.raises(ValueError, match="must be finite"):
+        check_quaternion([np.nan, 0, 0, 1])
+    with pytest.raises(ValueError, match="shape"):
+        check_quaternion([1.0, 0, 0])
+    # within tolerance: normalized, either sign
+    np.testing.assert_allclose(check_quaternion([-1.0005, 0, 0, 0]), [-1, 0, 0, 0])
+
+
+# ----------------------------------------------------------------------------- visibility
+
+
+def test_barycentric_samples_integrate_linear_exactly():
+    for k in (1, 2, 3, 5):
+        b = barycentric_samples(k)
+        assert b.shape == (k * k, 3)
+        np.testing.assert_allclose(b.sum(1), 1.0)
+        np.testing.assert_allclose(b.mean(0), [1 / 3] * 3, atol=1e-15)  # centroid
+        assert (b > 0).all()
+
+
+def _two_plates(offset_x):
+    """Front plate (1 x 1 at z = 1) and back plate (1 x 1 at z = 0, 4x4 subdivided)."""
+    front = shapes.plate(1.0, part="front")
+    front = ppr.Mesh(np.asarray(front.vertices) + [offset_x, 0, 1.0], front.faces, None, ("front",))
+    back = shapes.plate(1.0, subdivisions=4, part="back")
+    return ppr._mesh.concatenate([front, back])
+
+
+def test_hidden_plate_gets_zero_and_half_hidden_half():
+    caster = VisibilityCaster(_two_plates(0.0), 16)
+    assert caster.backend == "embree"
+    f = caster.fractions([0, 0, 1.0])
+    np.testing.assert_array_equal(f[:2], 1.0)
+    np.testing.assert_array_equal(f[2:], 0.0)
+    # front plate shifted by half its width: half of the back plate (its 4x4 cells split on
+    # the cell boundary x = 0) is lit
+    f = VisibilityCaster(_two_plates(0.5), 16).fractions([0, 0, 1.0])
+    back = f[2:]
+    area = 1.0 / 32
+    assert back.sum() * area == pytest.approx(0.5, abs=1e-12)
+    # oblique (monostatic) view along (0.3, 0, 1): the front plate hides x in [-0.8, 0.2] of
+    # the back plate, leaving 0.3 m^2 lit; the shadow edge x = 0.2 cuts a column of cells,
+    # which the 8 x 8 sub-triangle pattern resolves to within its spacing (tolerance 0.01)
+    caster = VisibilityCaster(_two_plates(0.0), 64)
+    f = caster.fractions([0.3, 0, 1.0])
+    assert f[2:].sum() * area == pytest.approx(0.3, abs=0.01)
+    assert ((f[2:] > 0) & (f[2:] < 1)).any()  # partial facets
+    # receiver straight above: every lit point of the back plate is hidden from it
+    f = caster.fractions([0.3, 0, 1.0], [0.0, 0.0, 1.0])
+    np.testing.assert_array_equal(f[2:], 0.0)
+
+
+def test_back_faces_culled_and_self_shadowing_panels():
+    m = shapes.cubesat_with_panels(3)
+    caster = VisibilityCaster(m, 9)
+    u = np.array([1.0, 1.0, 0.2])
+    f = caster.fractions(u)
+    tri = m.triangles()
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    assert (f[n @ u <= 0] == 0).all()
+    # the body's +y face is partly shadowed by the +y panel's front (light from +x+y)
+    mid = np.asarray(m.material_ids)
+    body_py = (mid == 0) & (n[:, 1] > 0.5 * np.linalg.norm(n, axis=1))
+    assert 0.0 < f[body_py].mean() < 1.0
+
+
+def test_visibility_rejects_non_square_samples():
+    with pytest.raises(ValueError, match="perfect square"):
+        VisibilityCaster(shapes.plate(), 10)

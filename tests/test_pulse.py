@@ -1,0 +1,576 @@
+"""Facet-sum pulse synthesis: closed forms, energy, invariances, occlusion, gradients.
+
+Most tests use stand-in BRDFs (Lambertian ``diag(1,0,0,0)/pi``, or a smooth polarizing
+Fresnel-lobe stand-in) so that the geometry and the range kernel are checked against
+closed forms independent of the microfacet model; one test runs the real ``mueller_brdf``.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import integrate, stats
+
+import ppr
+from ppr import shapes
+from ppr._conventions import C_LIGHT
+from ppr._pulse import (
+    STOKES_STATES,
+    glossy_fresnel_mueller,
+    lambertian_mueller,
+    render,
+    stack_materials,
+    tent_gaussian_cdf,
+    window_size,
+)
+
+MAT = ppr.Material(1.5 + 0.0j, 10.0)
+SIGMA_R = 0.5 * C_LIGHT * 100e-12 / 2.3548200450309493  # 100 ps FWHM in range (m)
+
+
+def _scene(
+    mesh,
+    q=(1.0, 0, 0, 0),
+    *,
+    sensor=None,
+    width=0.005,
+    n_bins=256,
+    fwhm=100e-12,
+    jitter=0.0,
+    materials=None,
+    position=(0.0, 0, 0),
+    samples=16,
+):
+    return ppr.Scene(
+        mesh,
+        tuple(materials or [MAT] * len(mesh.parts)),
+        ppr.Pose(np.asarray(q, float), position),
+        sensor or ppr.Sensor.make((0, 0, -1.0)),
+        ppr.Pulse.gaussian(fwhm, jitter),
+        ppr.RangeBins.centred(width, n_bins, 1e6),
+        samples,
+    )
+
+
+def _p1(y):
+    return y * stats.norm.cdf(y) + stats.norm.pdf(y)
+
+
+# ----------------------------------------------------------------------------- closed form
+
+
+def _cdf_reference(x, d0, d1, d2, s):
+    """Quadrature of (triangular density) x Phi((x - z)/s) (independent of the closed form)."""
+    if d2 - d0 < 1e-13:
+        return stats.norm.cdf((x - d0) / s)
+
+    def g(z):
+        if z < d1:
+            return 2 * (z - d0) / ((d2 - d0) * (d1 - d0)) if d1 > d0 else 0.0
+        return 2 * (d2 - z) / ((d2 - d0) * (d2 - d1)) if d2 > d1 else 0.0
+
+    return integrate.quad(
+        lambda z: g(z) * stats.norm.cdf((x - z) / s),
+        d0,
+        d2,
+        points=[d1],
+        epsabs=1e-14,
+        epsrel=1e-13,
+        limit=200,
+    )[0]
+
+
+def test_tent_cdf_matches_quadrature_f64_f32():
+    rng = np.random.default_rng(0)
+    rows = []
+    for case in range(80):
+        s = 10 ** rng.uniform(-3, 0)
+        d = np.sort(rng.normal(size=3) * 10 ** rng.uniform(-4, 0.5))
+        if case % 5 == 0:
+            d[1] = d[0]  # two vertices at the same depth
+        if case % 7 == 0:
+            d[2] = d[1]
+        if case % 11 == 0:
+            d[:] = d[0]  # zero-depth facet facing the sensor
+        x = rng.uniform(d[0] - 6 * s, d[2] + 6 * s)
+        rows.append((x, *d, s, _cdf_reference(x, *d, s)))
+    a = np.asarray(rows)
+    got64 = np.asarray(tent_gaussian_cdf(*(a[:, i] for i in range(5))))
+    # float64: quadrature accuracy ~1e-13, closed form branches ~1e-13 (measured 2e-13)
+    np.testing.assert_allclose(got64, a[:, 5], atol=2e-12)
+    got32 = np.asarray(tent_gaussian_cdf(*(a[:, i].astype(np.float32) for i in range(5))))
+    # float32: rounding of the inputs (x - d)/s plus branch truncation ~1e-6; 3e-5 covers
+    # the worst measured case (cancellation in the first divided differences)
+    np.testing.assert_allclose(got32, a[:, 5], atol=3e-5)
+    assert got32.dtype == np.float32
+
+
+@jax.jit
+def _tent_value_grad_jvp(d, x, v):
+    f = lambda dd: tent_gaussian_cdf(x, dd[0], dd[1], dd[2], 0.01)  # noqa: E731
+    val, g = jax.value_and_grad(f)(d)
+    h = 1e-7
+    fd = (f(d + h * v) - f(d - h * v)) / (2 * h)
+    return val, g, g @ v, fd
+
+
+def test_tent_cdf_gradients_finite_and_match_fd():
+    ds = [
+        [0.0, 0.0, 0.0],
+        [0.0, 0.0, 0.02],
+        [0.0, 0.02, 0.02],
+        [-0.01, 0.005, 0.03],
+        [0.0, 1e-9, 2e-9],
+        [0.0, 0.0005, 0.04],
+    ]
+    v = jnp.array([0.3, -0.5, 0.8])
+    for d in ds:
+        for x in (-0.02, 0.004, 0.01, 0.05):
+            _, g, jvp, fd = _tent_value_grad_jvp(jnp.asarray(d), x, v)
+            assert np.all(np.isfinite(np.asarray(g)))
+            # central differences in float64: truncation ~h^2 (third derivative) ~ 1e-8 rel.
+            np.testing.assert_allclose(float(jvp), float(fd), rtol=1e-6, atol=1e-7)
+    g32 = jax.jit(
+        jax.grad(
+            lambda dd: tent_gaussian_cdf(jnp.float32(0.01), dd[0], dd[1], dd[2], jnp.float32(0.01))
+        )
+    )
+    for d in ds:
+        assert np.all(np.isfinite(np.asarray(g32(jnp.asarray(d, jnp.float32)))))
+
+
+# ----------------------------------------------------------------------------- analytic scenes
+
+
+def test_tilted_plate_profile_mean_variance():
+    th = np.radians(35.0)
+    width = 0.004
+    sc = _scene(
+        shapes.plate(1.0, subdivisions=2),
+        ppr.quat_from_axis_angle([1, 0, 0], th),
+        width=width,
+        n_bins=384,
+    )
+    p = ppr.simulate(sc, brdf=lambertian_mueller)
+    prof = np.asarray(p.data[0, 0])
+    sig = float(sc.pulse.sigma_range)
+    s = np.sin(th)  # depth of a point (x, y cos th, y sin th) is -y sin th: uniform on [-s/2, s/2]
+
+    def u_cdf(x):
+        return sig / s * (_p1((x + s / 2) / sig) - _p1((x - s / 2) / sig))
+
+    e = np.asarray(p.edges_m)
+    expect = np.cos(th) ** 2 / np.pi * np.diff(u_cdf(e))
+    # closed form vs closed form: float64 rounding only
+    # window truncated at NSIG = 7 sigma: Phi(-7) ~ 1e-12 of the facet weight
+    np.testing.assert_allclose(prof, expect, atol=1e-11 * expect.max())
+    assert prof.sum() == pytest.approx(np.cos(th) ** 2 / np.pi, rel=1e-12)
+    r = np.asarray(p.range_m)
+    mean = (prof * r).sum() / prof.sum()
+    var = (prof * (r - mean) ** 2).sum() / prof.sum()
+    assert mean == pytest.approx(0.0, abs=1e-12)
+    # uniform + Gaussian variances, plus Sheppard's h^2/12 for bin-centre moments (exact to
+    # ~exp(-2 pi^2 sigma^2 / h^2) for a Gaussian-smoothed density)
+    assert var == pytest.approx(s**2 / 12 + sig**2 + width**2 / 12, rel=1e-10)
+
+
+def _sphere_reference(edges, a, sig):
+    """Lambertian sphere, monostatic: area-weighted cos^2/pi density 2 r^2 / a on [-a, 0]."""
+    r = np.linspace(-a, 0.0, 20001)
+    rho = 2 * r**2 / a
+    cdf = np.array([integrate.simpson(rho * stats.norm.cdf((x - r) / sig), x=r) for x in edges])
+    return np.diff(cdf)
+
+
+def test_sphere_lambertian_profile_converges():
+    a = 0.3
+    errs = []
+    ref = None
+    for sub in (1, 2, 3):
+        sc = _scene(shapes.sphere(a, subdivisions=sub), width=0.005, n_bins=256)
+        p = ppr.simulate(sc, brdf=lambertian_mueller)
+        prof = np.asarray(p.data[0, 0])
+        if ref is None:
+            ref = _sphere_reference(np.asarray(p.edges_m), a, float(sc.pulse.sigma_range))
+            assert ref.sum() == pytest.approx(2 * a**2 / 3, rel=1e-6)
+        errs.append(np.abs(prof - ref).sum() / ref.sum())
+    # inscribed icosphere: O(edge^2) errors, edge halves per level -> ratio ~4; ask for > 2.5
+    assert errs[0] / errs[1] > 2.5 and errs[1] / errs[2] > 2.5, errs
+    assert errs[2] < 0.02, errs
+
+
+def test_box_face_on_and_edge_on():
+    """A cube seen along a face normal: only that face counts (the four side faces are exactly
+    edge-on); its profile is the bin-integrated Gaussian at depth -0.05 m."""
+    sc = _scene(shapes.cubesat(1), width=0.003, n_bins=128)
+    p = ppr.simulate(sc, brdf=lambertian_mueller)
+    prof = np.asarray(p.data[0, 0])
+    sig = float(sc.pulse.sigma_range)
+    e = np.asarray(p.edges_m)
+    expect = 0.01 / np.pi * np.diff(stats.norm.cdf((e + 0.05) / sig))
+    np.testing.assert_allclose(prof, expect, atol=1e-14)
+    # rotated 45 deg about y: two faces at 45 deg, each deeper than the pulse; total is
+    # 2 * A cos^2(45) / pi and the depth interval is [-0.0707, 0.0]
+    q = ppr.quat_from_axis_angle([0, 1, 0], np.pi / 4)
+    p = ppr.simulate(_scene(shapes.cubesat(1), q, width=0.003, n_bins=128), brdf=lambertian_mueller)
+    assert float(p.total[0, 0]) == pytest.approx(2 * 0.01 * 0.5 / np.pi, rel=1e-12)
+    r = np.asarray(p.range_m)
+    prof = np.asarray(p.data[0, 0])
+    assert (prof * r).sum() / prof.sum() == pytest.approx(-0.05 * np.sqrt(2) / 2, rel=1e-9)
+
+
+# ----------------------------------------------------------------------------- energy
+
+
+def test_energy_independent_of_bins_and_pulse():
+    mesh = shapes.cubesat_with_panels(3)
+    q = np.array([0.9, 0.3, -0.2, 0.25])
+    q /= np.linalg.norm(q)
+    rot = np.asarray(ppr.quat_to_matrix(q))
+    u = rot.T @ np.array([0, 0, 1.0])
+    vis = ppr.VisibilityCaster(mesh, 16).fractions(u)
+    arrays = ppr.mesh_arrays(mesh)
+    vis_p = jnp.asarray(np.concatenate([vis, np.zeros(arrays.valid.shape[0] - mesh.n_faces)]))
+    totals = []
+    n = 512  # dense window (= n_bins): one compilation for every bin and pulse width
+    for width, fwhm in ((0.004, 30e-12), (0.005, 100e-12), (0.011, 300e-12), (0.05, 100e-12)):
+        sig = 0.5 * C_LIGHT * fwhm / 2.3548200450309493
+        out = render(
+            arrays,
+            vis_p,
+            ppr.Pose(jnp.asarray(q)),
+            stack_materials([MAT] * 3),
+            ppr.Sensor.make((0, 0, -1.0)),
+            sig,
+            -0.5 * n * width,
+            width,
+            n_bins=n,
+            window=n,
+            brdf=lambertian_mueller,
+        )
+        totals.append(float(out[0].sum()))
+    tri = mesh.triangles()
+    cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(cr, axis=1)
+    c = np.clip((cr / (2 * area[:, None])) @ u, 0, None)
+    facet_sum = (c * c * area * vis).sum() / np.pi
+    # every facet's bin contents telescope to its weight: float64 rounding only
+    np.testing.assert_allclose(totals, facet_sum, rtol=1e-12)
+    assert ((vis > 0) & (vis < 1)).any()  # partial self-shadowing present in this pose
+
+
+def test_windowed_equals_dense_for_deep_facets():
+    """Facets much deeper than the pulse and the bins (a 1 m plate at 60 deg, 2 mm bins)."""
+    mesh = shapes.plate(1.0, subdivisions=4)
+    arrays = ppr.mesh_arrays(mesh)
+    q = jnp.asarray(ppr.quat_from_axis_angle([1, 1, 0], np.radians(60)))
+    vis = jnp.asarray(arrays.valid, float)
+    sensor = ppr.Sensor.make((0, 0, -1.0))
+    mats = stack_materials([MAT])
+    kw = dict(n_bins=640, brdf=lambertian_mueller)
+    k = window_size(mesh.max_edge(), SIGMA_R, 0.002, 640)
+    assert k < 640
+    a = render(arrays, vis, ppr.Pose(q), mats, sensor, SIGMA_R, -0.64, 0.002, window=k, **kw)
+    b = render(arrays, vis, ppr.Pose(q), mats, sensor, SIGMA_R, -0.64, 0.002, window=640, **kw)
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-15)
+
+
+# ----------------------------------------------------------------------------- invariances
+
+
+def _random_rotation(seed):
+    q = np.random.default_rng(seed).normal(size=4)
+    return q / np.linalg.norm(q)
+
+
+def test_joint_rotation_of_object_and_sensor_leaves_profile_unchanged():
+    mesh = shapes.cubesat_with_panels(3)
+    mats = [ppr.Material(0.94 + 6.42j, 50.0), ppr.Material(1.46, 400.0), ppr.Material(2.6, 3.0)]
+    q0 = _random_rotation(3)
+    sensor0 = ppr.Sensor.make(
+        (0.2, -0.1, -1.0), (1.0, 0.3, 0.0), bistatic_angle=0.05, bistatic_azimuth=0.7
+    )
+    p0 = ppr.simulate(_scene(mesh, q0, sensor=sensor0, materials=mats), brdf=glossy_fresnel_mueller)
+    g = _random_rotation(4)
+    rg = np.asarray(ppr.quat_to_matrix(g))
+    sensor1 = ppr.Sensor(
+        *(
+            rg @ np.asarray(getattr(sensor0, f))
+            for f in ("laser_dir", "receiver_dir", "frame_tx", "frame_rx")
+        ),
+        532e-9,
+    )
+    q1 = np.asarray(ppr._pose.quat_multiply(g, q0))
+    p1 = ppr.simulate(_scene(mesh, q1, sensor=sensor1, materials=mats), brdf=glossy_fresnel_mueller)
+    d0, d1 = np.asarray(p0.data), np.asarray(p1.data)
+    assert np.abs(d0[1:, 1:]).max() > 1e-3 * np.abs(d0[0, 0]).max()  # polarizing: frames matter
+    # same facets, same visibility (ray casts in the body frame), float64 rounding
+    np.testing.assert_allclose(d1, d0, atol=1e-12 * np.abs(d0).max())
+
+
+def test_range_offset_shifts_profile_exactly():
+    mesh = shapes.cubesat_with_panels(3)
+    q = _random_rotation(5)
+    width = 0.005
+    base = ppr.simulate(_scene(mesh, q, width=width), brdf=lambertian_mueller)
+    w = np.array([0, 0, 1.0])  # monostatic bisector for line of sight -z
+    k = 7
+    moved = ppr.simulate(
+        _scene(mesh, q, width=width, position=-k * width * w), brdf=lambertian_mueller
+    )
+    a, b = np.asarray(base.data[0, 0]), np.asarray(moved.data[0, 0])
+    np.testing.assert_allclose(b[k:], a[:-k], atol=1e-12 * a.max())
+    # a pulse time offset t0 is the same as a range offset c t0 / 2
+    sc = _scene(mesh, q, width=width)
+    sc = eqx.tree_at(lambda s: s.pulse, sc, ppr.Pulse(sc.pulse.sigma_t, 2 * k * width / C_LIGHT))
+    c = np.asarray(ppr.simulate(sc, brdf=lambertian_mueller).data[0, 0])
+    np.testing.assert_allclose(c, b, atol=1e-12 * a.max())
+
+
+# ----------------------------------------------------------------------------- occlusion
+
+
+def _stack(front_offset, back_sub=4):
+    front = shapes.plate(1.0, part="front")
+    front = ppr.Mesh(
+        np.asarray(front.vertices) + [front_offset, 0, 0.2], front.faces, None, ("front",)
+    )
+    back = shapes.plate(1.0, subdivisions=back_sub, part="back")
+    return ppr._mesh.concatenate([front, back]), front, back
+
+
+def test_hidden_plate_contributes_nothing_and_half_hidden_half():
+    both, front, back = _stack(0.0)
+    p_both = ppr.simulate(_scene(both), brdf=lambertian_mueller)
+    p_front = ppr.simulate(_scene(front, materials=[MAT]), brdf=lambertian_mueller)
+    # identical facets up to summation order
+    np.testing.assert_allclose(
+        np.asarray(p_both.data),
+        np.asarray(p_front.data),
+        atol=1e-11 * float(np.abs(p_front.data).max()),
+    )
+    both, front, back = _stack(0.5)
+    p_both = ppr.simulate(_scene(both), brdf=lambertian_mueller)
+    p_front = ppr.simulate(_scene(front, materials=[MAT]), brdf=lambertian_mueller)
+    p_back = ppr.simulate(_scene(back, materials=[MAT]), brdf=lambertian_mueller)
+    back_part = np.asarray(p_both.data - p_front.data)[0, 0]
+    # the shadow edge falls on cell boundaries: exactly half of the back plate remains
+    # windows differ between the scenes: tails beyond NSIG = 7 sigma (Phi(-7) ~ 1e-12) differ
+    np.testing.assert_allclose(
+        back_part,
+        0.5 * np.asarray(p_back.data[0, 0]),
+        atol=1e-11 * float(np.abs(p_front.data).max()),
+    )
+
+
+def test_pruning_and_channel_selection_agree():
+    mesh = shapes.cubesat_with_panels(3)
+    mats = [ppr.Material(0.94 + 6.42j, 50.0), ppr.Material(1.46, 400.0), ppr.Material(2.6, 3.0)]
+    sc = _scene(
+        mesh,
+        _random_rotation(8),
+        materials=mats,
+        sensor=ppr.Sensor.make((0, 0, -1.0), bistatic_angle=0.02),
+    )
+    full = ppr.simulate(sc, brdf=glossy_fresnel_mueller)
+    unpruned = ppr.simulate(sc, brdf=glossy_fresnel_mueller, prune=False)
+    # pruning drops only zero-weight facets: identical up to summation order
+    np.testing.assert_allclose(np.asarray(unpruned.data), np.asarray(full.data), atol=1e-15)
+    st = ppr.simulate(sc, brdf=glossy_fresnel_mueller, states=["H", "V", "D", "R"])
+    m = np.asarray(full.data)
+    for i, name in enumerate(st.labels):
+        expect = np.einsum("ijb,j->ib", m, np.asarray(STOKES_STATES[name]))
+        np.testing.assert_allclose(np.asarray(st.data[i]), expect, atol=1e-15)
+    ch = ppr.simulate(sc, brdf=glossy_fresnel_mueller, channels=[(0, 0), (3, 3), (1, 2)])
+    np.testing.assert_allclose(np.asarray(ch.data), m[[0, 3, 1], [0, 3, 2]], atol=1e-15)
+    assert full.range_m.shape == (256,) and full.time_s[1] - full.time_s[0] == pytest.approx(
+        2 * 0.005 / C_LIGHT
+    )
+
+
+# ----------------------------------------------------------------------------- gradients
+
+
+N_BINS, WIDTH, WINDOW = 192, 0.006, 96  # shared by the gradient tests: one compilation
+
+
+def _render_setup(mesh, q, materials, sensor):
+    """Padded arrays (capacity 64) and host visibility for ``render`` at a fixed pose."""
+    arrays = ppr.mesh_arrays(mesh, capacity=64)
+    rot = np.asarray(ppr.quat_to_matrix(q))
+    caster = ppr.VisibilityCaster(mesh, 9)
+    vis = caster.fractions(
+        rot.T @ np.asarray(sensor.laser_dir), rot.T @ np.asarray(sensor.receiver_dir)
+    )
+    vis = jnp.asarray(np.concatenate([vis, np.zeros(64 - mesh.n_faces)]))
+    assert window_size(mesh.max_edge(), SIGMA_R, WIDTH, N_BINS) <= WINDOW
+    mats = list(materials) + [materials[0]] * (3 - len(materials))  # always 3 parts
+    return arrays, vis, stack_materials(mats)
+
+
+def _profile(q, mats, arrays, vis, sensor):
+    return render(
+        arrays,
+        vis,
+        ppr.Pose(q),
+        mats,
+        sensor,
+        SIGMA_R,
+        -0.5 * WIDTH * N_BINS,
+        WIDTH,
+        n_bins=N_BINS,
+        window=WINDOW,
+        brdf=glossy_fresnel_mueller,
+    )
+
+
+def _loss_fn(q, mats, arrays, vis, sensor, wts):
+    return jnp.sum(_profile(q, mats, arrays, vis, sensor) * wts)
+
+
+_loss_grad = eqx.filter_jit(jax.value_and_grad(_loss_fn, argnums=(0, 1)))
+
+
+def _loss(*args):  # finite differences reuse the gradient's compilation
+    return _loss_grad(*args)[0]
+
+
+WTS = jnp.asarray(np.random.default_rng(0).normal(size=(16, N_BINS)))
+
+
+def test_gradients_attitude_and_material_match_fd():
+    mesh = shapes.cubesat_with_panels(3)
+    mats = [ppr.Material(0.94 + 6.42j, 50.0), ppr.Material(1.46, 40.0), ppr.Material(2.6, 3.0)]
+    sensor = ppr.Sensor.make((0, 0, -1.0), bistatic_angle=0.03)
+    q = jnp.asarray(_random_rotation(11))
+    arrays, vis, stacked = _render_setup(mesh, q, mats, sensor)
+    args = (arrays, vis, sensor, WTS)
+    _, (gq, gm) = _loss_grad(q, stacked, *args)
+    assert np.all(np.isfinite(np.asarray(gq)))
+    h = 1e-6
+    # attitude: directional derivative along a random direction in quaternion space
+    v = jnp.asarray(np.random.default_rng(1).normal(size=4))
+    fd = (_loss(q + h * v, stacked, *args) - _loss(q - h * v, stacked, *args)) / (2 * h)
+    # central FD in float64 (visibility held fixed): truncation ~h^2, rounding ~1e-10
+    np.testing.assert_allclose(float(gq @ v), float(fd), rtol=1e-6)
+    # roughness and complex index of every part
+    for field, dv in (("m", 1.0), ("n", 1.0 + 0.0j), ("n", 1.0j)):
+        tan = jnp.zeros_like(getattr(stacked, field)).at[:].set(dv)
+        get = lambda s, f=field: getattr(s, f)  # noqa: E731
+        plus = eqx.tree_at(get, stacked, get(stacked) + h * tan)
+        minus = eqx.tree_at(get, stacked, get(stacked) - h * tan)
+        fd = (_loss(q, plus, *args) - _loss(q, minus, *args)) / (2 * h)
+        # JAX's gradient of a real loss w.r.t. complex z is df/dx - i df/dy: Re(g t) is the
+        # directional derivative
+        an = float(np.real(np.sum(np.asarray(getattr(gm, field)) * np.asarray(tan))))
+        np.testing.assert_allclose(an, float(fd), rtol=1e-6, atol=1e-12)
+
+
+def test_gradients_finite_edge_on_and_equal_depths():
+    """Cube face-on (four faces exactly edge-on, front vertex pairs at equal depths) and a plate
+    exactly edge-on: values and attitude gradients finite; FD agrees at the cube."""
+    sensor = ppr.Sensor.make((0, 0, -1.0))
+    for mesh, q in (
+        (shapes.cubesat(1), jnp.array([1.0, 0, 0, 0])),
+        (
+            shapes.plate(0.5, subdivisions=2),
+            jnp.asarray(ppr.quat_from_axis_angle([1, 0, 0], np.pi / 2)),
+        ),
+    ):
+        arrays, vis, stacked = _render_setup(mesh, q, [MAT], sensor)
+        args = (arrays, vis, sensor, WTS)
+        val, (g, _) = _loss_grad(q, stacked, *args)
+        assert np.isfinite(float(val)) and np.all(np.isfinite(np.asarray(g)))
+        if mesh.n_faces == 12:
+            v = jnp.array([0.1, 0.4, -0.3, 0.2])
+            fd = (_loss(q + 1e-6 * v, stacked, *args) - _loss(q - 1e-6 * v, stacked, *args)) / 2e-6
+            np.testing.assert_allclose(float(g @ v), float(fd), rtol=1e-5, atol=1e-9)
+
+
+def test_zero_area_and_duplicate_faces_stay_finite():
+    mesh = shapes.plate(0.5, subdivisions=2)
+    sensor = ppr.Sensor.make((0, 0, -1.0))
+    q = jnp.asarray(_random_rotation(2))
+    arrays, vis, stacked = _render_setup(mesh, q, [MAT], sensor)
+    tri = np.array(arrays.tri)
+    tri[2] = tri[0]  # duplicate face
+    tri[3] = np.array([[0.1, 0.1, 0.0]] * 3)  # zero-area face, fallback normal +z
+    arrays = eqx.tree_at(
+        lambda a: (a.tri, a.valid, a.areas),
+        arrays,
+        (
+            jnp.asarray(tri),
+            arrays.valid.at[2:4].set(True),
+            arrays.areas.at[2].set(arrays.areas[0]).at[3].set(0.0),
+        ),
+    )
+    vis = vis.at[2:4].set(1.0)
+    val, (g, gm) = _loss_grad(q, stacked, arrays, vis, sensor, WTS)
+    assert np.isfinite(float(val))
+    assert np.all(np.isfinite(np.asarray(g))) and np.all(np.isfinite(np.asarray(gm.m)))
+
+
+# ----------------------------------------------------------------------------- jit / vmap / dtype
+
+
+def test_no_retrace_for_new_poses_materials_and_vmap_matches_loop():
+    mesh = shapes.cubesat_with_panels(3)
+    mats = [ppr.Material(0.94 + 6.42j, 50.0), ppr.Material(1.46, 400.0), ppr.Material(2.6, 3.0)]
+    sensor = ppr.Sensor.make((0, 0, -1.0))
+    arrays, vis, stacked = _render_setup(mesh, jnp.asarray(_random_rotation(1)), mats, sensor)
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def g(qq, mm):
+        return _profile(qq, mm, arrays, vis, sensor)
+
+    outs = [g(jnp.asarray(_random_rotation(s)), stacked) for s in range(3)]
+    mats2 = eqx.tree_at(lambda s: s.m, stacked, stacked.m * 2)
+    g(jnp.asarray(_random_rotation(9)), mats2)
+    qs = jnp.asarray(np.stack([_random_rotation(s) for s in range(3)]))
+    batched = jax.vmap(lambda qq: _profile(qq, stacked, arrays, vis, sensor))(qs)
+    # vmap vs single calls: same ops, float64 rounding
+    np.testing.assert_allclose(
+        np.asarray(batched),
+        np.stack([np.asarray(o) for o in outs]),
+        atol=1e-14 * float(np.abs(batched).max()),
+    )
+
+
+def test_float32_in_float32_out():
+    sc = _scene(shapes.cubesat_with_panels(3), _random_rotation(6))
+    p64 = ppr.simulate(sc, brdf=glossy_fresnel_mueller)
+    p32 = ppr.simulate(sc, brdf=glossy_fresnel_mueller, dtype=jnp.float32)
+    assert p32.data.dtype == jnp.float32
+    scale = float(np.abs(p64.data).max())
+    # float32 kernel: depths/sigma ~ 1e2 with eps 1e-7 plus closed-form branch error ~3e-5
+    np.testing.assert_allclose(np.asarray(p32.data), np.asarray(p64.data), atol=1e-4 * scale)
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def test_bad_inputs_raise_before_computing():
+    mesh = shapes.cubesat_with_panels(3)
+    with pytest.raises(ValueError, match="do not cover the visible object"):
+        ppr.simulate(_scene(mesh, width=0.001, n_bins=100), brdf=lambertian_mueller)
+    with pytest.raises(ValueError, match="fwhm must be a positive"):
+        ppr.Pulse.gaussian(0.0)
+    with pytest.raises(ValueError, match="fwhm must be a positive"):
+        ppr.Pulse.gaussian(-1e-12)
+    with pytest.raises(ValueError, match="unknown transmitted state"):
+        ppr.simulate(_scene(mesh), brdf=lambertian_mueller, states=["H", "Q"])
+    with pytest.raises(ValueError, match="visibility must be"):
+        ppr.simulate(_scene(mesh), brdf=lambertian_mueller, visibility=np.ones(3))
+    with pytest.raises(ValueError, match="one Material per part"):
+        _scene(mesh, materials=[MAT])
+    sc = _scene(mesh)
+    with pytest.raises(ValueError, match="needs a concrete pose"):
+        jax.jit(
+            lambda q: (
+                ppr.simulate(
+                    eqx.tree_at(lambda s: s.pose.quaternion, sc, q), brdf=lambertian_mueller
+                ).data
+            )
+        )(jnp.array([1.0, 0, 0, 0]))
