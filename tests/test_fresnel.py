@@ -207,6 +207,17 @@ def test_facet_mueller_equals_rotated_jones():
     F[:, 3, 2] = -F[:, 2, 3]
     M_ref = rot(s, x_out, k_out) @ F @ rot(x_in, s, -k_in)
     np.testing.assert_allclose(np.array(M), M_ref, atol=1e-13)
+    # structure-of-arrays entry point with 3-tuples of components gives the same matrix
+    comps = [tuple(v[:, i] for i in range(3)) for v in (k_in, k_out, h, x_in, x_out)]
+    rows = jax.jit(facet_mueller_rows)(n.real, n.imag, *comps)
+    np.testing.assert_allclose(np.array(rows).transpose(2, 0, 1), np.array(M), atol=1e-15)
+    # realizable (Jones-derived): Cloude coherency has one eigenvalue M00, the rest ~0
+    from ppr._polarimetry import _COHERENCY_BASIS
+
+    H = 0.25 * np.einsum("nij,ijab->nab", np.array(M), _COHERENCY_BASIS)
+    w = np.linalg.eigvalsh(H)
+    np.testing.assert_allclose(w[:, :3], 0.0, atol=1e-13)
+    np.testing.assert_allclose(w[:, 3], np.array(M)[:, 0, 0], rtol=1e-12)
 
 
 def test_facet_reciprocity():
