@@ -42,7 +42,7 @@ __all__ = [
     "rotation_cos_sin_2a",
 ]
 
-# S = A (E (x) E^*), Chipman's Stokes definitions (see ppr._conventions)
+# S = A (E (x) E^*): the Stokes definitions of ppr._conventions (S3 = -2 Im(E_x E_y^*))
 A_STOKES = np.array([[1, 0, 0, 1], [1, 0, 0, -1], [0, 1, 1, 0], [0, 1j, -1j, 0]], np.complex128)
 _A_STOKES_INV = np.linalg.inv(A_STOKES)
 
