@@ -115,6 +115,16 @@ def _phys(q, m, n, off, gain):
     )
 
 
+BANK_BATCH = 128
+
+
+def _pad(x):
+    """Pad the leading axis to BANK_BATCH by repeating the first row."""
+    if len(x) == BANK_BATCH:
+        return x
+    return np.concatenate([x, np.repeat(x[:1], BANK_BATCH - len(x), axis=0)])
+
+
 def build_bank(models, grid_size):
     """Template bank (normalized signatures) over shapes x grid attitudes x materials x finishes."""
     sigs, sid, aid, mid, fid, quats, res = [], [], [], [], [], [], []
@@ -128,14 +138,19 @@ def build_bank(models, grid_size):
         for mi, mname in enumerate(mat_names):
             for fi, fname in enumerate(fin_names):
                 g = len(grid.quats)
-                out = _batch_expected(
-                    _pure(model),
-                    jnp.asarray(grid.quats),
-                    jnp.full(g, FINISHES[fname]),
-                    jnp.full(g, MATERIALS[mname], jnp.complex128),
-                    jnp.asarray(vis),
-                )
-                out = np.asarray(out)
+                outs = []
+                for a in range(0, g, BANK_BATCH):  # fixed batch shape: one compilation
+                    qb = _pad(grid.quats[a : a + BANK_BATCH])
+                    vb = _pad(vis[a : a + BANK_BATCH])
+                    o = _batch_expected(
+                        _pure(model),
+                        jnp.asarray(qb),
+                        jnp.full(BANK_BATCH, FINISHES[fname]),
+                        jnp.full(BANK_BATCH, MATERIALS[mname], jnp.complex128),
+                        jnp.asarray(vb),
+                    )
+                    outs.append(np.asarray(o)[: min(BANK_BATCH, g - a)])
+                out = np.concatenate(outs)
                 out = out / np.maximum(out.sum(axis=(1, 2), keepdims=True), 1e-300)
                 sigs.append(out.astype(np.float32))
                 sid += [s] * g
@@ -249,7 +264,7 @@ def run_one(o, models, bank, prep, k, mcmc_cfg, do_mcmc):
     for s in sorted(set(bank.shape_id[rows].tolist())):
         model = models[names[s]]
         starts = [
-            candidate_start(bank, r, -cl.shift_refined[0][j], data, model)
+            candidate_start(bank, r, cl.shift_refined[0][j], data, model)
             for j, r in enumerate(rows)
             if bank.shape_id[r] == s
         ]

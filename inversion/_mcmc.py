@@ -248,9 +248,24 @@ class _LogProb(eqx.Module):
         return jnp.where(jnp.isnan(out), -jnp.inf, out)
 
 
-@eqx.filter_jit
-def _batched_log_prob(lp: _LogProb, thetas):
-    return jax.vmap(lp.single)(thetas)
+_JIT_CACHE: dict = {}
+
+
+def _jitted_batched(static):
+    """One ``jax.jit(vmap(log_prob))`` per static structure (model sizes, priors, layout)."""
+    try:
+        key = hash(static)
+    except TypeError:
+        key = id(static)
+    fn = _JIT_CACHE.get(key)
+    if fn is None:
+
+        def batched(dyn, thetas):
+            lp = eqx.combine(dyn, static)
+            return jax.vmap(lp.single)(thetas)
+
+        fn = _JIT_CACHE[key] = jax.jit(batched)
+    return fn
 
 
 def make_log_prob(model, data, param: Parametrisation, priors: PriorConfig, noise=None, aux=None):
@@ -265,9 +280,13 @@ def make_log_prob(model, data, param: Parametrisation, priors: PriorConfig, nois
     shape = _model_shape(model, param.reference, aux)
     data = jnp.asarray(check_observation(data, shape))
     lp = _LogProb(_pure(model), noise, param, aux, data, priors)
+    # Partition once and call a plain jax.jit: emcee calls this thousands of times, and
+    # filter_jit's per-call pytree handling costs more than the toy-sized model itself.
+    dyn, static = eqx.partition(lp, eqx.is_array)
+    batched = _jitted_batched(static)
 
     def f(thetas):
-        return np.asarray(_batched_log_prob(lp, jnp.asarray(thetas, jnp.float64)), np.float64)
+        return np.asarray(batched(dyn, jnp.asarray(thetas, jnp.float64)), np.float64)
 
     f.single = lp.single  # type: ignore[attr-defined]
     return f
@@ -469,9 +488,7 @@ def sample_posterior(
         path.parent.mkdir(parents=True, exist_ok=True)
         backend = emcee.backends.HDFBackend(str(path))
         backend.reset(sc.n_walkers, ndim)
-    sampler = emcee.EnsembleSampler(
-        sc.n_walkers, ndim, log_prob, vectorize=True, backend=backend, seed=sc.seed
-    )
+    sampler = emcee.EnsembleSampler(sc.n_walkers, ndim, log_prob, vectorize=True, backend=backend)
     sampler.random_state = np.random.RandomState(sc.seed).get_state()
     sampler.run_mcmc(p0, sc.n_steps, progress=sc.progress)
 

@@ -217,7 +217,10 @@ class RefineResult:
             lines.append(f"  solver message: {self.message}")
         vec = np.asarray(self.parametrisation.physical_vector(jnp.asarray(self.theta)))
         for lab, v, s in zip(self.labels, vec, self.sigma, strict=True):
-            lines.append(f"  {lab:>22s} = {v: .6g} +- {s:.3g}")
+            note = ""
+            if (lab.startswith("m[") or lab.startswith("n_im[")) and v <= 1.001e-9:
+                note = "  (on the boundary: Gaussian sigma not meaningful)"
+            lines.append(f"  {lab:>22s} = {v: .6g} +- {s:.3g}{note}")
         return "\n".join(lines)
 
 
@@ -647,7 +650,7 @@ def refine_bounded(
     bounds: PhysicalBounds | None = None,
     free: Sequence[str] = DEFAULT_FREE,
     maxiter: int = 500,
-    tol: float = 1e-9,
+    tol: float = 1e-7,
     rounds: int = 3,
     range_scale: float = 0.01,
 ) -> RefineResult:
@@ -655,7 +658,7 @@ def refine_bounded(
 
     Same interface, rounds and result as :func:`refine`; the parameters are kept inside
     ``bounds`` (:class:`PhysicalBounds`). ``result`` is ``"successful"`` when the projected
-    gradient of the normalised chi^2 fell below ``tol``, ``"max_steps_reached"`` or
+    gradient of ``chi^2 / max(chi^2_start, 1)`` fell below ``tol``, ``"max_steps_reached"`` or
     ``"linesearch_failed"`` otherwise. The covariance is the unconstrained Gauss-Newton one at
     the optimum (not meaningful for a parameter sitting on a bound: check ``at_bounds`` in
     the message).

@@ -394,7 +394,7 @@ def test_bounded_refine_recovers_truth_and_respects_bounds():
     res = refine_bounded(model, data, tiny_start(), noise=noise, free=TINY_FREE)
     assert res.method == "lbfgsb_jaxopt" and res.success, res.summary()
     p = res.params
-    # L-BFGS-B stops on the projected gradient of the normalised chi^2 (tol 1e-9): looser
+    # L-BFGS-B stops on the projected gradient of the normalised chi^2 (tol 1e-7): looser
     # than the LM step tolerance
     np.testing.assert_allclose(np.asarray(p.m), [12.0], rtol=1e-3)
     np.testing.assert_allclose(np.asarray(p.n), [1.3 + 0.4j], rtol=1e-3)
@@ -410,3 +410,47 @@ def test_bounded_refine_recovers_truth_and_respects_bounds():
         assert "at bounds: n_re[0]" in res2.message
     with pytest.raises(ValueError, match="n_re"):
         PhysicalBounds(n_re=(2.0, 1.0))
+
+
+# --------------------------------------------------------------------------- ppr simulator
+def _simulator_model(n_bins=32):
+    import ppr
+    from inversion._noise import MeasurementModel
+    from inversion._refine import SimulatorModel
+    from ppr._pulse import glossy_fresnel_mueller
+
+    mesh = ppr.shapes.cubesat(1)  # 0.1 m cube, 12 faces
+    scene = ppr.Scene(
+        mesh,
+        (ppr.Material(1.5, 10.0),),
+        ppr.Pose([1.0, 0.0, 0.0, 0.0]),
+        ppr.Sensor.make(),  # monostatic, line of sight -z
+        ppr.Pulse.gaussian(100e-12),
+        ppr.RangeBins.centred(0.01, n_bins),
+    )
+    chm = MeasurementModel.preset("copol").channel_matrix()
+    # the simulator's polarizing stand-in BRDF: smooth in attitude, m and n, cheap to compile
+    return SimulatorModel(scene, chm, brdf=glossy_fresnel_mueller, dense=True)
+
+
+def test_simulator_jacobian_finite_with_edge_on_faces():
+    """ppr-backed residual Jacobians are finite along a path that starts with four faces of a
+    cube exactly edge-on (identity attitude, line of sight along -z) and tilts them into view;
+    the attitude columns are non-zero once the tilt is on (the profile depends on attitude)."""
+    from inversion._refine import _jacobians, _pure
+
+    model = _simulator_model()
+    truth = PhysicalParams([1.0, 0.0, 0.0, 0.0], [10.0], [1.5 + 0.1j], range_offset=0.002, gain=1e3)
+    par = Parametrisation(truth)
+    data = model.expected(truth, model.prepare(truth))
+    assert data.shape == (2, 32) and np.all(np.isfinite(np.asarray(data)))
+    w = jnp.ones_like(data)
+    th0 = par.from_physical(truth)
+    for deg in (0.0, 1e-6, 3.0):
+        th = th0.at[0].set(np.radians(deg)).at[1].set(np.radians(0.7 * deg))
+        aux = model.prepare(par.to_physical(th))
+        J, G, chi2 = _jacobians(_pure(model), par, aux, w, data, th)
+        J = np.asarray(J)
+        assert np.all(np.isfinite(J)) and np.isfinite(float(chi2)), deg
+        if deg > 1.0:
+            assert np.any(J[:, :3] != 0)
