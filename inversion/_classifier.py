@@ -478,3 +478,27 @@ def attitude_error_deg(q_true, q_est, symmetry: str | np.ndarray = "none") -> np
     q_true, q_est = np.atleast_2d(q_true), np.atleast_2d(q_est)
     cand = quat_mul(q_est[:, None, :], g[None, :, :])
     return geodesic_deg(q_true[:, None, :], cand).min(axis=1)
+
+
+def line_of_sight_error_deg(q_true, q_est, symmetry: str | np.ndarray = "none") -> np.ndarray:
+    """Angle (deg) between the true and estimated line of sight *in the body frame*
+    (``R^T k`` with ``k`` the world direction to the sensor, ``+z``), modulo the symmetry.
+
+    A monostatic range profile depends on the attitude only through this direction; the roll
+    about the line of sight enters through the polarization alone, so this error is the
+    well-conditioned part of the attitude error.
+    """
+    g = symmetry_group(symmetry) if isinstance(symmetry, str) else np.asarray(symmetry)
+    q_true, q_est = np.atleast_2d(q_true), np.atleast_2d(q_est)
+    cand = quat_mul(q_est[:, None, :], g[None, :, :])  # (N, G, 4)
+    los_t = _body_los(q_true)[:, None, :]
+    los_e = _body_los(cand)
+    cos = np.clip(np.sum(los_t * los_e, axis=-1), -1.0, 1.0)
+    return np.degrees(np.arccos(cos)).min(axis=1)
+
+
+def _body_los(q: np.ndarray) -> np.ndarray:
+    """Third row of R(q): R^T e_z, the world +z direction in body coordinates."""
+    q = np.asarray(q, np.float64)
+    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
+    return np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)

@@ -80,11 +80,8 @@ def _box(ax, ay, az):
 
 def shape_facets(name: str) -> list:
     """Facets (centre, unit normal, area, second moment) of a synthetic shape (metres)."""
-    if name == "plate":
-        return [
-            _rect([0, 0, 0], [0.3, 0, 0], [0, 0.3, 0]),
-            _rect([0, 0, 0], [0, 0.3, 0], [0.3, 0, 0]),
-        ]
+    if name == "plate":  # 0.3 m square panel, 5 mm thick (rims keep edge-on views non-empty)
+        return _box(0.3, 0.3, 0.005)
     if name == "cube":
         return _box(0.1, 0.1, 0.1)
     if name == "box3u":
