@@ -1,3 +1,4 @@
+# ruff: noqa: E501  (notebook cell sources are kept as written)
 """Write the research notebooks in ``notebooks/`` from the cell sources below (nbformat).
 
 The notebooks are generated, not hand-edited, so they stay reviewable as plain Python here.

@@ -7,7 +7,6 @@ kernelspec's ``python`` by ``sys.executable``), so they use this venv's ppr.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
