@@ -67,6 +67,7 @@ class CorruptChunkError(ValueError):
 class ShapeSpec(StrictModel):
     name: str
     symmetry: str = "none"
+    params: dict[str, float | int] = {}  # ppr.shapes parameters (model "ppr" only)
 
 
 class GridSpec(StrictModel):
@@ -169,6 +170,9 @@ def make_signature_fn(spec: DatabaseSpec):
     mm = MeasurementModel.preset(spec.sensor.channels)
     if spec.model == "synthetic":
         from ._synthetic import SyntheticSignatures
+
+        if any(s.params for s in spec.shapes):
+            raise ValueError("shape params are only supported with model = 'ppr'")
 
         return SyntheticSignatures(
             [s.name for s in spec.shapes],

@@ -1,0 +1,221 @@
+r"""Signature function backed by the ppr forward model (``ppr.render``).
+
+``PprSignatures(params) -> (batch, n_channels, n_bins)`` for database rows: for each row the
+lit-and-visible fractions of the shape's faces are ray cast on the host
+(:class:`ppr.VisibilityCaster`, embree; no gradients, piecewise constant in pose), then one
+jitted, vmapped call of ``ppr.render`` evaluates every row of the batch with the full Mueller
+BRDF (``ppr.mueller_brdf``) projected on the measurement model's channels.
+
+Conventions shared with :mod:`inversion._synthetic`: monostatic sensor looking along world
+``-z`` (``ppr.Sensor.make()`` defaults: laser and receiver directions ``+z`` from the object,
+polarization reference ``x``), range bins centred on the body origin, pose quaternion body
+-> world. Every part of a multi-part mesh gets the row's material and finish (the database
+enumerates one material per object); per-part material maps are a possible extension.
+
+The meshes of all shapes are padded to one face capacity (``ppr.mesh_arrays``), so rows of
+different shapes share one compiled kernel.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import ppr
+
+from ._noise import MeasurementModel
+
+
+class PprSignatures:
+    """Signature function of the ppr simulator (see module docstring).
+
+    **Arguments:**
+
+    - `shapes`: ``ppr.shapes`` names (``"cubesat"``, ``"cubesat_with_panels"``, ...) or
+      ``(name, params)`` pairs, or ready :class:`ppr.Mesh` objects.
+    - `materials`: ``ppr.load_material`` names; `finishes`: Blinn-Phong ``m`` per finish id.
+    - `measurement`: PSG/PSA channels; `n_bins`, `bin_width_m`, `pulse_fwhm_s`, `wavelength`.
+    - `vis_samples`: barycentric samples per face for partial visibility.
+    - `brdf`: Mueller BRDF (default ``ppr.mueller_brdf``).
+    """
+
+    def __init__(
+        self,
+        shapes,
+        materials,
+        finishes,
+        measurement: MeasurementModel,
+        n_bins: int = 64,
+        bin_width_m: float = 0.01,
+        pulse_fwhm_s: float = 100e-12,
+        wavelength: float = 532e-9,
+        vis_samples: int = 4,
+        brdf=None,
+        dtype=jnp.float32,
+    ):
+        if len(shapes) == 0 or len(materials) == 0 or len(finishes) == 0:
+            raise ValueError("PprSignatures needs at least one shape, material and finish")
+        meshes = []
+        self.shape_names = []
+        for s in shapes:
+            if isinstance(s, ppr.Mesh):
+                meshes.append(s)
+                self.shape_names.append("mesh")
+            elif isinstance(s, str):
+                meshes.append(ppr.shapes.by_name(s))
+                self.shape_names.append(s)
+            else:
+                name, params = s
+                meshes.append(ppr.shapes.by_name(name, **dict(params)))
+                self.shape_names.append(name)
+        self.meshes = meshes
+        self.measurement = measurement
+        self.n_bins, self.bin_width_m = int(n_bins), float(bin_width_m)
+        self.pulse_fwhm_s, self.wavelength = float(pulse_fwhm_s), float(wavelength)
+        self.dtype = dtype
+        cap = max(ppr._mesh.capacity_for(m.n_faces) for m in meshes)
+        arrays = [ppr.mesh_arrays(m, cap, dtype) for m in meshes]
+        self.arrays = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *arrays)
+        self.capacity = cap
+        self.n_parts = max(len(m.parts) for m in meshes)
+        self.casters = [ppr.VisibilityCaster(m, vis_samples) for m in meshes]
+        mats = [ppr.load_material(name, wavelength, dtype=dtype) for name in materials]
+        self.materials = tuple(materials)
+        self.finishes = tuple(float(f) for f in finishes)
+        self._n = jnp.stack([jnp.asarray(m.n) for m in mats])
+        self._corr = jnp.stack([jnp.asarray(m.corr_length, dtype) for m in mats])
+        self._m = jnp.asarray(self.finishes, dtype)
+        self.sensor_model = ppr.Sensor.make(wavelength=wavelength)
+        self.bins = ppr.RangeBins.centred(self.bin_width_m, self.n_bins)
+        pulse = ppr.Pulse.gaussian(self.pulse_fwhm_s)
+        self.sigma_r = float(pulse.sigma_range)
+        extent = max(float(np.linalg.norm(np.ptp(np.asarray(m.vertices), axis=0))) for m in meshes)
+        self.window = ppr.window_size(extent, self.sigma_r, self.bin_width_m, self.n_bins)
+        chan = measurement.channel_matrix()  # (C, 4, 4)
+        self.projection = jnp.asarray(chan.reshape(len(chan), 16).T, dtype)  # (16, C)
+        self.brdf = ppr.mueller_brdf if brdf is None else brdf
+        half = 0.5 * self.bin_width_m * self.n_bins
+        if extent / 2 + 6 * self.sigma_r > half:
+            raise ValueError(
+                f"range window of {2 * half:.3g} m (n_bins x bin_width_m) cannot hold shapes of "
+                f"extent {extent:.3g} m plus the pulse; use more or wider bins"
+            )
+
+    @classmethod
+    def from_spec(cls, spec, measurement: MeasurementModel) -> PprSignatures:
+        return cls(
+            [(s.name, s.params) for s in spec.shapes],
+            list(spec.materials),
+            list(spec.finishes.values()),
+            measurement,
+            n_bins=spec.sensor.n_bins,
+            bin_width_m=spec.sensor.bin_width_m,
+            pulse_fwhm_s=spec.sensor.pulse_fwhm_s,
+        )
+
+    @property
+    def n_channels(self) -> int:
+        return self.measurement.n_channels
+
+    @property
+    def sensor(self) -> dict:
+        return {
+            "model": "ppr-render-v1",
+            "channels": self.measurement.fingerprint(),
+            "n_bins": self.n_bins,
+            "bin_width_m": self.bin_width_m,
+            "pulse_fwhm_s": self.pulse_fwhm_s,
+            "wavelength_m": self.wavelength,
+        }
+
+    def visibility(self, shape_id: np.ndarray, quat: np.ndarray) -> np.ndarray:
+        """(batch, capacity) lit-and-visible fractions, ray cast on the host."""
+        quat = np.asarray(quat, np.float64)
+        rot = np.asarray(ppr.quat_to_matrix(quat / np.linalg.norm(quat, axis=-1, keepdims=True)))
+        u_in = np.asarray(self.sensor_model.laser_dir, np.float64)
+        u_out = np.asarray(self.sensor_model.receiver_dir, np.float64)
+        out = np.zeros((len(quat), self.capacity))
+        for i, (sid, r) in enumerate(zip(np.asarray(shape_id), rot, strict=True)):
+            caster = self.casters[int(sid)]
+            out[i, : caster.n_faces] = caster.fractions(r.T @ u_in, r.T @ u_out)
+        return out
+
+    def __call__(self, params: dict) -> jax.Array:
+        sid = np.asarray(params["shape_id"])
+        quat = params["quat"]
+        vis = self.visibility(sid, np.asarray(quat))
+        sharding = getattr(quat, "sharding", None)
+        args = [params["shape_id"], params["material_id"], params["finish_id"], quat]
+        vis = jnp.asarray(vis, self.dtype)
+        if sharding is not None and hasattr(sharding, "mesh"):
+            vis = jax.device_put(vis, sharding)
+        return _batch_render(
+            self.arrays,
+            *args,
+            vis,
+            self._n,
+            self._m,
+            self._corr,
+            self.sensor_model,
+            jnp.asarray(self.sigma_r, self.dtype),
+            jnp.asarray(float(self.bins.start), self.dtype),
+            jnp.asarray(self.bin_width_m, self.dtype),
+            self.projection,
+            n_parts=self.n_parts,
+            n_bins=self.n_bins,
+            window=self.window,
+            brdf=self.brdf,
+        )
+
+
+@eqx.filter_jit
+def _batch_render(
+    arrays,
+    shape_id,
+    material_id,
+    finish_id,
+    quat,
+    vis,
+    n_tab,
+    m_tab,
+    corr_tab,
+    sensor,
+    sigma_r,
+    start,
+    width,
+    projection,
+    *,
+    n_parts,
+    n_bins,
+    window,
+    brdf,
+):
+    dt = arrays.tri.dtype
+
+    def one(sid, mid, fid, q, v):
+        arr = jax.tree_util.tree_map(lambda a: a[sid], arrays)
+        mat = ppr.Material(
+            jnp.broadcast_to(n_tab[mid], (n_parts,)),
+            jnp.broadcast_to(m_tab[fid], (n_parts,)),
+            jnp.broadcast_to(corr_tab[mid], (n_parts,)),
+        )
+        pose = ppr.Pose(q.astype(dt), jnp.zeros(3, dt))
+        return ppr.render(
+            arr,
+            v,
+            pose,
+            mat,
+            sensor,
+            sigma_r,
+            start,
+            width,
+            n_bins=n_bins,
+            window=window,
+            projection=projection,
+            brdf=brdf,
+        )
+
+    out = jax.vmap(one)(shape_id, material_id, finish_id, quat, vis)
+    return jnp.maximum(out, 0.0)  # channel intensities; clip round-off below zero
