@@ -354,7 +354,8 @@ class VisibilityConfig(StrictModel):
 
 class SceneConfig(StrictModel):
     """``configs/scenes/*.toml``: exactly one of ``shape`` / ``mesh``; ``materials`` maps
-    every mesh part to a library material name or an inline material; ``sensor`` names a file
+    every mesh part to a library material (``"name"`` or ``"name/finish"``, see
+    :func:`ppr.load_material`) or an inline material; ``sensor`` names a file
     in ``configs/sensors/`` (or a path relative to the scene file)."""
 
     sensor: str
@@ -380,8 +381,9 @@ def _material_from_config(spec, wavelength: float, where: str) -> Material:
         from ._library import load_material  # noqa: PLC0415 - optional until the library lands
     except ImportError as exc:  # pragma: no cover - depends on the material library
         raise ConfigError(f"{where}: material {spec!r} needs ppr.load_material ({exc})") from None
+    name, _, finish = spec.partition("/")
     try:
-        return load_material(spec, wavelength)
+        return load_material(name, wavelength, finish=finish or None)
     except (KeyError, ValueError) as exc:
         raise ConfigError(f"{where} = {spec!r}: {exc}") from None
 
