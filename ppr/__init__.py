@@ -24,6 +24,7 @@ from ._polarimetry import (
     retardance,
 )
 from . import microfacet
+from ._brdf import mueller_brdf
 from . import shapes
 from ._mesh import Mesh, MeshArrays, check_mesh, load_mesh, mesh_arrays, subdivide
 from ._pose import quat_from_axis_angle, quat_to_matrix
@@ -50,4 +51,5 @@ __all__ = [
     "retardance",
 ]
 __all__ += ["shapes", "Mesh", "MeshArrays", "check_mesh", "load_mesh", "mesh_arrays", "subdivide", "quat_from_axis_angle", "quat_to_matrix", "Pose", "Pulse", "RangeBins", "Scene", "Sensor", "load_scene", "load_sensor", "VisibilityCaster", "Profile", "render", "simulate", "stack_materials", "tent_gaussian_cdf", "window_size"]
+__all__ += ["mueller_brdf"]
 __version__ = "0.1.0"

@@ -41,6 +41,13 @@ class Material(eqx.Module):
     - `corr_length`: surface correlation length in metres, sets the width of the coherent
       enhanced-backscatter cone of the double-bounce term (``~ lambda / (4 d)``).
     - `name`: label (static; not traced).
+    - `white`: static flag for an *ideal white reflector* (used by the white-furnace test and to
+      build the albedo tables): every facet reflects with the Jones matrix of a perfect
+      conductor, ``diag(r_s, r_p) = diag(-1, +1)`` in its s/p frames, i.e. Fresnel
+      reflectance ``F == 1`` at every angle, no absorption, no diattenuation, no
+      depolarization (Mueller ``diag(1, 1, -1, -1)`` per facet, the ``n -> i inf`` limit).
+      When ``white`` is set, ``n`` is ignored by the BRDF. Build one with
+      :meth:`Material.ideal_white`.
 
     Batched materials (leading axes on every field) are allowed; kernels ``vmap`` over them.
     Concrete (non-traced) values are validated at construction with a ``ValueError`` that names
@@ -51,6 +58,7 @@ class Material(eqx.Module):
     m: Array = eqx.field(converter=_as_float)
     corr_length: Array = eqx.field(converter=_as_float, default=5e-6)
     name: str = eqx.field(static=True, default="")
+    white: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         for field in ("n", "m", "corr_length"):
@@ -75,6 +83,16 @@ class Material(eqx.Module):
             raise ValueError(
                 f"Material.corr_length must be > 0 metres, got {np.asarray(self.corr_length)!r}"
             )
+
+    @classmethod
+    def ideal_white(cls, m: ArrayLike, corr_length: ArrayLike = 5e-6, name: str = "ideal white"):
+        """Ideal white (``F == 1``, non-absorbing, non-polarizing) reflector of roughness ``m``.
+
+        ``n`` is set to ``1 + 0j`` with the same float precision as ``m`` and is ignored.
+        """
+        m = _as_float(m)
+        n = jnp.ones_like(m, dtype=jnp.result_type(m.dtype, jnp.complex64))
+        return cls(n=n, m=m, corr_length=corr_length, name=name, white=True)
 
     @property
     def dtype(self):

@@ -1,0 +1,610 @@
+r"""The assembled polarized microfacet Mueller BRDF and its term registry.
+
+``mueller_brdf(k_in, k_out, normal, material)`` returns the 4x4 Mueller BRDF in 1/sr mapping
+the incident Stokes vector (frame of the beam travelling along ``-k_in``, x axis
+``frame_in``) to the outgoing one (beam along ``+k_out``, x axis ``frame_out``); directions
+point away from the surface (:mod:`ppr._conventions`). It is the sum of named terms:
+
+``"single"`` (:func:`single_bounce_term`)
+    Ashikhmin, Premoze & Shirley 2000 with the facet Fresnel Mueller matrix,
+
+        f = p(h) P(k|k') F_M(k.h) / (4 <h.n> (k.n)(k'.n)),
+
+    ``h = (k_in + k_out)/|k_in + k_out|``, Blinn-Phong ``p(h) = (m+1)/(2 pi) (h.n)^m`` and
+    Ashikhmin visibility (:mod:`ppr._microfacet`), ``F_M`` the facet's Fresnel Mueller matrix
+    in the beam frames (:func:`ppr._frames.facet_mueller_in_beam_frames`). The paper's eq. 4
+    drops the 4 and ``(k'.n)``; PHYSICS.md section 3 restores them.
+
+``"double"``
+    The double-bounce term of ``ppr/_double.py`` (issue 3; ``NotImplementedError`` until then).
+
+``"multiple"`` (:func:`multiple_scattering_term`)
+    Depolarizing remainder of the explicit terms (PHYSICS.md section 5),
+
+        f_ms = F_add c D(k) D(k') diag(1, 0, 0, 0),  c = 1 / (pi D_avg),
+        D = 1 - E,  D_avg = 1 - E_avg = 2 int_0^1 D(mu) mu dmu,
+
+    ``E(m, mu)`` the white-surface (``F == 1``) directional albedo of the model's explicit terms
+    (:func:`explicit_terms`; tables in :mod:`ppr._albedo`), so that explicit + multiple has a
+    white-furnace albedo of exactly 1. ``F_add = F_avg^2 E_avg / (1 - F_avg D_avg)`` (Kulla &
+    Conty 2017) with ``F_avg = 2 int_0^1 F(mu) mu dmu`` the cosine-weighted hemispherical
+    average of the unpolarized Fresnel reflectance, by fixed 32-point Gauss-Legendre
+    (differentiable in ``n``); ``F_add = 1`` for the ideal white reflector.
+
+Terms are components of *one* model: the remainder always completes the full set of
+explicit terms, whichever subset the caller asks for, so that the requested terms add up.
+
+Validation (concrete inputs raise ``ValueError`` naming the argument; traced inputs go through
+``eqx.error_if``): directions must have shape ``(..., 3)``, be finite, have
+``| |k| - 1 | <= UNIT_TOL = 1e-3`` (then they are renormalized), and lie in the upper
+hemisphere up to ``k.n >= -HORIZON_TOL = -1e-5`` (``k.n`` in ``[-1e-5, 0]`` is treated as
+grazing). Frames must be finite, unit within ``UNIT_TOL`` and perpendicular to their beam
+within ``|x.k| <= UNIT_TOL`` (then re-orthonormalized). Material: finite, ``m >= 0``,
+``Im n >= 0``. Exactly grazing directions (``k.n <= GRAZING``, about ``1e-30`` in float32 and
+``2e-300`` in float64) give 0 with zero (finite) gradients.
+
+Reciprocity (tests/test_brdf.py): with the reversed beams' frames chosen as
+``frame_in' = frame_out`` and ``frame_out' = frame_in``,
+``M(k_out -> k_in) = Q M(k_in -> k_out)^T Q`` with ``Q = diag(1, 1, -1, 1)`` (the reversed
+path has Jones matrix ``D J^T D``, ``D = diag(1, -1)``, because the reversed beams' y axes
+flip; derivation in the test).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _albedo
+from ._frames import default_frame, facet_mueller_rows
+from ._fresnel import fresnel_mueller_params
+from ._material import Material
+from ._microfacet import mean_cosine_n, visibility
+from ._safe import float_dtype, tiny
+from ._types import Array, ArrayLike, Float
+
+__all__ = [
+    "EXPLICIT_TERMS",
+    "HORIZON_TOL",
+    "TERMS",
+    "UNIT_TOL",
+    "explicit_terms",
+    "fresnel_average",
+    "implemented_terms",
+    "mueller_brdf",
+    "multiple_scattering_term",
+    "single_bounce_term",
+]
+
+UNIT_TOL = 1e-3
+"""Allowed relative deviation of a direction (or frame vector) from unit length."""
+HORIZON_TOL = 1e-5
+"""Directions with ``k.n < -HORIZON_TOL`` are rejected as below the surface."""
+
+
+def _grazing(dt) -> float:
+    """``k.n`` at or below which a direction counts as exactly grazing (BRDF = 0)."""
+    return tiny(dt) * 1e8  # 1.2e-30 (f32), 2.2e-300 (f64)
+
+
+def _dot(a: Array, b: Array) -> Array:
+    return jnp.sum(a * b, axis=-1)
+
+
+# ---------------------------------------------------------------------------------------
+# structure-of-arrays kernels (vectors are tuples of three (...,) arrays; STYLE.md s10)
+
+Vec = tuple[Array, Array, Array]
+Rows = tuple  # 4 rows of 4 entries, each a (...,) array or None (structural zero)
+
+
+def _split(v: Array) -> Vec:
+    return (v[..., 0], v[..., 1], v[..., 2])
+
+
+def _d3(a: Vec, b: Vec) -> Array:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _vis_order(dt) -> int:
+    """Quadrature order of ``<h.k>+`` inside the BRDF: max abs error of ``P(k)`` against order
+    256 over m in [0, 1e6] and cos in [1e-7, 1] was 1.4e-7 at 24 (float32 rounding level) and
+    2e-14 at 64 (measured; see the report of issue 2)."""
+    return 24 if np.finfo(dt).bits <= 32 else 64
+
+
+def _geometry3(ki: Vec, ko: Vec, nr: Vec):
+    """Cosines, validity mask and safe (masked) directions and half vector, SoA."""
+    dt = ki[0].dtype
+    ci = _d3(ki, nr)
+    co = _d3(ko, nr)
+    valid = (ci > _grazing(dt)) & (co > _grazing(dt))
+    ki_s = tuple(jnp.where(valid, a, b) for a, b in zip(ki, nr, strict=True))
+    ko_s = tuple(jnp.where(valid, a, b) for a, b in zip(ko, nr, strict=True))
+    ci_s = jnp.where(valid, ci, 1.0)
+    co_s = jnp.where(valid, co, 1.0)
+    # half vector: scale by the largest component first (|k_in + k_out|^2 underflows in
+    # float32 when both are grazing, ~1e-20, and opposite); h.n = (ci + co) / |.| > 0
+    hs = tuple(a + b for a, b in zip(ki_s, ko_s, strict=True))
+    big = jnp.maximum(jnp.maximum(jnp.abs(hs[0]), jnp.abs(hs[1])), jnp.abs(hs[2]))
+    big = jnp.where(big > 0, big, 1.0)
+    hs = tuple(c / big for c in hs)
+    inv = 1.0 / jnp.sqrt(_d3(hs, hs))
+    h = tuple(c * inv for c in hs)
+    return valid, ki_s, ko_s, ci_s, co_s, h
+
+
+def _log_lobe3(m: Array, h: Vec, nr: Vec) -> Array:
+    """``m log(h.n)`` accurate in float32 at m = 1e6: ``1 - h.n = |h - n|^2 / 2`` from the
+    difference vector (STYLE.md section 10), not from a rounded ``h.n``; 0 at m = 0."""
+    d = tuple(a - b for a, b in zip(h, nr, strict=True))
+    one_minus = 0.5 * _d3(d, d)
+    hn = _d3(h, nr)
+    small = one_minus < 0.5
+    lp_small = jnp.log1p(-jnp.where(small, one_minus, 0.0))
+    hn_ok = hn > tiny(hn.dtype)
+    lp_big = jnp.log(jnp.where(hn_ok, hn, 1.0))
+    lp = jnp.where(small, lp_small, lp_big)
+    return jnp.where(m > 0, m * lp, 0.0)
+
+
+def _azimuth_factor3(ki: Vec, ko: Vec, nr: Vec, ci: Array, co: Array) -> Array:
+    """``f = cos(phi/2) = |u + u'| / 2`` of the unit surface projections (1 where one is along
+    the normal), as in :func:`ppr._microfacet.joint_visibility`."""
+    dt = ci.dtype
+    ti = tuple(a - ci * b for a, b in zip(ki, nr, strict=True))
+    to = tuple(a - co * b for a, b in zip(ko, nr, strict=True))
+    qi, qo = _d3(ti, ti), _d3(to, to)
+    thr = tiny(dt) * 1e6
+    ok = (qi > thr) & (qo > thr)
+    ri = 1.0 / jnp.sqrt(jnp.where(ok, qi, 1.0))
+    ro = 1.0 / jnp.sqrt(jnp.where(ok, qo, 1.0))
+    u = tuple(a * ri + b * ro for a, b in zip(ti, to, strict=True))
+    q = _d3(u, u)
+    q_ok = ok & (q > thr)
+    f = 0.5 * jnp.sqrt(jnp.where(q_ok, q, 1.0))
+    f = jnp.where(q_ok, f, jnp.where(ok, 0.0, 1.0))
+    return jnp.clip(f, 0.0, 1.0)
+
+
+def _single_scalar3(ki, ko, nr, m):
+    """``p(h) P(k|k') / (4 <h.n> (k.n)(k'.n))`` (0 where invalid) and the safe geometry.
+
+    The joint visibility divided by ``(k.n)(k'.n)`` is formed as
+    ``(1 - f) V V' + f min(V / (k'.n), V' / (k.n))`` with ``V = P(k) / (k.n)`` finite, so no
+    product of two small cosines is ever formed (float32 underflow near ``k.n ~ 1e-20``). It
+    equals ``ppr._microfacet.joint_visibility / ((k.n)(k'.n))`` (tests/test_brdf.py).
+    """
+    dt = ki[0].dtype
+    valid, ki_s, ko_s, ci, co, h = _geometry3(ki, ko, nr)
+    order = _vis_order(dt)
+    vi = visibility(m, ci, order=order) / ci
+    vo = visibility(m, co, order=order) / co
+    f = _azimuth_factor3(ki_s, ko_s, nr, ci, co)
+    g = (1.0 - f) * vi * vo + f * jnp.minimum(vi / co, vo / ci)
+    log_p = jnp.log((m + 1.0) / (2.0 * math.pi)) + _log_lobe3(m, h, nr)
+    scal = jnp.exp(log_p) * g / (4.0 * mean_cosine_n(m))
+    return jnp.where(valid, scal, 0.0), ki_s, ko_s, h
+
+
+def _white_facet_rows(ki: Vec, ko: Vec, x_in: Vec, x_out: Vec) -> Rows:
+    """Facet Mueller rows of the ideal white reflector (perfect conductor,
+    ``diag(r_s, r_p) = diag(-1, 1)``: Fresnel parameters ``(a, b, c, d) = (1, 0, -1, 0)``) in
+    the beam frames, ``R(b) diag(1, 1, -1, -1) R(a)`` with the facet frames of
+    :mod:`ppr._frames`."""
+    from ._frames import _cross3, _facet_frames3, _neg3
+
+    s, _, p_out = _facet_frames3(ki, ko)
+    y_in = _cross3(_neg3(ki), x_in)
+    ca, sa = _d3(s, x_in), _d3(s, y_in)
+    cb, sb = _d3(x_out, s), _d3(x_out, p_out)
+    Ca, Sa = ca * ca - sa * sa, 2.0 * ca * sa
+    Cb, Sb = cb * cb - sb * sb, 2.0 * cb * sb
+    one = jnp.ones_like(Ca)
+    return (
+        (one, None, None, None),
+        (None, Cb * Ca + Sb * Sa, Cb * Sa - Sb * Ca, None),
+        (None, -Sb * Ca + Cb * Sa, -Sb * Sa - Cb * Ca, None),
+        (None, None, None, -one),
+    )
+
+
+def _single_rows(ki, ko, nr, m, n_re, n_im, x_in, x_out, white: bool) -> Rows:
+    scal, ki_s, ko_s, h = _single_scalar3(ki, ko, nr, m)
+    if white:
+        F = _white_facet_rows(ki_s, ko_s, x_in, x_out)
+    else:
+        F = facet_mueller_rows(n_re, n_im, ki_s, ko_s, h, x_in, x_out)
+        # structural zeros of R(b) F R(a): (0,3) and (3,0)
+        F = tuple(
+            tuple(None if (i, j) in ((0, 3), (3, 0)) else e for j, e in enumerate(r))
+            for i, r in enumerate(F)
+        )
+    return tuple(tuple(None if e is None else scal * e for e in r) for r in F)
+
+
+def _multiple_rows(ki, ko, nr, material: Material, m: Array) -> Rows:
+    dt = ki[0].dtype
+    table = _albedo.load_table(explicit_terms())
+    ci = _d3(ki, nr)
+    co = _d3(ko, nr)
+    valid = (ci > _grazing(dt)) & (co > _grazing(dt))
+    m_mat = material.m.astype(dt)
+    d_avg = _albedo.deficit_avg(table, m_mat)  # material shape only (cheap)
+    f_avg = fresnel_average(material, dt)
+    d_avg_ok = d_avg > 1e-30
+    d_avg_s = jnp.where(d_avg_ok, d_avg, 1.0)
+    f_add = f_avg * f_avg * (1.0 - d_avg) / (1.0 - f_avg * d_avg)
+    coef = jnp.where(d_avg_ok, f_add / (math.pi * d_avg_s), 0.0)
+    di = jnp.maximum(_albedo.deficit(table, m, jnp.where(valid, ci, 1.0)), 0.0)
+    do = jnp.maximum(_albedo.deficit(table, m, jnp.where(valid, co, 1.0)), 0.0)
+    f = jnp.where(valid, jnp.broadcast_to(coef, m.shape) * di * do, 0.0)
+    return ((f, None, None, None), (None,) * 4, (None,) * 4, (None,) * 4)
+
+
+def _stack_rows(rows: Rows, batch, dt) -> Array:
+    z = jnp.zeros(batch, dt)
+    return jnp.stack(
+        [jnp.stack([z if e is None else e for e in r], axis=-1) for r in rows], axis=-2
+    )
+
+
+def _add_rows(a: Rows | None, b: Rows) -> Rows:
+    if a is None:
+        return b
+
+    def add(x, y):
+        if x is None:
+            return y
+        if y is None:
+            return x
+        return x + y
+
+    return tuple(tuple(add(x, y) for x, y in zip(ra, rb, strict=True)) for ra, rb in zip(a, b, strict=True))
+
+
+_F_AVG_ORDER = 32
+
+
+def fresnel_average(material: Material, dtype=None) -> Array:
+    """``F_avg = 2 int_0^1 F(mu) mu dmu``, cosine-weighted hemispherical average of the
+    unpolarized Fresnel reflectance (32-point Gauss-Legendre; 1 for the ideal white
+    reflector). Shape of ``material.n``."""
+    dt = material.dtype if dtype is None else dtype
+    if material.white:
+        return jnp.ones(jnp.shape(material.n), dt)
+    x, w = np.polynomial.legendre.leggauss(_F_AVG_ORDER)
+    mu = jnp.asarray(0.5 * (x + 1.0), dt)
+    wt = jnp.asarray(w, dt)  # 0.5 (interval) * 2 (definition) = 1
+    n_re = jnp.real(material.n).astype(dt)[..., None]
+    n_im = jnp.imag(material.n).astype(dt)[..., None]
+    a, _, _, _ = fresnel_mueller_params(n_re, n_im, mu)
+    return jnp.sum(a * mu * wt, axis=-1)
+
+
+# ---------------------------------------------------------------------------------------
+# terms (registry contract, docs/DESIGN.md: arrays (..., 3) in, (..., 4, 4) out)
+
+
+def _material_batch(material: Material, batch, dt):
+    m = jnp.broadcast_to(material.m.astype(dt), batch)
+    n = jnp.broadcast_to(material.n, batch)
+    return m, jnp.real(n).astype(dt), jnp.imag(n).astype(dt)
+
+
+def single_bounce_term(
+    k_in: Float[Array, "*b 3"],
+    k_out: Float[Array, "*b 3"],
+    normal: Float[Array, "*b 3"],
+    material: Material,
+    frame_in: Float[Array, "*b 3"],
+    frame_out: Float[Array, "*b 3"],
+    *,
+    wavelength: float | Array = 532e-9,
+) -> Float[Array, "*b 4 4"]:
+    """Single-bounce APS term (module docstring). Inputs broadcast, unit and validated
+    (by :func:`mueller_brdf`); ``material`` fields broadcast against the batch shape."""
+    del wavelength
+    dt = k_in.dtype
+    batch = k_in.shape[:-1]
+    m, n_re, n_im = _material_batch(material, batch, dt)
+    rows = _single_rows(
+        _split(k_in), _split(k_out), _split(normal), m, n_re, n_im,
+        _split(frame_in), _split(frame_out), material.white,
+    )
+    return _stack_rows(rows, batch, dt)
+
+
+def multiple_scattering_term(
+    k_in: Float[Array, "*b 3"],
+    k_out: Float[Array, "*b 3"],
+    normal: Float[Array, "*b 3"],
+    material: Material,
+    frame_in: Float[Array, "*b 3"],
+    frame_out: Float[Array, "*b 3"],
+    *,
+    wavelength: float | Array = 532e-9,
+) -> Float[Array, "*b 4 4"]:
+    """Depolarizing multiple-scattering remainder (module docstring), ``diag(f_ms, 0, 0, 0)``."""
+    del wavelength, frame_in, frame_out
+    dt = k_in.dtype
+    batch = k_in.shape[:-1]
+    m, _, _ = _material_batch(material, batch, dt)
+    rows = _multiple_rows(_split(k_in), _split(k_out), _split(normal), material, m)
+    return _stack_rows(rows, batch, dt)
+
+
+def _double_term(k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9):
+    try:
+        from ._double import double_bounce_term
+    except ImportError as err:  # until issue 3 lands
+        raise NotImplementedError(
+            'terms: "double" (the double-bounce term, ppr/_double.py, issue 3) is not '
+            'implemented yet; use terms=("single", "multiple")'
+        ) from err
+    return double_bounce_term(
+        k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength
+    )
+
+
+TermFn = Callable[..., Array]
+
+TERMS: dict[str, TermFn] = {
+    "single": single_bounce_term,
+    "double": _double_term,
+    "multiple": multiple_scattering_term,
+}
+"""Term registry: name -> ``term(k_in, k_out, normal, material, frame_in, frame_out, *,
+wavelength) -> (..., 4, 4)`` (contract in docs/DESIGN.md)."""
+
+EXPLICIT_TERMS = ("single", "double")
+"""Terms computed explicitly; ``"multiple"`` is the white-furnace remainder of those
+implemented (:func:`explicit_terms`)."""
+
+
+def _is_implemented(name: str) -> bool:
+    if name == "double":
+        try:
+            from ._double import double_bounce_term  # noqa: F401
+        except ImportError:
+            return False
+    return name in TERMS
+
+
+def implemented_terms() -> tuple[str, ...]:
+    """Names of the terms available now (the default of ``mueller_brdf(terms=None)``)."""
+    return tuple(t for t in ("single", "double", "multiple") if _is_implemented(t))
+
+
+def explicit_terms() -> tuple[str, ...]:
+    """Explicit terms of the model whose white albedo the ``"multiple"`` remainder completes
+    (``("single",)`` until the double term exists, then ``("double", "single")``)."""
+    return tuple(sorted(t for t in EXPLICIT_TERMS if _is_implemented(t)))
+
+
+def _resolve_terms(terms) -> tuple[str, ...]:
+    if terms is None:
+        return implemented_terms()
+    if isinstance(terms, str):
+        if terms == "auto":
+            raise NotImplementedError(
+                'terms="auto" (per-geometry term selection) arrives with the double-bounce '
+                "term (issue 3, ppr/_double.py)"
+            )
+        terms = (terms,)
+    terms = tuple(terms)
+    if len(terms) == 0:
+        raise ValueError("terms must name at least one term, got ()")
+    for t in terms:
+        if t not in TERMS:
+            raise ValueError(f"terms: unknown term {t!r}; choose from {tuple(TERMS)} or 'auto'")
+    if len(set(terms)) != len(terms):
+        raise ValueError(f"terms: duplicate names in {terms!r}")
+    return terms
+
+
+# ---------------------------------------------------------------------------------------
+# validation
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _as_vec(name: str, x, dt=None) -> Array:
+    x = jnp.asarray(x)
+    if jnp.issubdtype(x.dtype, jnp.complexfloating):
+        raise ValueError(f"{name} must be real, got dtype {x.dtype}")
+    if x.ndim < 1 or x.shape[-1] != 3:
+        raise ValueError(f"{name} must have shape (..., 3), got shape {x.shape}")
+    if dt is not None:
+        x = x.astype(dt)
+    return x
+
+
+def _check(name: str, x: Array, bad: Array, msg: str) -> Array:
+    """Raise (concrete) or attach ``eqx.error_if`` (traced) when ``bad`` is anywhere true."""
+    if _is_concrete(x) and _is_concrete(bad):
+        b = np.asarray(bad)
+        if np.any(b):
+            idx = tuple(int(i) for i in np.argwhere(b)[0]) if b.ndim else ()
+            raise ValueError(f"{name}: {msg} (first offending index {idx})")
+        return x
+    return eqx.error_if(x, jnp.any(bad), f"{name}: {msg}")
+
+
+def _validate_direction(name: str, k: Array, normal: Array | None) -> Array:
+    finite = jnp.all(jnp.isfinite(k), axis=-1)
+    k = _check(name, k, ~finite, "must be finite")
+    norm = jnp.sqrt(_dot(k, k))
+    k = _check(
+        name,
+        k,
+        jnp.abs(norm - 1.0) > UNIT_TOL,
+        f"must be unit vectors (| |k| - 1 | <= {UNIT_TOL}), got |k| = "
+        + (f"{np.asarray(norm).ravel()[:4]}" if _is_concrete(norm) else "(traced)"),
+    )
+    k = k / jnp.where(norm > 0.5, norm, 1.0)[..., None]
+    if normal is not None:
+        c = _dot(k, normal)
+        k = _check(
+            name,
+            k,
+            c < -HORIZON_TOL,
+            f"points below the surface (k.normal < -{HORIZON_TOL}); directions point away "
+            "from the surface (ppr._conventions)",
+        )
+    return k
+
+
+def _validate_frame(name: str, x: Array, d: Array) -> Array:
+    finite = jnp.all(jnp.isfinite(x), axis=-1)
+    x = _check(name, x, ~finite, "must be finite")
+    norm = jnp.sqrt(_dot(x, x))
+    x = _check(name, x, jnp.abs(norm - 1.0) > UNIT_TOL, f"must be unit (tolerance {UNIT_TOL})")
+    x = _check(
+        name,
+        x,
+        jnp.abs(_dot(x, d)) > UNIT_TOL,
+        f"must be perpendicular to its beam direction (|x.k| <= {UNIT_TOL})",
+    )
+    x = x - _dot(x, d)[..., None] * d
+    return x / jnp.sqrt(_dot(x, x))[..., None]
+
+
+def _validate_material(material: Material) -> Material:
+    if not isinstance(material, Material):
+        raise ValueError(f"material must be a ppr.Material, got {type(material).__name__}")
+    m = material.m
+    n = material.n
+    m = _check("material.m", m, ~jnp.isfinite(m), "must be finite")
+    m = _check("material.m", m, m < 0, "Blinn-Phong exponent must be >= 0")
+    if not material.white:
+        n = _check("material.n", n, ~jnp.isfinite(n), "must be finite")
+        n = _check(
+            "material.n",
+            n,
+            jnp.imag(n) < 0,
+            "imaginary part must be >= 0 (absorbing medium, exp(i(kz - wt)) convention)",
+        )
+    return eqx.tree_at(lambda mt: (mt.m, mt.n), material, (m, n))
+
+
+# ---------------------------------------------------------------------------------------
+# public API
+
+
+def mueller_brdf(
+    k_in: Float[ArrayLike, "*#b 3"],
+    k_out: Float[ArrayLike, "*#b 3"],
+    normal: Float[ArrayLike, "*#b 3"],
+    material: Material,
+    *,
+    terms: tuple[str, ...] | str | None = None,
+    frame_in: Float[ArrayLike, "*#b 3"] | None = None,
+    frame_out: Float[ArrayLike, "*#b 3"] | None = None,
+    wavelength: float | Array = 532e-9,
+) -> Float[Array, "*b 4 4"]:
+    """Polarized microfacet Mueller BRDF (1/sr), ``S_out = M @ S_in``.
+
+    **Arguments:**
+
+    - `k_in`: unit direction from the surface toward the source, ``(..., 3)``.
+    - `k_out`: unit direction from the surface toward the receiver, ``(..., 3)``; exact
+      monostatic backscatter is ``k_out == k_in``.
+    - `normal`: unit macro-surface normal, ``(..., 3)``.
+    - `material`: :class:`ppr.Material` (fields may carry batch axes that broadcast with the
+      directions' batch shape).
+    - `terms`: names from ``"single"``, ``"double"``, ``"multiple"`` (default: all implemented).
+      ``"multiple"`` is always the remainder of the model's full set of explicit terms.
+    - `frame_in`: x axis of the incident beam's Stokes frame (beam along ``-k_in``); default
+      :func:`ppr._frames.default_frame` (the s direction ``normal x d``).
+    - `frame_out`: x axis of the outgoing beam's Stokes frame (beam along ``+k_out``); same
+      default.
+    - `wavelength`: metres (used by the double-bounce coherence).
+
+    **Returns:** ``(..., 4, 4)`` in the common float dtype of the directions and the material.
+    Validation and tolerances: see the module docstring.
+
+    Model: Ashikhmin, Premoze & Shirley (2000) single bounce with facet Fresnel Mueller
+    matrices, plus the energy-conserving depolarizing remainder (Kulla & Conty 2017).
+    """
+    names = _resolve_terms(terms)
+    material = _validate_material(material)
+    dt = float_dtype(
+        jnp.asarray(k_in), jnp.asarray(k_out), jnp.asarray(normal), material.m, material.n
+    )
+    k_in = _as_vec("k_in", k_in, dt)
+    k_out = _as_vec("k_out", k_out, dt)
+    normal = _as_vec("normal", normal, dt)
+    shapes = {"k_in": k_in.shape, "k_out": k_out.shape, "normal": normal.shape}
+    if frame_in is not None:
+        frame_in = _as_vec("frame_in", frame_in, dt)
+        shapes["frame_in"] = frame_in.shape
+    if frame_out is not None:
+        frame_out = _as_vec("frame_out", frame_out, dt)
+        shapes["frame_out"] = frame_out.shape
+    try:
+        batch = jnp.broadcast_shapes(*(s[:-1] for s in shapes.values()))
+    except ValueError as err:
+        raise ValueError(f"k_in, k_out, normal, frames: batch shapes do not broadcast: {shapes}") from err
+    try:
+        batch = jnp.broadcast_shapes(batch, jnp.shape(material.m), jnp.shape(material.n))
+    except ValueError as err:
+        raise ValueError(
+            f"material: field shapes m {jnp.shape(material.m)}, n {jnp.shape(material.n)} do "
+            f"not broadcast with the directions' batch shape {batch}"
+        ) from err
+    normal = _validate_direction("normal", normal, None)
+    k_in = _validate_direction("k_in", k_in, normal)
+    k_out = _validate_direction("k_out", k_out, normal)
+    k_in = jnp.broadcast_to(k_in, batch + (3,))
+    k_out = jnp.broadcast_to(k_out, batch + (3,))
+    normal = jnp.broadcast_to(normal, batch + (3,))
+    if frame_in is not None:
+        frame_in = _validate_frame("frame_in", jnp.broadcast_to(frame_in, batch + (3,)), k_in)
+    if frame_out is not None:
+        frame_out = _validate_frame("frame_out", jnp.broadcast_to(frame_out, batch + (3,)), k_out)
+    material = eqx.tree_at(
+        lambda mt: (mt.m, mt.n),
+        material,
+        (material.m.astype(dt), material.n.astype(jnp.result_type(dt, jnp.complex64))),
+    )
+    return _brdf_core(k_in, k_out, normal, material, frame_in, frame_out, wavelength, names=names)
+
+
+@functools.partial(jax.jit, static_argnames=("names",))
+def _brdf_core(k_in, k_out, normal, material, frame_in, frame_out, wavelength, *, names):
+    """Validated, broadcast inputs -> (..., 4, 4); jitted so that eager calls are fast too."""
+    dt = k_in.dtype
+    batch = k_in.shape[:-1]
+    if frame_in is None:
+        frame_in = default_frame(-k_in, normal)
+    if frame_out is None:
+        frame_out = default_frame(k_out, normal)
+    rows = None
+    out = None
+    ki, ko, nr = _split(k_in), _split(k_out), _split(normal)
+    m, n_re, n_im = _material_batch(material, batch, dt)
+    for name in names:
+        if name == "single":
+            rows = _add_rows(
+                rows,
+                _single_rows(ki, ko, nr, m, n_re, n_im, _split(frame_in), _split(frame_out),
+                             material.white),
+            )
+        elif name == "multiple":
+            rows = _add_rows(rows, _multiple_rows(ki, ko, nr, material, m))
+        else:
+            t = TERMS[name](k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength)
+            out = t if out is None else out + t
+    if rows is not None:
+        r = _stack_rows(rows, batch, dt)
+        out = r if out is None else out + r
+    return out

@@ -1,0 +1,442 @@
+"""Physics and numerics of the assembled Mueller BRDF (ppr._brdf, issue 2).
+
+References are independent of the kernel: closed forms (monostatic backscatter), the
+reciprocity theorem (derived below), Cloude realizability, limits (mirror at large m,
+near-Lambertian at m = 0), an AoS reassembly from the public pieces of ppr._microfacet and
+ppr._frames, finite differences, loops vs vmap.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ppr
+from ppr import _albedo
+from ppr._brdf import mueller_brdf
+from ppr._frames import default_frame, facet_mueller_in_beam_frames, jones_to_mueller
+from ppr._material import Material
+from ppr._microfacet import joint_visibility, mean_cosine_n, ndf, visibility
+from ppr._polarimetry import cloude_eigenvalues
+
+Z = np.array([0.0, 0.0, 1.0])
+
+
+def _unit(v):
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _dir(theta, phi):
+    return np.stack(
+        [np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta) * np.ones_like(phi)],
+        axis=-1,
+    )
+
+
+def _random_upper(rng, n, min_cos=0.02):
+    mu = rng.uniform(min_cos, 1.0, n)
+    phi = rng.uniform(-np.pi, np.pi, n)
+    return _dir(np.arccos(mu), phi)
+
+
+def _random_perp(rng, k):
+    a = rng.normal(size=k.shape)
+    a = a - np.sum(a * k, -1, keepdims=True) * k
+    return _unit(a)
+
+
+def _random_materials(rng, n):
+    """Batched materials: metals, dielectrics, n = 1, roughness over the full range."""
+    m = 10.0 ** rng.uniform(-3, 6, n)
+    m[:3] = [0.0, 1.0, 1e6]
+    kind = rng.integers(0, 3, n)
+    n_re = np.where(kind == 0, rng.uniform(0.1, 2.0, n), rng.uniform(1.0, 3.0, n))
+    n_im = np.where(kind == 0, rng.uniform(2.0, 10.0, n), np.where(kind == 1, 0.0, rng.uniform(0, 0.5, n)))
+    return Material(n=n_re + 1j * n_im, m=m)
+
+
+_brdf_jit = jax.jit(
+    lambda ki, ko, nr, mat, fi, fo: mueller_brdf(ki, ko, nr, mat, frame_in=fi, frame_out=fo)
+)
+
+
+# ----------------------------------------------------------------------------- reciprocity
+
+
+def test_reciprocity_transform_of_jones_transpose():
+    """Derivation check. Reciprocity (Saxon) for the scattering dyadic: S(k_in -> k_out) seen
+    from the reversed path is S^T. With reversed-path frames x_in' = x_out, x_out' = x_in the
+    y axes flip (y = d x x with d reversed), so J_rev = D J^T D, D = diag(1, -1). In the
+    Stokes convention of ppr._conventions, Mueller(J^T) = diag(1,1,1,-1) M^T diag(1,1,1,-1)
+    and Mueller(D X D) = diag(1,1,-1,-1) Mueller(X) diag(1,1,-1,-1), so
+    M_rev = Q M^T Q with Q = diag(1, 1, -1, 1). Checked here on random Jones matrices."""
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=(20, 2, 2)) + 1j * rng.normal(size=(20, 2, 2))
+    D = np.diag([1.0, -1.0])
+    J_rev = D @ np.swapaxes(J, -1, -2) @ D
+    M = np.asarray(jones_to_mueller(jnp.asarray(J)))
+    M_rev = np.asarray(jones_to_mueller(jnp.asarray(J_rev)))
+    Q = np.diag([1.0, 1.0, -1.0, 1.0])
+    np.testing.assert_allclose(M_rev, Q @ np.swapaxes(M, -1, -2) @ Q, atol=1e-12)
+
+
+def test_reciprocity_random_geometries_and_materials():
+    rng = np.random.default_rng(1)
+    n = 256
+    ki, ko = _random_upper(rng, n), _random_upper(rng, n)
+    xi, xo = _random_perp(rng, ki), _random_perp(rng, ko)
+    mat = _random_materials(rng, n)
+    M = np.asarray(_brdf_jit(ki, ko, Z, mat, xi, xo))
+    M_rev = np.asarray(_brdf_jit(ko, ki, Z, mat, xo, xi))
+    Q = np.diag([1.0, 1.0, -1.0, 1.0])
+    expect = Q @ np.swapaxes(M, -1, -2) @ Q
+    scale = np.max(np.abs(M), axis=(-2, -1), keepdims=True) + 1e-300
+    # rounding only: the kernel is symmetric except for the order of floating-point ops
+    np.testing.assert_allclose(M_rev / scale, expect / scale, atol=1e-10)
+    assert np.all(M[..., 0, 0] >= 0)
+
+
+# ----------------------------------------------------------------------------- realizability
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_realizable_random(dtype):
+    rng = np.random.default_rng(2)
+    n = 512
+    ki, ko = _random_upper(rng, n, 1e-3), _random_upper(rng, n, 1e-3)
+    ko[:16] = ki[:16]  # exact backscatter
+    mat = _random_materials(rng, n)
+    cdt = jnp.complex64 if dtype == jnp.float32 else jnp.complex128
+    mat = Material(n=jnp.asarray(mat.n, cdt), m=jnp.asarray(mat.m, dtype))
+    M = mueller_brdf(jnp.asarray(ki, dtype), jnp.asarray(ko, dtype), jnp.asarray(Z, dtype), mat)
+    assert M.dtype == dtype
+    w = np.asarray(cloude_eigenvalues(M.astype(jnp.float64)))
+    m00 = np.asarray(M[..., 0, 0], np.float64)
+    # eigenvalues of a sum of rank-1 coherency matrices; rounding of the 4x4 entries
+    tol = 1e-10 if dtype == jnp.float64 else 2e-6
+    assert np.all(w[..., -1] >= -tol * m00), np.min(w[..., -1] / m00)
+
+
+# ----------------------------------------------------------------------------- components
+
+
+def test_single_term_equals_assembly_of_public_pieces():
+    """Single term = ndf(h.n) P(k|k') / (4 <h.n> (k.n)(k'.n)) x facet Mueller in the beam
+    frames, each piece from the public functions of ppr._microfacet / ppr._frames (AoS)."""
+    rng = np.random.default_rng(3)
+    n = 200
+    ki, ko = _random_upper(rng, n), _random_upper(rng, n)
+    mat = _random_materials(rng, n)
+    xi, xo = default_frame(-ki, Z), default_frame(ko, Z)
+    M = np.asarray(mueller_brdf(ki, ko, Z, mat, terms=("single",)))
+    h = _unit(ki + ko)
+    p = ndf(mat.m, h @ Z)
+    pk = joint_visibility(mat.m, ki, ko, Z, order=256)
+    scal = p * pk / (4 * mean_cosine_n(mat.m) * (ki @ Z) * (ko @ Z))
+    F = facet_mueller_in_beam_frames(jnp.real(mat.n), jnp.imag(mat.n), ki, ko, h, xi, xo)
+    ref = np.asarray(scal[..., None, None] * F)
+    scale = np.max(np.abs(ref), axis=(-2, -1), keepdims=True) + 1e-300
+    # visibility order 64 vs 256 (2e-14) and (h.n)^m via |h - n|^2 vs 1 - h.n (m up to 1e6:
+    # relative 1e6 * 1e-16 / (1 - h.n)); 1e-9 covers both
+    np.testing.assert_allclose(M / scale, ref / scale, atol=1e-9)
+
+
+@pytest.mark.parametrize("n_index", [1.5, 0.94 + 6.42j, 0.2 + 7j])
+@pytest.mark.parametrize("m", [0.0, 1.0, 100.0, 1e4])
+def test_monostatic_backscatter_closed_form(n_index, m):
+    """k_out = k_in: h = k, every facet at normal incidence, P(k|k) = P(k):
+    M = p(k) P(k) |r0|^2 diag(1, 1, -1, -1) / (4 <h.n> (k.n)^2), r0 = (n - 1)/(n + 1).
+    The default frames at backscatter are x_out = -x_in (y_out = y_in): a mirror at normal
+    incidence maps (E_x, E_y) -> (E_x, -E_y) there, hence diag(1, 1, -1, -1)."""
+    theta = np.deg2rad([0.0, 20.0, 50.0, 80.0])
+    k = _dir(theta, np.full_like(theta, 0.3))
+    mat = Material(n=n_index, m=m)
+    M = np.asarray(mueller_brdf(k, k, Z, mat, terms=("single",)))
+    mu = np.cos(theta)
+    r0 = abs((n_index - 1) / (n_index + 1)) ** 2
+    p = (m + 1) / (2 * np.pi) * mu**m
+    P = np.asarray(visibility(m, mu, order=256))
+    hn = (m + 1) / (m + 2)
+    f = p * P * r0 / (4 * hn * mu**2)
+    ref = f[:, None, None] * np.diag([1.0, 1.0, -1.0, -1.0])
+    np.testing.assert_allclose(M, ref, rtol=1e-9, atol=1e-12 * np.max(f))
+
+
+# ----------------------------------------------------------------------------- limits
+
+
+def _lobe_integral(mat, theta_in, n_phi=32, n_w=16):
+    """int M(k_in, k_out) (k_out.n) d omega_out by the half-vector quadrature of _albedo."""
+    k_in, k_out, wt = _albedo.albedo_nodes(float(mat.m), np.cos(theta_in), n_phi, n_w)
+    k_spec = np.array([-k_in[0], -k_in[1], k_in[2]])
+    # one fixed frame per beam, valid over the whole narrow lobe: project the specular one
+    xo = np.asarray(default_frame(k_spec, Z))
+    xo = _unit(xo - np.sum(xo * k_out, -1, keepdims=True) * k_out)
+    xi = np.asarray(default_frame(-k_in, Z))
+    # the nodes cover phi_h in [0, pi] with weights doubled for the mirror half; only M00 is
+    # mirror-symmetric, so evaluate the mirrored nodes too and average
+    flip = np.array([1.0, -1.0, 1.0])
+    M = np.asarray(mueller_brdf(k_in, k_out, Z, mat, frame_in=xi, frame_out=xo))
+    Mf = np.asarray(mueller_brdf(k_in, k_out * flip, Z, mat, frame_in=xi, frame_out=xo * flip))
+    return 0.5 * np.einsum("q,qij->ij", wt, M + Mf), k_in, k_spec, xi
+
+
+@pytest.mark.parametrize("m", [1e5, 1e6])
+@pytest.mark.parametrize("n_index", [1.5, 0.94 + 6.42j])
+def test_large_m_reproduces_mirror(m, n_index):
+    for theta in np.deg2rad([10.0, 45.0, 70.0]):
+        mat = Material(n=n_index, m=m)
+        I, k_in, k_spec, xi = _lobe_integral(mat, theta)
+        F = np.asarray(
+            facet_mueller_in_beam_frames(
+                np.real(n_index), np.imag(n_index), k_in, k_spec, Z, xi, default_frame(k_spec, Z)
+            )
+        )
+        # Fresnel varies across the lobe (width ~1/sqrt(m) <= 3e-3 rad) and the remainder is
+        # O(1e-6) here: 1e-3 of the mirror's M00
+        np.testing.assert_allclose(I, F, atol=1e-3 * F[0, 0])
+
+
+def test_m0_near_lambertian():
+    """m = 0 (white: single + multiple): the BRDF is smooth and within a factor band of the
+    Lambertian 1/pi for outgoing zenith <= 60 deg at incidences <= 60 deg. Measured range of
+    pi f: [0.66, 1.52]; asserted band [0.6, 1.6] (APS at m = 0 is 'Lambertian-like', not
+    Lambertian: the single term peaks toward the mirror and back-scatter directions)."""
+    th_o, ph_o = np.meshgrid(np.deg2rad(np.linspace(0, 60, 13)), np.linspace(0, np.pi, 13))
+    ko = _dir(th_o.ravel(), ph_o.ravel())
+    vals = []
+    for th_i in np.deg2rad([0.0, 30.0, 60.0]):
+        ki = _dir(np.array(th_i), np.array(0.0))
+        M = mueller_brdf(ki, ko, Z, Material.ideal_white(0.0))
+        vals.append(np.asarray(M[:, 0, 0]) * np.pi)
+    vals = np.concatenate(vals)
+    assert 0.6 <= vals.min() and vals.max() <= 1.6, (vals.min(), vals.max())
+    # smooth: neighbouring samples 5 deg apart differ by < 10 %
+    grid = vals.reshape(3, 13, 13)
+    assert np.max(np.abs(np.diff(grid, axis=-1)) / grid[..., 1:]) < 0.1
+
+
+# ----------------------------------------------------------------------------- stiff cases
+
+
+def _stiff_batch():
+    ms = [0.0, 1e-3, 1.0, 1e3, 5e3, 1e4, 1e6]
+    incid = np.deg2rad([0.0, 89.9, 89.999])
+    idx = [1.5, 1.0, 1.0 + 10j, 0.2 + 7j]
+    rows = []
+    for m in ms:
+        for th in incid:
+            for n_index in idx:
+                k = _dir(np.array(th), np.array(0.0))
+                spec = np.array([-k[0], 0.0, k[2]])
+                rows.append((m, n_index, k, k))  # exact backscatter
+                rows.append((m, n_index, k, spec))  # specular (mirror) direction
+                rows.append((m, n_index, k, _dir(np.array(np.deg2rad(40.0)), np.array(2.0))))
+    # exactly tangent / exact forward geometry (degenerate half vector) / tiny cosines
+    for m in ms:
+        rows.append((m, 1.5, np.array([1.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0])))
+        rows.append((m, 1.0 + 10j, np.array([1.0, 0.0, 0.0]), _unit([0.2, 0.1, 1.0])))
+        rows.append((m, 0.2 + 7j, _unit([1.0, 0.0, 1e-20]), _unit([-1.0, 0.0, 1e-20])))
+        rows.append((m, 1.5, _unit([1.0, 0.0, 1e-20]), _unit([1.0, 0.0, 1e-20])))
+    m = np.array([r[0] for r in rows])
+    n = np.array([r[1] for r in rows], complex)
+    ki = np.stack([r[2] for r in rows])
+    ko = np.stack([r[3] for r in rows])
+    return m, n, ki, ko
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_stiff_cases_finite_values_and_gradients(dtype):
+    m, n, ki, ko = _stiff_batch()
+    cdt = jnp.complex64 if dtype == jnp.float32 else jnp.complex128
+    W = jnp.asarray(np.random.default_rng(4).normal(size=(4, 4)), dtype)
+
+    def total(m, n_re, n_im, ki, ko):
+        mat = Material(n=(n_re + 1j * n_im).astype(cdt), m=m)
+        M = mueller_brdf(ki, ko, jnp.asarray(Z, dtype), mat)
+        return jnp.sum(M * W), M
+
+    args = tuple(jnp.asarray(a, dtype) for a in (m, n.real, n.imag, ki, ko))
+    grads, M = jax.jit(jax.grad(total, argnums=(0, 1, 2, 3, 4), has_aux=True))(*args)
+    M = np.asarray(M)
+    assert M.dtype == dtype
+    assert np.all(np.isfinite(M))
+    for g in grads:
+        assert g.dtype == dtype
+        assert np.all(np.isfinite(np.asarray(g)))
+    # exactly tangent rows give 0
+    tangent = np.abs(ki[:, 2]) == 0.0
+    assert np.all(M[tangent] == 0.0)
+    # cosines of 1e-20 are not grazing: the scaled products keep a positive value in float32
+    tiny_rows = (ki[:, 2] > 0) & (ki[:, 2] < 1e-19) & (ko[:, 2] < 1e-19)
+    assert np.all(M[tiny_rows, 0, 0] > 0)
+
+
+def test_float32_matches_float64():
+    rng = np.random.default_rng(5)
+    n = 2000
+    ki, ko = _random_upper(rng, n, 0.05), _random_upper(rng, n, 0.05)
+    mat = _random_materials(rng, n)
+    mat = Material(n=mat.n, m=np.minimum(mat.m, 1e4))
+    M64 = np.asarray(mueller_brdf(ki, ko, Z, mat))
+    mat32 = Material(n=jnp.asarray(mat.n, jnp.complex64), m=jnp.asarray(mat.m, jnp.float32))
+    M32 = mueller_brdf(jnp.asarray(ki, jnp.float32), jnp.asarray(ko, jnp.float32), jnp.asarray(Z, jnp.float32), mat32)
+    assert M32.dtype == jnp.float32
+    scale = np.max(np.abs(M64), axis=(-2, -1), keepdims=True) + 1e-300
+    err = np.max(np.abs(np.asarray(M32, np.float64) - M64) / scale)
+    # float32 rounding of directions (1e-7) amplified by the lobe exponent m (1 - h.n ~ 1/m):
+    # relative error ~ m * 1e-7 * |h - n| <~ 1e-4 at m = 1e4
+    assert err < 2e-4, err
+
+
+def test_jvp_matches_central_differences():
+    rng = np.random.default_rng(6)
+
+    def f(p):
+        th_i, th_o, ph_o, log_m, n_re, n_im = p
+        ki = jnp.stack([jnp.sin(th_i), 0.0 * th_i, jnp.cos(th_i)])
+        ko = jnp.stack([jnp.sin(th_o) * jnp.cos(ph_o), jnp.sin(th_o) * jnp.sin(ph_o), jnp.cos(th_o)])
+        mat = Material(n=n_re + 1j * n_im, m=jnp.exp(log_m))
+        return mueller_brdf(ki, ko, jnp.asarray(Z), mat).ravel()
+
+    f_jit = jax.jit(f)
+    jvp = jax.jit(lambda p, t: jax.jvp(f, (p,), (t,))[1])
+    for p in [
+        [0.3, 1.0, 2.0, np.log(10.0), 1.5, 0.0],
+        [1.2, 0.8, 3.0, np.log(300.0), 0.94, 6.42],
+        [0.7, 1.45, 1.0, np.log(0.5), 0.2, 7.0],
+        [1.5, 1.5, 0.4, np.log(3e3), 2.6, 0.1],
+    ]:
+        p = jnp.asarray(p)
+        t = jnp.asarray(rng.normal(size=6))
+        h = 1e-6
+        fd = (f_jit(p + h * t) - f_jit(p - h * t)) / (2 * h)
+        an = jvp(p, t)
+        scale = float(jnp.max(jnp.abs(an))) + 1e-300
+        # central differences: O(h^2) truncation + rounding eps/h ~ 1e-10 relative
+        np.testing.assert_allclose(np.asarray(an) / scale, np.asarray(fd) / scale, atol=1e-6)
+
+
+def test_vmap_equals_loop_and_broadcasting():
+    rng = np.random.default_rng(7)
+    ki, ko = _random_upper(rng, 6), _random_upper(rng, 6)
+    ms = np.array([0.0, 0.5, 10.0, 1e3, 1e5, 1e6])
+    ns = np.array([1.5, 0.94 + 6.42j, 1.0, 2.6, 0.54 + 2.23j, 1.46])
+    batched = np.asarray(mueller_brdf(ki, ko, Z, Material(n=ns, m=ms)))
+    vm = jax.vmap(lambda a, b, m, n: mueller_brdf(a, b, jnp.asarray(Z), Material(n=n, m=m)))
+    vmapped = np.asarray(vm(jnp.asarray(ki), jnp.asarray(ko), jnp.asarray(ms), jnp.asarray(ns)))
+    loop = np.stack([
+        np.asarray(mueller_brdf(ki[i], ko[i], Z, Material(n=ns[i], m=ms[i]))) for i in range(6)
+    ])
+    np.testing.assert_allclose(batched, loop, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(vmapped, loop, rtol=1e-12, atol=0)
+    # broadcasting: (3, 1, 3) x (1, 4, 3) -> (3, 4, 4, 4)
+    out = mueller_brdf(ki[:3, None], ko[None, :4], Z, Material(n=1.5, m=10.0))
+    assert out.shape == (3, 4, 4, 4)
+    np.testing.assert_allclose(
+        np.asarray(out[1, 2]), np.asarray(mueller_brdf(ki[1], ko[2], Z, Material(n=1.5, m=10.0))), rtol=1e-12
+    )
+
+
+def test_terms_add_up_and_registry_errors():
+    rng = np.random.default_rng(8)
+    ki, ko = _random_upper(rng, 10), _random_upper(rng, 10)
+    mat = Material(n=0.94 + 6.42j, m=3.0)
+    full = mueller_brdf(ki, ko, Z, mat)
+    parts = mueller_brdf(ki, ko, Z, mat, terms=("single",)) + mueller_brdf(ki, ko, Z, mat, terms=("multiple",))
+    np.testing.assert_allclose(np.asarray(full), np.asarray(parts), rtol=1e-13)
+    with pytest.raises(ValueError, match="terms"):
+        mueller_brdf(ki, ko, Z, mat, terms=("singel",))
+    if "double" not in ppr._brdf.implemented_terms():
+        with pytest.raises(NotImplementedError, match="double"):
+            mueller_brdf(ki, ko, Z, mat, terms=("double",))
+    # the multiple term is depolarizing: only M00
+    Mm = np.asarray(mueller_brdf(ki, ko, Z, mat, terms="multiple"))
+    assert np.all(Mm[..., 0, 0] > 0) and np.all(Mm.reshape(10, 16)[:, 1:] == 0)
+
+
+def test_export():
+    assert ppr.mueller_brdf is mueller_brdf
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        (dict(k_in=[0.0, 0.0, 1.0, 0.0]), "k_in"),
+        (dict(k_out=[[0.0, 1.0]]), "k_out"),
+        (dict(normal=[0.0, 0.0, 2.0]), "normal"),
+        (dict(k_in=[0.0, 0.0, np.nan]), "k_in"),
+        (dict(k_out=[0.0, 0.6, -0.8]), "k_out"),
+        (dict(k_in=[0.0, 0.0, 1.01]), "k_in"),
+        (dict(frame_in=[0.0, 0.0, 1.0]), "frame_in"),
+        (dict(frame_out=[1.0, 1.0, 0.0]), "frame_out"),
+        (dict(k_in=np.zeros((2, 3)) + [0, 0, 1.0], k_out=np.zeros((3, 3)) + [0, 0, 1.0]), "broadcast"),
+    ],
+)
+def test_bad_directions_raise_naming_argument(kwargs, name):
+    args = dict(k_in=[0.0, 0.0, 1.0], k_out=[0.6, 0.0, 0.8], normal=[0.0, 0.0, 1.0])
+    args.update(kwargs)
+    frames = {k: args.pop(k) for k in ("frame_in", "frame_out") if k in args}
+    with pytest.raises(ValueError, match=name):
+        mueller_brdf(args["k_in"], args["k_out"], args["normal"], Material(n=1.5, m=10.0), **frames)
+
+
+def test_bad_material_raises():
+    with pytest.raises(ValueError, match="m"):
+        Material(n=1.5, m=-1.0)
+    with pytest.raises(ValueError, match="imaginary"):
+        Material(n=1.5 - 0.1j, m=1.0)
+    with pytest.raises(ValueError, match="finite"):
+        Material(n=np.nan, m=1.0)
+
+    # traced materials get checked inside the kernel (eqx.error_if)
+    @jax.jit
+    def f(m, n_im):
+        mat = Material(n=1.5 + 1j * n_im, m=m)
+        return mueller_brdf(jnp.asarray(Z), _unit([0.2, 0.0, 1.0]), jnp.asarray(Z), mat)
+
+    assert np.all(np.isfinite(np.asarray(f(1.0, 0.0))))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="material.m"):
+        f(-1.0, 0.0)
+    with pytest.raises(eqx.EquinoxRuntimeError, match="material.n"):
+        f(1.0, -0.5)
+
+    @jax.jit
+    def g(k):
+        return mueller_brdf(k, jnp.asarray(Z), jnp.asarray(Z), Material(n=1.5, m=1.0))
+
+    with pytest.raises(eqx.EquinoxRuntimeError, match="k_in"):
+        g(jnp.asarray([0.0, 0.6, -0.8]))
+
+
+def test_grazing_is_zero_with_finite_gradient():
+    def f(k):
+        return jnp.sum(mueller_brdf(k, _unit([0.3, 0.2, 1.0]), jnp.asarray(Z), Material(n=1.5, m=0.0)))
+
+    k = jnp.asarray([1.0, 0.0, 0.0])
+    assert float(f(k)) == 0.0
+    assert np.all(np.isfinite(np.asarray(jax.grad(f)(k))))
+    # slightly below the horizon but within HORIZON_TOL counts as grazing
+    k2 = jnp.asarray(_unit([1.0, 0.0, -1e-6]))
+    assert float(f(k2)) == 0.0
+
+
+def test_white_material_is_perfect_conductor_facets():
+    """Ideal white: facet Mueller = diag(1,1,-1,-1) in its s/p frames, i.e. the n -> i inf
+    limit of a metal; compare with n = 1 + 1e6 i (|r|^2 = 1 - O(1e-6))."""
+    rng = np.random.default_rng(9)
+    ki, ko = _random_upper(rng, 50), _random_upper(rng, 50)
+    Mw = np.asarray(mueller_brdf(ki, ko, Z, Material.ideal_white(20.0), terms="single"))
+    Mc = np.asarray(mueller_brdf(ki, ko, Z, Material(n=1 + 1e6j, m=20.0), terms="single"))
+    scale = np.max(np.abs(Mw), axis=(-2, -1), keepdims=True) + 1e-300
+    np.testing.assert_allclose(Mc / scale, Mw / scale, atol=1e-5)
+    assert math.isclose(float(ppr._brdf.fresnel_average(Material.ideal_white(1.0))), 1.0)
