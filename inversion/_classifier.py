@@ -113,11 +113,12 @@ class PreparedBank:
     bank: TemplateBank
     w_re: jax.Array  # (C, F) spectrum of the weights
     w_im: jax.Array
-    spec: jax.Array | None = None  # exact: (n_chunks, F, chunk, 2C)
-    valid: jax.Array | None = None  # (n_chunks, chunk)
+    # per-chunk device arrays kept in lists: slicing one big array per call copies it
+    spec: list | None = None  # exact: n_chunks x (F, chunk, 2C)
+    valid: list | None = None  # n_chunks x (chunk,) bool
     rank: int | None = None
-    coef: jax.Array | None = None  # (n_chunks, chunk, K)
-    resid: jax.Array | None = None  # (n_chunks, chunk), +inf... for padding rows -inf
+    coef: list | None = None  # n_chunks x (chunk, K)
+    resid: list | None = None  # n_chunks x (chunk,); padding rows -inf
     basis_spec: jax.Array | None = None  # (F, K, 2C)
 
 
@@ -131,7 +132,7 @@ def _n_fft(b: int) -> int:
 def prepare(
     bank: TemplateBank,
     weights: np.ndarray | None = None,
-    chunk: int = 4096,
+    chunk: int | None = None,
     rank: int | None = None,
     svd_rows: int = 16384,
 ) -> PreparedBank:
@@ -146,6 +147,7 @@ def prepare(
         raise ValueError("weights must be finite, non-negative and not all zero")
     n_fft = _n_fft(b)
     t = len(bank)
+    chunk = (4096 if rank is None else 32768) if chunk is None else int(chunk)
     chunk = int(min(chunk, t))
     n_chunks = -(-t // chunk)
     wj = jnp.asarray(w)
@@ -159,7 +161,7 @@ def prepare(
         bank,
         jnp.real(wf).astype(jnp.float32),
         jnp.imag(wf).astype(jnp.float32),
-        valid=jnp.asarray(valid),
+        valid=[jnp.asarray(v) for v in valid],
     )
 
     def padded(i):
@@ -169,7 +171,7 @@ def prepare(
         return jnp.asarray(y)
 
     if rank is None:
-        prep.spec = jnp.stack([_template_spectra(padded(i), wj, n_fft) for i in range(n_chunks)])
+        prep.spec = [_template_spectra(padded(i), wj, n_fft) for i in range(n_chunks)]
         return prep
     rank = int(rank)
     if not 1 <= rank <= c * b:
@@ -184,8 +186,8 @@ def prepare(
         coefs.append(a)
         resids.append(r)
     prep.rank = rank
-    prep.coef = jnp.stack(coefs)
-    prep.resid = jnp.where(prep.valid, jnp.stack(resids), -jnp.inf)
+    prep.coef = coefs
+    prep.resid = [jnp.where(v, r, -jnp.inf) for v, r in zip(prep.valid, resids, strict=True)]
     vk = basis.reshape(rank, c, b) * jnp.sqrt(wj)[None]
     vf = jnp.fft.rfft(vk, n_fft, axis=-1)  # (K, C, F)
     prep.basis_spec = (
@@ -386,7 +388,7 @@ def classify(
 
 def _exact_all(prep, rhs, xnorm, max_shift, k):
     spec = prep.spec
-    chunks = range(prep.valid.shape[0])
+    chunks = range(len(prep.valid))
     if spec is None:  # low-rank bank: spectra on the fly
         wj = jnp.asarray(prep.weights)
         sigs = prep.bank.signatures
@@ -412,7 +414,7 @@ def _exact_all(prep, rhs, xnorm, max_shift, k):
 def _lowrank(prep, x, rhs, xnorm, max_shift, k, n_candidates):
     g = _basis_corr(prep.basis_spec, rhs, xnorm, n_fft=prep.n_fft, max_shift=max_shift)
     bound = jnp.concatenate(
-        [_bound_chunk(prep.coef[i], prep.resid[i], g) for i in range(prep.coef.shape[0])], 1
+        [_bound_chunk(a, r, g) for a, r in zip(prep.coef, prep.resid, strict=True)], 1
     )
     m = int(min(prep.n_templates, max(64, 8 * k) if n_candidates is None else n_candidates))
     m = max(m, k)

@@ -175,7 +175,7 @@ def evaluate(
     x_all = np.concatenate([observations[snr][0] for snr in snr_list])
     for (kind, att), prep in preps.items():
         rows = {}
-        classify(prep, x_all[:1], k=k)  # compile outside the timing
+        classify(prep, x_all, k=k)  # compile outside the timing
         res_all = classify(prep, x_all, k=k)
         timing.append(res_all.seconds / len(x_all))
         for j, snr in enumerate(snr_list):

@@ -164,3 +164,83 @@ def test_bad_input(bank, exact):
         prepare(empty)
     with pytest.raises(ValueError, match="weights have shape"):
         prepare(bank, np.ones((2, 2)))
+
+
+def test_evaluate_report_smoke(tmp_path):
+    from inversion._report import evaluate
+
+    spec = spec_from_dict(dict(SPEC, shapes=SPEC["shapes"][:2], materials=SPEC["materials"][:2]))
+    res = evaluate(
+        spec,
+        tmp_path,
+        snrs=(1e4,),
+        grid_sizes=(1,),
+        n_obs=6,
+        weight_kinds=("uniform", "fisher"),
+        seed=3,
+        plots=True,
+    )
+    for name in (
+        "report.json",
+        "report.md",
+        "accuracy_vs_snr.png",
+        "attitude_vs_resolution.png",
+        "confusion_shape.png",
+        "confusion_material.png",
+        "confusion_finish.png",
+    ):
+        assert (tmp_path / name).stat().st_size > 0, name
+    data = json.loads((tmp_path / "report.json").read_text())
+    assert set(data["best_weight"]) == set(ATTRIBUTES)
+    assert np.asarray(data["confusion"]["shape"]).sum() == 6
+    acc = data["by_weight"]["fisher"]["shape"]["10000.0"]["shape_acc"]
+    assert 0.0 <= acc <= 1.0 and res["timing"]["n_templates"] > 0
+
+
+def test_ppr_adapter_matches_simulate():
+    """The database's ppr signature function equals ppr.simulate projected on the channels."""
+    import jax.numpy as jnp
+
+    import ppr
+    from inversion._noise import MeasurementModel, measure
+    from inversion._ppr_adapter import PprSignatures
+    from ppr._pulse import lambertian_mueller
+
+    mm = MeasurementModel.preset("stokes")
+    fn = PprSignatures(
+        ["cubesat"],
+        ["aluminium"],
+        [300.0],
+        mm,
+        n_bins=48,
+        bin_width_m=0.01,
+        brdf=lambertian_mueller,
+        dtype=jnp.float64,
+    )
+    q = np.array([[0.9, 0.2, -0.3, 0.1], [0.5, 0.5, 0.5, 0.5]])
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    sig = np.asarray(
+        fn(
+            {
+                "shape_id": np.zeros(2, np.int32),
+                "material_id": np.zeros(2, np.int32),
+                "finish_id": np.zeros(2, np.int32),
+                "quat": q,
+            }
+        )
+    )
+    mat = ppr.load_material("aluminium", 532e-9, dtype=jnp.float64)
+    for i in range(2):
+        scene = ppr.Scene(
+            fn.meshes[0],
+            (mat,),
+            ppr.Pose(q[i]),
+            fn.sensor_model,
+            ppr.Pulse.gaussian(fn.pulse_fwhm_s),
+            fn.bins,
+            vis_samples=4,
+        )
+        prof = ppr.simulate(scene, brdf=lambertian_mueller, dtype=jnp.float64)
+        ref = np.asarray(measure(mm, jnp.asarray(prof.data)))
+        # same kernel, same visibility samples; float64 round-off only
+        np.testing.assert_allclose(sig[i], np.maximum(ref, 0.0), rtol=1e-9, atol=1e-12 * ref.max())

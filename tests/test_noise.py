@@ -95,8 +95,8 @@ def _samples(noise, lam_per_bin, n_seeds=26, shape=SHAPE):
     return out.ravel()
 
 
-def test_poisson_mean_variance():
-    lam = 20.0
+@pytest.mark.parametrize("lam", [3.0, 20.0, 400.0])  # inversion branch, PTRS branch, large
+def test_poisson_mean_variance(lam):
     noise = NoiseModel(snr=math.sqrt(lam * 768))
     c = _samples(noise, lam)
     n = c.size
@@ -105,6 +105,10 @@ def test_poisson_mean_variance():
     # variance sqrt((2 lam^2 + lam)/n)
     assert abs(c.mean() - lam) < 5 * math.sqrt(lam / n)
     assert abs(c.var() - lam) < 5 * math.sqrt((2 * lam**2 + lam) / n)
+    # the pmf at the mode matches Poisson (chi-square-free check of the shape, 5 sigma)
+    mode = int(lam)
+    p_mode = math.exp(-lam + mode * math.log(lam) - math.lgamma(mode + 1))
+    assert abs(np.mean(c == mode) - p_mode) < 5 * math.sqrt(p_mode * (1 - p_mode) / n)
 
 
 def test_speckle_negative_binomial_variance_and_contrast():
