@@ -59,7 +59,7 @@ from ._material import Material
 from ._mesh import MeshArrays, capacity_for, mesh_arrays
 from ._pose import quat_to_matrix
 from ._scene import Pose, RangeBins, Scene, Sensor
-from ._types import Array, ArrayLike, Float
+from ._types import Array, ArrayLike, Float, Int
 from ._visibility import COS_MIN, VisibilityCaster
 
 NSIG = 7.0
@@ -342,6 +342,7 @@ def render(
     projection: Float[Array, "16 C"] | None = None,
     brdf: Callable = lambertian_mueller,
     terms=None,
+    faces: Int[Array, " Fc"] | None = None,
 ) -> Float[Array, "C B"]:
     """Pure jitted core: bin-integrated range profiles ``(C, n_bins)`` (m^2/sr per bin).
 
@@ -358,12 +359,17 @@ def render(
     - `n_bins`, `window` (static): bin count; bins per facet window (:func:`window_size`).
     - `projection`: ``(16, C)`` output channels (None: all 16 Mueller elements, row-major).
     - `brdf` (static): Mueller BRDF with the signature of :func:`ppr.mueller_brdf`.
+    - `faces`: optional ``(Fc,)`` indices of the facets to keep (pruning: back-facing and
+      invisible facets left out, :func:`visible_faces`); padding indices must point at
+      facets with ``vis == 0``. The result is the same; the cost scales with ``Fc``.
 
     Facets deeper than the window lose the part of their return beyond it: choose
     ``window`` from the longest edge (``simulate`` does). Python scalars are converted to
     arrays here, so new values never recompile.
     """
     dt = arrays.tri.dtype
+    if faces is not None:
+        arrays, vis = _take_faces(arrays, vis, faces)
     return _render_jit(
         arrays,
         vis,
@@ -379,6 +385,26 @@ def render(
         brdf=brdf,
         terms=terms,
     )
+
+
+def _take_faces(arrays, vis, faces):
+    return jax.tree_util.tree_map(lambda a: a[faces], arrays), vis[faces]
+
+
+def visible_faces(vis: np.ndarray, capacity: int | None = None) -> np.ndarray:
+    """Host helper: indices of the facets with ``vis > 0`` padded (with a ``vis == 0`` facet,
+    or facet 0 if there is none) to ``capacity`` (default :func:`ppr._mesh.capacity_for`),
+    for ``render(..., faces=...)``; batches of poses share one capacity."""
+    vis = np.asarray(vis)
+    idx = np.flatnonzero(vis > 0)
+    cap = capacity_for(max(len(idx), 1)) if capacity is None else int(capacity)
+    if cap < len(idx):
+        raise ValueError(f"capacity {cap} < {len(idx)} visible facets (overflow)")
+    zero = np.flatnonzero(vis <= 0)
+    pad = zero[0] if len(zero) else 0
+    if not len(zero) and cap > len(idx):
+        raise ValueError("every facet is visible: no vis == 0 facet to pad with; use faces=None")
+    return np.concatenate([idx, np.full(cap - len(idx), pad)]).astype(np.int32)
 
 
 @eqx.filter_jit
@@ -420,14 +446,20 @@ def _render_jit(
     j = j0 + jnp.arange(k + 1, dtype=jnp.int32)[None, :]  # (F, k+1) edge indices
     edges = start + j.astype(dt) * width
     cdf = tent_gaussian_cdf(edges, d0, d1, d2, sigma)
-    dcdf = cdf[:, 1:] - cdf[:, :-1]  # (F, k) bin contents of each facet (unit weight)
+    # (F, k) bin contents of each facet (unit weight). The differences go through a matmul
+    # with the (k+1, k) difference matrix: its exact 0/+-1 coefficients round like a plain
+    # subtraction, and it keeps XLA CPU from fusing the erfc chain into a sliced consumer
+    # that does not vectorize (measured 8-14x slower than materializing the CDF)
+    diff = jnp.eye(k + 1, k, -1, dtype=dt) - jnp.eye(k + 1, k, dtype=dt)
+    dcdf = cdf @ diff
     if window >= n_bins:
         return wch.T @ dcdf
-    f_count = dcdf.shape[0]
-    bins = j[:, :-1]
-    bins = jnp.where((bins >= 0) & (bins < n_bins), bins, n_bins)
-    rows = jnp.broadcast_to(jnp.arange(f_count)[:, None], bins.shape)
-    dense = jnp.zeros((f_count, n_bins), dt).at[rows, bins].add(dcdf, mode="drop")
+    # place each facet's window in its row of a dense (F, n_bins) matrix by a gather (window
+    # offset of every bin), then contract with the weights: on XLA CPU this ran ~2x faster
+    # than a 1-D scatter-add and ~10x faster than a 2-D one
+    off = jnp.arange(n_bins, dtype=jnp.int32)[None, :] - j0  # (F, n_bins)
+    inside = (off >= 0) & (off < k)
+    dense = jnp.where(inside, jnp.take_along_axis(dcdf, jnp.clip(off, 0, k - 1), axis=1), 0.0)
     return wch.T @ dense
 
 
@@ -633,6 +665,7 @@ __all__ = [
     "stack_materials",
     "stokes_projection",
     "tent_gaussian_cdf",
+    "visible_faces",
     "window_size",
 ]
 

@@ -22,6 +22,7 @@ from ppr._pulse import (
     render,
     stack_materials,
     tent_gaussian_cdf,
+    visible_faces,
     window_size,
 )
 
@@ -250,6 +251,25 @@ def test_energy_independent_of_bins_and_pulse():
             brdf=lambertian_mueller,
         )
         totals.append(float(out[0].sum()))
+    # pruning back-facing/invisible facets (render(faces=...)) changes nothing
+    n_vis = int((np.asarray(vis_p) > 0).sum())
+    faces = jnp.asarray(visible_faces(np.asarray(vis_p), capacity=n_vis + 1))
+    assert n_vis + 1 < vis_p.shape[0] // 2  # more than half of the slots pruned
+    pruned = render(
+        arrays,
+        vis_p,
+        ppr.Pose(jnp.asarray(q)),
+        stack_materials([MAT] * 3),
+        ppr.Sensor.make((0, 0, -1.0)),
+        sig,
+        -0.5 * n * width,
+        width,
+        n_bins=n,
+        window=n,
+        brdf=lambertian_mueller,
+        faces=faces,
+    )
+    np.testing.assert_allclose(np.asarray(pruned), np.asarray(out), atol=1e-15)
     tri = mesh.triangles()
     cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     area = 0.5 * np.linalg.norm(cr, axis=1)
