@@ -34,6 +34,10 @@ from pathlib import Path
 import jax
 
 jax.config.update("jax_enable_x64", True)
+# script-level persistent compilation cache: re-runs skip the (minutes-long, on a loaded
+# 2-core machine) compilation of the simulator's Jacobian inside the solvers
+jax.config.update("jax_compilation_cache_dir", "/tmp/ppr_bench_jax_cache")
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
@@ -67,8 +71,13 @@ PULSE_FWHM = 100e-12
 CAPACITY = 64  # every mesh padded to the same capacity: one compilation for all shapes
 
 
-def choose_brdf():
-    """ppr.mueller_brdf if it imports, else the simulator's polarizing stand-in (stated)."""
+def choose_brdf(kind="auto"):
+    """ppr.mueller_brdf if it imports (``auto``), else / with ``glossy`` the simulator's
+    polarizing stand-in (stated in the output)."""
+    if kind == "glossy":
+        from ppr._pulse import glossy_fresnel_mueller
+
+        return glossy_fresnel_mueller, "glossy_fresnel_mueller (simulator stand-in, --brdf glossy)"
     try:
         from ppr._brdf import mueller_brdf
 
@@ -445,12 +454,13 @@ def main(argv=None):
     ap.add_argument("--k", type=int, default=3, help="classifier candidates refined")
     ap.add_argument("--mcmc-steps", type=int, default=300)
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--brdf", choices=["auto", "glossy"], default="auto")
     args = ap.parse_args(argv)
     if args.quick:
         args.n_per_snr, args.snrs, args.grid, args.mcmc_steps = 2, [30.0], 2, 100
     OUT.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
-    brdf, brdf_name = choose_brdf()
+    brdf, brdf_name = choose_brdf(args.brdf)
     print(f"BRDF: {brdf_name}", flush=True)
     models = make_models(brdf)
     t0 = time.perf_counter()
