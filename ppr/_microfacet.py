@@ -110,8 +110,12 @@ def ndf(m: Shaped[ArrayLike, "..."], cos_h: Shaped[ArrayLike, "..."]) -> Float[A
     m = _as(m, dt)
     ch = _as(cos_h, dt)
     ok = ch > tiny(dt)
-    x = 1.0 - jnp.where(ok, ch, 1.0)
-    val = jnp.exp(m * jnp.log1p(-x))
+    chs = jnp.where(ok, ch, 1.0)
+    # log(cos_h) as log1p(-(1 - cos_h)) near the peak (1 - cos_h is exact there), plain log
+    # below 1/2 (where 1 - cos_h would round to 1 for tiny cos_h)
+    near = chs > 0.5
+    log_ch = jnp.where(near, jnp.log1p(-(1.0 - jnp.where(near, chs, 1.0))), jnp.log(chs))
+    val = jnp.exp(m * log_ch)
     at_zero = jnp.where(m > 0, 0.0, 1.0)
     pw = jnp.where(ok, val, jnp.where(ch >= 0, at_zero, 0.0))
     return (m + 1.0) / (2.0 * math.pi) * pw
@@ -149,8 +153,24 @@ def _default_order(dt) -> int:
 
 
 def _c_floor(dt) -> float:
-    """Smallest cos_theta resolved by the quadrature (below: treated as this value)."""
+    """A cos_theta below which ``P(k) / (k . n)`` may be taken constant (used by ppr._brdf).
+
+    Below ``_c_small / sqrt(M)`` (>= 1e-8 in float64) the correction is linear in ``c``, so
+    ``P`` is linear in ``c`` to relative ``c / <h.k>+`` (<= 1e-7 at these floors).
+    """
     return 1e-10 if np.finfo(dt).bits == 64 else 1e-7
+
+
+def _c_small(dt) -> float:
+    """Below ``c1 = _c_small / sqrt(M)`` the correction is continued linearly in ``c``.
+
+    ``I(c) = I(c1) + (pi/2) ((M-1)/M) (c1 - c) + O(M c1^2)``: the Lorentzian layer of width
+    ``c`` is then far inside the lobe (width ``1/sqrt(M)``) and its integral is linear in
+    ``c``; the neglected terms are ~``(c1 sqrt(M))^2`` relative; with the default order the
+    error at c < c1 (beyond 89.999 deg) is <= 4e-10 in float64 (measured).
+    This keeps the quadrature range ``asinh(X / c)`` bounded down to ``c = 0`` exactly.
+    """
+    return 1e-5 if np.finfo(dt).bits == 64 else 3e-4
 
 
 def _negligible_log(dt) -> float:
@@ -167,7 +187,7 @@ def _correction(m: Array, c: Array, order: int | None) -> Array:
     order = _default_order(dt) if order is None else int(order)
     if order < 2:
         raise ValueError(f"order must be >= 2, got order={order}")
-    return _correction_cjvp(m, c, order)
+    return _correction_jit(m, c, order)
 
 
 def _correction_impl(m: Array, c: Array, order: int, partials: bool):
@@ -179,9 +199,9 @@ def _correction_impl(m: Array, c: Array, order: int, partials: bool):
     """
     dt = c.dtype
     big_m = m + 2.0
-    cf = _c_floor(dt)
-    c_ok = c > cf
-    cq = jnp.where(c_ok, c, cf)
+    c1 = _c_small(dt) * jax.lax.rsqrt(big_m)
+    c_ok = c > c1
+    cq = jnp.where(c_ok, c, c1)
     s2 = (1.0 - cq) * (1.0 + cq)
     s2_ok = s2 > tiny(dt)
     # log(s^2) to full relative precision (it is multiplied by M/2 <= 5e5): log1p(-c^2) for
@@ -240,12 +260,16 @@ def _correction_impl(m: Array, c: Array, order: int, partials: bool):
         # minutes to compile under grad) and the intermediates at the batch shape.
         acc = jax.lax.fori_loop(0, order, node, (jnp.zeros_like(cq),) * n_out)
         scale = h / math.pi
-        corr = cq * acc[0] * scale
+        # linear continuation below c1 (see _c_small); s^M(c) = s^M(c1) to 5e-11 there
+        dc_lin = cq - c
+        sm = jnp.exp(log_sm)
+        slope = 0.5 * (1.0 - inv_m)
+        corr = cq * acc[0] * scale + sm * slope * dc_lin
         out = (jnp.where(needed, corr, 0.0),)
         if partials:
-            d_m = cq * acc[1] * scale
-            d_c = (acc[0] + cq * acc[2]) * scale
-            out = out + (jnp.where(needed, d_m, 0.0), jnp.where(needed & c_ok, d_c, 0.0))
+            d_m = cq * acc[1] * scale + sm * (0.5 * log_s2 * slope + 0.5 * inv_m * inv_m) * dc_lin
+            d_c = jnp.where(c_ok, (acc[0] + cq * acc[2]) * scale, -sm * slope)
+            out = out + (jnp.where(needed, d_m, 0.0), jnp.where(needed, d_c, 0.0))
         return out
 
     # Skip the quadrature altogether when no element of the batch needs it.
@@ -265,6 +289,10 @@ def _correction_jvp(order, primals, tangents):
     tm, tc = tangents
     val, d_m, d_c = _correction_impl(m, c, order, partials=True)
     return val, d_m * tm + d_c * tc
+
+
+# jit the loop once per shape/dtype/order, so that eager calls do not recompile the loop
+_correction_jit = jax.jit(_correction_cjvp, static_argnums=(2,))
 
 
 def mean_cosine_plus(
@@ -351,6 +379,7 @@ def joint_visibility(
     f = jnp.where(ok_i & ok_o, 0.5 * safe_norm(ui + uo), 1.0)
     f = jnp.clip(f, 0.0, 1.0)
     m, ci, co = jnp.broadcast_arrays(m, ci, co)
-    pi = _visibility(m, ci, order)
-    po = _visibility(m, co, order)
-    return (1.0 - f) * pi * po + f * jnp.minimum(pi, po)
+    # one quadrature call for both directions (one loop in the compiled program)
+    p2 = _visibility(jnp.stack([m, m]), jnp.stack([ci, co]), order)
+    pi, po = p2[0], p2[1]
+    return (1.0 - f) * (pi * po) + f * jnp.minimum(pi, po)
