@@ -360,6 +360,7 @@ def main():
         f"channels x {N_BINS} bins of {WIDTH * 1e3:g} mm; pulse sigma "
         f"{SIGMA_R * 1e3:.2f} mm (100 ps FWHM + 20 ps jitter); vmap batch {BATCH} poses."
     )
+    lines.append(f"Load average at start (machine shared with other jobs): {os.getloadavg()}.")
     lines.append("")
     lines.append("## Throughput (visibility excluded; reported separately)")
     lines.append("")
@@ -379,9 +380,10 @@ def main():
         summary.append((label, mesh.n_faces, t_vis, ratio, err, window, rows, fcap))
         print(label, rows, f"vis {t_vis * 1e3:.1f} ms/pose", f"JAX/NumPy {ratio:.1f}x", flush=True)
     lines.append("")
-    for label, nf, t_vis, ratio, err, window, _ in summary:
+    for label, nf, t_vis, ratio, err, window, _, fcap in summary:
         lines.append(
-            f"- {label} ({nf} faces, window {window} bins): JAX/NumPy speed ratio "
+            f"- {label} ({nf} faces, pruned per pose to {fcap} facet slots, window {window} "
+            f"bins): JAX/NumPy speed ratio "
             f"{ratio:.1f}x (same algorithm, Lambertian stand-in; max rel. difference "
             f"{err:.1e}); visibility (16 samples/face, Embree) {t_vis * 1e3:.1f} ms/pose."
         )

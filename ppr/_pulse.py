@@ -612,9 +612,9 @@ def simulate(
     vis_k = np.zeros(arrays.valid.shape[0])
     vis_k[: int(keep.sum())] = vis[keep]
     max_ext = float(np.ptp(depth[keep], axis=1).max())
-    # window from the longest edge (pose independent, so new poses reuse the compilation)
-    sub_tri = tri[keep]
-    max_edge = float(np.linalg.norm(sub_tri - np.roll(sub_tri, 1, axis=1), axis=-1).max())
+    # window from the mesh's longest edge (pose independent, so new poses reuse the
+    # compilation as long as the pruned facet count stays in the same capacity bucket)
+    max_edge = float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max())
     window = window_size(
         max(max_edge * float(np.linalg.norm(w)), max_ext), sigma_r, float(bins.width), bins.n_bins
     )
