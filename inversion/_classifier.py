@@ -102,8 +102,9 @@ class PreparedBank:
     up to ``svd_rows`` of them), coefficients ``A = Z V^T`` (T, K) and residuals
     ``r_t = |z_t - A_t V|``; scores are approximated by ``A G`` (``G`` the basis correlated
     with the observation) and certified: ``s_t <= A_t G + r_t`` for every shift, so after the
-    top-``M`` upper bounds are rescored exactly, the result is exact whenever the ``(M+1)``-th
-    upper bound is below the k-th exact score (else the observation is rescored exhaustively).
+    top-``M`` upper bounds are rescored exactly, every further template whose bound still
+    reaches the k-th exact score is rescored too: the result equals the exhaustive search
+    (which is run instead if more than 16384 templates would need rescoring).
     """
 
     weights: np.ndarray
@@ -296,6 +297,7 @@ class Classification:
     shift_refined: np.ndarray  # (N, k) parabolic sub-bin estimate
     seconds: float
     certified: np.ndarray  # (N,) bool: result provably equals the exhaustive search
+    n_rescored: np.ndarray | None = None  # (N,) templates scored exactly (low-rank mode)
 
     def best(self, bank: TemplateBank) -> dict:
         """Attributes of the top candidate of each observation."""
@@ -380,10 +382,13 @@ def classify(
     if prep.rank is None:
         idx, sc, lg, fr = _exact_all(prep, rhs, xnorm, max_shift, k)
         certified = np.ones(len(x), bool)
+        n_rescored = np.full(len(x), prep.n_templates)
     else:
-        idx, sc, lg, fr, certified = _lowrank(prep, x, rhs, xnorm, max_shift, k, n_candidates)
+        idx, sc, lg, fr, certified, n_rescored = _lowrank(
+            prep, x, rhs, xnorm, max_shift, k, n_candidates
+        )
     seconds = time.perf_counter() - t0
-    return Classification(idx, sc, lg, lg + fr, seconds, certified)
+    return Classification(idx, sc, lg, lg + fr, seconds, certified, n_rescored)
 
 
 def _exact_all(prep, rhs, xnorm, max_shift, k):
@@ -411,15 +416,19 @@ def _exact_all(prep, rhs, xnorm, max_shift, k):
     return tuple(np.asarray(a) for a in res)
 
 
-def _lowrank(prep, x, rhs, xnorm, max_shift, k, n_candidates):
+def _lowrank(prep, x, rhs, xnorm, max_shift, k, n_candidates, max_rescore=16384):
+    """Bound every template, rescore exactly the top ``m`` bounds, then every template whose
+    bound still reaches the k-th best exact score (so the result is the exhaustive one);
+    exhaustive search only if more than ``max_rescore`` templates would need rescoring."""
     g = _basis_corr(prep.basis_spec, rhs, xnorm, n_fft=prep.n_fft, max_shift=max_shift)
     bound = jnp.concatenate(
         [_bound_chunk(a, r, g) for a, r in zip(prep.coef, prep.resid, strict=True)], 1
     )
     m = int(min(prep.n_templates, max(64, 8 * k) if n_candidates is None else n_candidates))
     m = max(m, k)
-    ub, cand = jax.lax.top_k(bound, min(m + 1, bound.shape[1]))
-    ub, cand = np.asarray(ub), np.asarray(cand)
+    _, cand = jax.lax.top_k(bound, m)
+    cand = np.asarray(cand)
+    bound = np.asarray(bound)
     wj = jnp.asarray(prep.weights)
     n = len(x)
     out = [
@@ -428,32 +437,49 @@ def _lowrank(prep, x, rhs, xnorm, max_shift, k, n_candidates):
         np.zeros((n, k), np.int64),
         np.zeros((n, k), np.float32),
     ]
-    certified = np.zeros(n, bool)
+    n_rescored = np.zeros(n, np.int64)
     sigs = prep.bank.signatures
-    for j in range(n):
-        rows = cand[j, :m]
-        spec = _template_spectra(jnp.asarray(sigs[rows]), wj, prep.n_fft)
+
+    def rescore(j, rows):
+        """Exact (score, lag, frac) of ``rows`` for observation j, in padded buckets."""
+        size = 64
+        while size < len(rows):
+            size *= 2
+        pad = np.zeros(size, np.int64)
+        pad[: len(rows)] = rows
+        spec = _template_spectra(jnp.asarray(sigs[pad]), wj, prep.n_fft)
         sc, lag, fr = _score_chunk(
             spec,
-            jnp.ones(m, bool),
+            jnp.asarray(np.arange(size) < len(rows)),
             rhs[..., [j, n + j]],
             xnorm[j : j + 1],
             n_fft=prep.n_fft,
             max_shift=max_shift,
         )
-        sc, lag, fr = np.asarray(sc[0]), np.asarray(lag[0]), np.asarray(fr[0])
-        order = np.argsort(-sc, kind="stable")[:k]
-        tau = sc[order[-1]]
-        next_ub = ub[j, m] if ub.shape[1] > m else -np.inf
-        certified[j] = bool(next_ub < tau)
-        if certified[j]:
-            vals = (rows[order], sc[order], lag[order], fr[order])
-        else:
+        return (np.asarray(a[0])[: len(rows)] for a in (sc, lag, fr))
+
+    for j in range(n):
+        rows = cand[j]
+        sc, lag, fr = rescore(j, rows)
+        tau = np.sort(sc)[-k]
+        need = np.nonzero(bound[j] >= tau)[0]
+        extra = np.setdiff1d(need, rows, assume_unique=False)
+        if len(extra) > max_rescore:
             xi = rhs[..., [j, n + j]]
             vals = [a[0] for a in _exact_all(prep, xi, xnorm[j : j + 1], max_shift, k)]
+            n_rescored[j] = prep.n_templates
+        else:
+            if len(extra):
+                sc2, lag2, fr2 = rescore(j, extra)
+                rows = np.concatenate([rows, extra])
+                sc, lag, fr = (np.concatenate(p) for p in ((sc, sc2), (lag, lag2), (fr, fr2)))
+            order = np.argsort(-sc, kind="stable")[:k]
+            vals = (rows[order], sc[order], lag[order], fr[order])
+            n_rescored[j] = len(rows)
         for dst, v in zip(out, vals, strict=True):
             dst[j] = v
-    return (*out, certified)
+    # every template whose bound reaches the final k-th score was scored exactly: exact result
+    return (*out, np.ones(n, bool), n_rescored)
 
 
 @functools.partial(jax.jit, static_argnums=3)
