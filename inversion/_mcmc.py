@@ -523,13 +523,16 @@ def _physical_vectors(param, thetas):
 
 
 def _ball_root(cov, ndim):
-    """Matrix square root of the starting-ball covariance (each direction capped at 1 in theta
-    units so that an unconstrained direction stays sane); identity * 1e-2 without one."""
+    """Matrix square root of the starting-ball covariance (each direction's sd clipped to
+    [1e-5, 1] in theta units so an unconstrained direction stays sane and no direction is
+    empty); identity * 1e-2 without one."""
     if cov is None or not np.all(np.isfinite(cov)):
         return np.eye(ndim) * 1e-2
     w, v = np.linalg.eigh(0.5 * (cov + cov.T))
     sd = np.sqrt(np.clip(w, 0.0, None))
-    return v * np.minimum(sd, 1.0)
+    # floor: directions the refiner saw as exactly determined (or degenerate to round-off)
+    # still need spread, or emcee rejects linearly dependent walkers
+    return v * np.clip(sd, 1e-5, 1.0)
 
 
 def _sub_covariance(ref: RefineResult, param: Parametrisation):
