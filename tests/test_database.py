@@ -213,3 +213,12 @@ def test_bad_inputs(reference, tmp_path):
         load_database(tmp_path)
     with pytest.raises(ValueError, match="unknown synthetic shape"):
         bank_in_memory(spec_from_dict(dict(SPEC, shapes=[{"name": "torus"}])))
+
+
+@pytest.mark.parametrize("name", ["synthetic_small", "ppr_cubesat"])
+def test_shipped_specs_parse(name):
+    from inversion._database import load_spec
+
+    spec = load_spec(ROOT / "configs" / "databases" / f"{name}.toml")
+    rows = enumerate_rows(spec)
+    assert len(rows["quat"]) > 0 and spec.sensor.n_bins >= 64
