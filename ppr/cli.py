@@ -706,6 +706,572 @@ def _plot_profiles(path, arrays, kind, labels, title) -> None:
     plt.close(fig)
 
 
+# ============================================================================ inversion
+def _finite_or_inf(v: float | str) -> float:
+    return float("inf") if v in ("inf", float("inf")) else float(v)
+
+
+class NoiseConfig(StrictModel):
+    """Noise of simulated observations (inversion.NoiseModel); "inf" switches a term off."""
+
+    snr: float | Literal["inf"] = 30.0
+    speckle_cells: float | Literal["inf"] = 50.0
+    jitter_bins: float = pydantic.Field(0.2, ge=0.0)
+    max_offset_bins: float = pydantic.Field(3.0, ge=0.0)
+    gain_min: float = pydantic.Field(0.1, gt=0.0)
+    gain_max: float = pydantic.Field(10.0, gt=0.0)
+
+    def model(self):
+        import inversion
+
+        return inversion.NoiseModel(
+            snr=_finite_or_inf(self.snr),
+            speckle_cells=_finite_or_inf(self.speckle_cells),
+            jitter_bins=self.jitter_bins,
+            max_offset_bins=self.max_offset_bins,
+            gain_min=self.gain_min,
+            gain_max=self.gain_max,
+        )
+
+
+def cmd_database_build(args) -> int:
+    import inversion
+
+    cfg_path = (
+        Path(args.config) if args.config else CONFIG_DIR / "databases" / "synthetic_small.toml"
+    )
+    spec = inversion.load_spec(cfg_path, _overrides(args))
+    out = Path(args.out)
+    db = out / "database.zarr"
+    summary_path = out / "database.json"
+    if db.exists():
+        try:
+            status = inversion.chunk_status(db, verify=False)
+            complete = not status["missing"]
+        except Exception:  # noqa: BLE001 - unreadable: treat as a foreign result
+            complete = True
+        if args.overwrite:
+            shutil.rmtree(db)
+            summary_path.unlink(missing_ok=True)
+        elif complete and args.num_shards == 1:
+            raise CLIError(
+                f"{db} already exists and is complete; pass --overwrite to rebuild, or choose "
+                "another --out"
+            )
+        else:
+            _say(args, f"ppr database build: resuming {db} (only missing chunks are computed)")
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        report = inversion.build_database(
+            spec,
+            db,
+            progress=_progress(args),
+            shard_index=args.shard_index,
+            num_shards=args.num_shards,
+        )
+    except inversion.IncompleteDatabaseError as err:  # pragma: no cover - defensive
+        raise CLIError(str(err)) from None
+    except ValueError as err:
+        if "spec" in str(err) or "differ" in str(err):
+            raise CLIError(
+                f"{db}: {err} (pass --overwrite to rebuild with the new config)"
+            ) from None
+        raise
+    status = inversion.chunk_status(db, verify=False)
+    write_json(
+        summary_path,
+        {
+            "command": "database build",
+            "config_file": str(cfg_path),
+            "overrides": _overrides(args),
+            "path": str(db),
+            "n_rows": report.n_rows,
+            "n_chunks": report.n_chunks,
+            "computed_chunks": len(report.computed),
+            "skipped_chunks": len(report.skipped),
+            "recomputed_corrupt": report.recomputed_corrupt,
+            "missing_chunks": len(status["missing"]),
+            "complete": not status["missing"],
+            "seconds": report.seconds,
+            "rows_per_second": report.rows_per_second,
+            "n_devices": report.n_devices,
+            "shard": [args.shard_index, args.num_shards],
+        },
+    )
+    _say(
+        args,
+        f"ppr database build: {db} ({report.n_rows} rows, {len(report.computed)} chunks "
+        f"computed, {len(report.skipped)} already done)",
+    )
+    return 0
+
+
+class ReportConfig(StrictModel):
+    """``ppr report``: classifier evaluation on held-out simulated observations."""
+
+    database: str
+    database_path: str | None = None
+    snrs: list[Annotated[float, pydantic.Field(gt=0.0)]] = [10.0, 30.0, 100.0, 300.0]
+    grid_sizes: list[Annotated[int, pydantic.Field(ge=1, le=16)]] = [1, 2, 3]
+    n_obs: int = pydantic.Field(32, ge=1)
+    weight_kinds: list[Literal["uniform", "channel", "range", "fisher"]] = [
+        "uniform",
+        "channel",
+        "range",
+        "fisher",
+    ]
+    speckle_cells: float = pydantic.Field(50.0, ge=1.0)
+    jitter_bins: float = pydantic.Field(0.2, ge=0.0)
+    max_offset_bins: float = pydantic.Field(4.0, ge=0.0)
+    gain_range: tuple[float, float] = (0.1, 10.0)
+    seed: int = 0
+    top_k: int = pydantic.Field(5, ge=1)
+
+
+REPORT_OUTPUTS = [
+    "report.json",
+    "report.md",
+    "accuracy_vs_snr.png",
+    "attitude_vs_snr.png",
+    "attitude_vs_resolution.png",
+    "confusion_shape.png",
+    "confusion_material.png",
+    "confusion_finish.png",
+]
+
+
+def cmd_report(args) -> int:
+    import inversion
+
+    cfg_path = _config_path(args, "report.toml")
+    cfg = load_toml_model(ReportConfig, cfg_path, _overrides(args))
+    spec_path = _resolve_path(cfg.database, cfg_path)
+    spec = inversion.load_spec(spec_path)
+    bank = None
+    if cfg.database_path is not None:
+        dbp = _resolve_path(cfg.database_path, cfg_path)
+        try:
+            bank = inversion.load_database(dbp)
+        except ValueError as err:
+            raise ConfigError(f"{cfg_path}: database_path = {cfg.database_path!r}: {err}") from None
+    with outputs(args.out, REPORT_OUTPUTS, args.overwrite) as out:
+        inversion.evaluate(
+            spec,
+            out._tmp,
+            snrs=tuple(cfg.snrs),
+            grid_sizes=tuple(cfg.grid_sizes),
+            n_obs=cfg.n_obs,
+            weight_kinds=tuple(cfg.weight_kinds),
+            speckle_cells=cfg.speckle_cells,
+            jitter_bins=cfg.jitter_bins,
+            max_offset_bins=cfg.max_offset_bins,
+            gain_range=tuple(cfg.gain_range),
+            seed=cfg.seed,
+            bank=bank,
+            k=cfg.top_k,
+        )
+    _say(args, f"ppr report: wrote {Path(args.out) / 'report.md'} and plots")
+    return 0
+
+
+class ClassifyConfig(StrictModel):
+    """``ppr classify``: top-k database candidates for observations."""
+
+    database: str
+    observations: str = "simulate"
+    attribute: Literal["shape", "material", "finish", "attitude"] = "shape"
+    weights: Literal["uniform", "channel", "range", "fisher"] = "fisher"
+    top_k: int = pydantic.Field(5, ge=1, le=1000)
+    max_shift_bins: int | None = pydantic.Field(None, ge=0)
+    n_simulated: int = pydantic.Field(16, ge=1, le=100_000)
+    seed: int = 0
+    noise: NoiseConfig = NoiseConfig()
+
+
+CLASSIFY_OUTPUTS = ["classify.json", "classify.npz", "classify.png"]
+
+
+def cmd_classify(args) -> int:
+    import jax.numpy as jnp
+
+    import inversion
+
+    cfg_path = _config_path(args, "classify.toml")
+    cfg = load_toml_model(ClassifyConfig, cfg_path, _overrides(args))
+    dbp = _resolve_path(cfg.database, cfg_path)
+    try:
+        bank = inversion.load_database(dbp)
+    except (ValueError, FileNotFoundError) as err:
+        raise ConfigError(f"{cfg_path}: database = {cfg.database!r}: {_one_line(err)}") from None
+    truth = None
+    if cfg.observations == "simulate":
+        import zarr
+
+        spec = inversion.spec_from_dict(
+            dict(zarr.open_group(str(dbp), mode="r").attrs["spec"]), str(dbp)
+        )
+        sig_fn = inversion.make_signature_fn(spec)
+        rng = np.random.default_rng(cfg.seed)
+        import jax
+
+        from inversion._grid import random_quaternions
+
+        n = cfg.n_simulated
+        truth = {
+            "shape_id": rng.integers(0, len(spec.shapes), n).astype(np.int32),
+            "material_id": rng.integers(0, len(spec.materials), n).astype(np.int32),
+            "finish_id": rng.integers(0, len(spec.finishes), n).astype(np.int32),
+            "attitude_id": np.zeros(n, np.int32),
+            "quat": np.asarray(
+                random_quaternions(jax.random.key(cfg.seed), n, jnp.float32), np.float64
+            ),
+        }
+        clean = np.asarray(sig_fn({k: jnp.asarray(v) for k, v in truth.items()}), np.float64)
+        noise = cfg.noise.model()
+        data = np.stack(
+            [
+                np.asarray(inversion.observe(c, noise, seed=cfg.seed + i, sensor=bank.sensor).data)
+                for i, c in enumerate(clean)
+            ]
+        )
+        sensor = bank.sensor
+    else:
+        path = _resolve_path(cfg.observations, cfg_path)
+        if not path.is_file():
+            raise ConfigError(f"{cfg_path}: observations = {cfg.observations!r}: no such file")
+        with np.load(path) as z:
+            if "data" not in z.files:
+                raise ConfigError(
+                    f"{cfg_path}: observations = {cfg.observations!r}: no 'data' array"
+                )
+            data = np.asarray(z["data"], np.float64)
+            sensor = str(z["sensor"]) if "sensor" in z.files else bank.sensor
+        if data.ndim == 2:
+            data = data[None]
+    obs = [inversion.Observation(data=d, sensor=sensor) for d in data]
+    with outputs(args.out, CLASSIFY_OUTPUTS, args.overwrite) as out:
+        w = inversion.design_weights(bank, cfg.weights, cfg.attribute)
+        prep = inversion.prepare(bank, w)
+        try:
+            res = inversion.classify(
+                prep, obs, k=min(cfg.top_k, len(bank)), max_shift=cfg.max_shift_bins
+            )
+        except ValueError as err:
+            raise ConfigError(f"{cfg_path}: observations: {err}") from None
+        names = bank.names
+        cands = []
+        for i in range(len(data)):
+            rows = []
+            for j, r in enumerate(res.index[i]):
+                rows.append(
+                    {
+                        "row": int(r),
+                        "score": float(res.score[i, j]),
+                        "shift_bins": float(res.shift_refined[i, j]),
+                        "shape": names["shapes"][bank.shape_id[r]],
+                        "material": names["materials"][bank.material_id[r]],
+                        "finish": names["finishes"][bank.finish_id[r]],
+                        "quaternion": bank.quat[r],
+                    }
+                )
+            cands.append(rows)
+        summary = {
+            "command": "classify",
+            "config_file": str(cfg_path),
+            "config": cfg,
+            "database": str(dbp),
+            "n_templates": len(bank),
+            "n_observations": len(data),
+            "seconds": res.seconds,
+            "ms_per_observation": 1e3 * res.seconds / len(data),
+            "candidates": cands,
+        }
+        if truth is not None:
+            best = res.best(bank)
+            summary["accuracy"] = {
+                a: float(np.mean(best[f"{a}_id"] == truth[f"{a}_id"]))
+                for a in ("shape", "material", "finish")
+            }
+        write_json(out.path("classify.json"), summary)
+        extra = {f"truth_{k}": v for k, v in (truth or {}).items()}
+        np.savez_compressed(
+            out.path("classify.npz"),
+            data=data,
+            sensor=np.array(sensor),
+            index=res.index,
+            score=res.score,
+            shift=res.shift_refined,
+            **extra,
+        )
+        _plot_classify(out.path("classify.png"), data, bank, res)
+    _say(
+        args, f"ppr classify: wrote {', '.join(str(Path(args.out) / n) for n in CLASSIFY_OUTPUTS)}"
+    )
+    return 0
+
+
+def _plot_classify(path, data, bank, res) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.14, top=0.88, wspace=0.25)
+    axes[0].hist(res.score[:, 0], bins=20, color="0.5")
+    axes[0].set_xlabel("best score")
+    axes[0].set_ylabel("observations")
+    x = data[0] / max(float(data[0].sum()), 1e-300)
+    y = bank.signatures[res.index[0, 0]]
+    axes[1].plot(x.sum(0), label="observation 0 (all channels)")
+    axes[1].plot(
+        np.roll(y.sum(0), int(round(res.shift[0, 0]))), "--", label="best template, shifted"
+    )
+    axes[1].set_xlabel("range bin")
+    axes[1].legend(fontsize=8)
+    fig.suptitle("ppr classify")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+class InvertObservation(StrictModel):
+    source: str = "simulate"  # "simulate" (from the scene's pose and materials) or an .npz
+    photons: float = pydantic.Field(2e4, gt=0.0)  # expected total signal counts (gain)
+    range_offset_m: float = 0.003
+    seed: int = 0
+
+
+class InvertConfig(StrictModel):
+    """``ppr invert``: least-squares refinement and MCMC of attitude and materials."""
+
+    scene: str
+    channels: Literal["full", "stokes", "copol", "circular"] = "copol"
+    brdf: Literal["ppr", "glossy"] = "ppr"
+    free: list[Literal["attitude", "m", "n", "corr_length", "range_offset", "gain"]] = [
+        "attitude",
+        "m",
+        "n",
+        "range_offset",
+        "gain",
+    ]
+    solver: Literal["lm", "dogleg", "gauss_newton"] = "lm"
+    n_starts: int = pydantic.Field(4, ge=1, le=64)
+    start_perturbation_deg: float = pydantic.Field(8.0, ge=0.0, le=180.0)
+    start_perturbation_frac: float = pydantic.Field(0.3, ge=0.0, lt=1.0)
+    mcmc: str | None = "../inversion/default.toml"
+    mcmc_walkers: int | None = pydantic.Field(None, ge=4)
+    mcmc_steps: int | None = pydantic.Field(None, ge=10)
+    mcmc_burn_in: int | None = pydantic.Field(None, ge=0)
+    mcmc_set: dict[str, Any] = {}
+    observation: InvertObservation = InvertObservation()
+
+
+INVERT_OUTPUTS = ["invert.json", "invert_chain.npz", "invert_fit.png", "invert_corner.png"]
+
+
+def cmd_invert(args) -> int:
+    import warnings
+
+    import jax.numpy as jnp
+
+    import inversion
+    import ppr
+    from inversion._params import quat_angle_deg, quat_from_rotvec, quat_multiply
+
+    cfg_path = _config_path(args, "invert.toml")
+    cfg = load_toml_model(InvertConfig, cfg_path, _overrides(args))
+    _maybe_x64("float64")  # inversion runs in float64 (STYLE.md section 5)
+    scene = ppr.load_scene(_resolve_path(cfg.scene, cfg_path))
+    chm = inversion.MeasurementModel.preset(cfg.channels).channel_matrix()
+    brdf = None
+    if cfg.brdf == "glossy":
+        from ._pulse import glossy_fresnel_mueller as brdf
+    model = inversion.SimulatorModel(scene, chm, brdf=brdf, dense=True)
+    mats = scene.materials
+    truth = inversion.PhysicalParams(
+        np.asarray(scene.pose.quaternion, np.float64),
+        [float(np.asarray(m.m)) for m in mats],
+        [complex(np.asarray(m.n)) for m in mats],
+        [float(np.asarray(m.corr_length)) for m in mats],
+        range_offset=cfg.observation.range_offset_m,
+        gain=1.0,
+    )
+    ob = cfg.observation
+    if ob.source == "simulate":
+        shape = np.asarray(model.expected(truth, model.prepare(truth)))
+        gain = ob.photons / max(float(shape.sum()), 1e-300)
+        truth = eqx_replace(truth, gain=jnp.asarray(gain, jnp.float64))
+        expected = np.clip(shape * gain, 0.0, None)  # the kernel's roundoff can give -1e-22
+        data = np.random.default_rng(ob.seed).poisson(expected).astype(np.float64)
+    else:
+        path = _resolve_path(ob.source, cfg_path)
+        if not path.is_file():
+            raise ConfigError(f"{cfg_path}: observation.source = {ob.source!r}: no such file")
+        with np.load(path) as z:
+            data = np.asarray(z["data"], np.float64)
+        truth = None
+    # starts: the reference (truth or scene) perturbed, as the classifier's candidates would be
+    ref = (
+        truth
+        if truth is not None
+        else inversion.PhysicalParams(
+            np.asarray(scene.pose.quaternion, np.float64),
+            [float(np.asarray(m.m)) for m in mats],
+            [complex(np.asarray(m.n)) for m in mats],
+            gain=max(float(data.sum()), 1.0),
+        )
+    )
+    rng = np.random.default_rng(ob.seed + 1)
+    starts = []
+    for _ in range(cfg.n_starts):
+        w = rng.normal(size=3)
+        w *= np.radians(cfg.start_perturbation_deg) / max(np.linalg.norm(w), 1e-12)
+        q = np.asarray(quat_multiply(quat_from_rotvec(jnp.asarray(w)), ref.quaternion))
+        f = 1.0 + cfg.start_perturbation_frac * rng.uniform(-1, 1, 4)
+        starts.append(
+            inversion.PhysicalParams(
+                q,
+                np.asarray(ref.m) * f[0],
+                np.asarray(ref.n).real * f[1] + 1j * np.asarray(ref.n).imag * f[2],
+                np.asarray(ref.corr_length),
+                range_offset=0.0,
+                gain=float(ref.gain) * f[3],
+            )
+        )
+    with outputs(args.out, INVERT_OUTPUTS, args.overwrite) as out:
+        t0 = time.perf_counter()
+        try:
+            fit = inversion.refine(model, data, starts, free=tuple(cfg.free), solver=cfg.solver)
+        except ValueError as err:
+            raise ConfigError(f"{cfg_path}: {err}") from None
+        t_fit = time.perf_counter() - t0
+        summary = {
+            "command": "invert",
+            "config_file": str(cfg_path),
+            "config": cfg,
+            "n_channels": int(data.shape[0]),
+            "n_bins": int(data.shape[1]),
+            "refine": {
+                "success": fit.success,
+                "result": fit.result,
+                "message": fit.message,
+                "cost": fit.cost,
+                "reduced_chi2": fit.reduced_chi2
+                if not callable(fit.reduced_chi2)
+                else fit.reduced_chi2(),
+                "seconds": t_fit,
+                "labels": fit.labels,
+                "quaternion": np.asarray(fit.params.unit_quaternion()),
+                "m": np.asarray(fit.params.m),
+                "n": np.asarray(fit.params.n),
+                "range_offset_m": float(fit.params.range_offset),
+                "gain": float(fit.params.gain),
+                "starts": [{"result": st.result, "cost": st.cost} for st in fit.starts]
+                if hasattr(fit.starts[0], "result")
+                else len(fit.starts),
+            },
+        }
+        if truth is not None:
+            summary["truth"] = {
+                "quaternion": np.asarray(truth.quaternion),
+                "m": np.asarray(truth.m),
+                "n": np.asarray(truth.n),
+                "range_offset_m": float(truth.range_offset),
+                "gain": float(truth.gain),
+            }
+            summary["refine"]["attitude_error_deg"] = float(
+                quat_angle_deg(fit.params.unit_quaternion(), truth.quaternion)
+            )
+        chain = {}
+        post = None
+        if cfg.mcmc is not None:
+            mcfg = inversion.load_mcmc_config(_resolve_path(cfg.mcmc, cfg_path), cfg.mcmc_set)
+            upd = {
+                k: v
+                for k, v in (
+                    ("n_walkers", cfg.mcmc_walkers),
+                    ("n_steps", cfg.mcmc_steps),
+                    ("burn_in", cfg.mcmc_burn_in),
+                )
+                if v is not None
+            }
+            upd["progress"] = _progress(args)
+            samp = validate_sub(
+                type(mcfg.sampler), {**mcfg.sampler.model_dump(), **upd}, cfg_path, "mcmc"
+            )
+            mcfg = mcfg.model_copy(update={"sampler": samp})
+            t1 = time.perf_counter()
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", inversion.ChainTooShortWarning)
+                try:
+                    post = inversion.sample_posterior(
+                        model, data, fit.params, config=mcfg, free=tuple(cfg.free)
+                    )
+                except ValueError as err:
+                    raise ConfigError(f"{cfg_path}: mcmc: {err}") from None
+            lo68, hi68 = post.interval(0.68).T
+            lo95, hi95 = post.interval(0.95).T
+            summary["mcmc"] = {
+                "seconds": time.perf_counter() - t1,
+                "labels": post.labels,
+                "median": post.median(),
+                "interval68": np.stack([lo68, hi68], -1),
+                "interval95": np.stack([lo95, hi95], -1),
+                "acceptance_fraction": float(np.mean(post.acceptance_fraction)),
+                "tau": post.tau,
+                "ess": post.ess,
+                "converged": bool(post.converged),
+                "warnings": [str(w.message) for w in caught],
+            }
+            if truth is not None:
+                tv = post.truth_vector(truth)
+                summary["mcmc"]["truth_vector"] = tv
+                summary["mcmc"]["truth_in_95"] = post.contains(tv, 0.95)
+            chain = {
+                "chain": post.chain,
+                "log_prob": post.log_prob,
+                "samples": post.samples,
+                "labels": np.array(post.labels),
+            }
+            post.corner_plot(out.path("invert_corner.png"), truth=truth)
+        write_json(out.path("invert.json"), summary)
+        np.savez_compressed(out.path("invert_chain.npz"), data=data, **chain)
+        fitted = np.asarray(model.expected(fit.params, model.prepare(fit.params)))
+        _plot_fit(out.path("invert_fit.png"), data, fitted)
+    _say(args, f"ppr invert: wrote {', '.join(str(Path(args.out) / n) for n in INVERT_OUTPUTS)}")
+    return 0
+
+
+def eqx_replace(module, **changes):
+    import equinox as eqx
+
+    for k, v in changes.items():
+        module = eqx.tree_at(lambda m, k=k: getattr(m, k), module, v)
+    return module
+
+
+def validate_sub(model, data, cfg_path, field):
+    return _sub_model(model, data, cfg_path, field)
+
+
+def _plot_fit(path, data, fitted) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for c in range(data.shape[0]):
+        ax.plot(data[c], ".", ms=3, label=f"channel {c} data")
+        ax.plot(fitted[c], "-", lw=1)
+    ax.set_xlabel("range bin")
+    ax.set_ylabel("counts")
+    ax.legend(fontsize=7, ncol=2)
+    ax.set_title("ppr invert: data (dots) and best fit (lines)")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 # ================================================================================= demo
 def _find(module: str, names: Sequence[str]) -> Callable | None:
     try:
@@ -886,6 +1452,68 @@ pulse.fwhm_ps, pulse.jitter_ps [picoseconds], bins.width_mm, bins.count, bins.st
 Outputs: simulate.npz (data in m^2/sr per bin, range_m one-way, time_s round trip, edges_m,
 visibility per face), simulate.json (energies, mean range, rms depth), simulate.png."""
 
+DATABASE_HELP = """\
+Build a signature database (shapes x attitudes x materials x finishes) chunk by chunk into
+--out/database.zarr (zarr v3, resumable: rerunning after an interruption computes only the
+missing chunks; a complete database is not rebuilt unless --overwrite). Summary:
+--out/database.json (rows, chunks, rows per second).
+
+Config (configs/databases/*.toml): name; model ("synthetic" stand-in or "ppr"); materials
+(library names); [finishes] name = Blinn-Phong exponent m; [[shapes]] name, symmetry;
+[grid] kind ("hopf"), size (nside: angular resolution), reduce_symmetry; [sensor] channels
+(full, stokes, copol, circular), n_bins, bin_width_m (metres), pulse_fwhm_s (seconds);
+chunk_rows; compute_dtype. Several hosts: run with --shard-index i --num-shards N against
+one shared --out (see docs/distributed_builds.md)."""
+
+CLASSIFY_HELP = """\
+Classify observations against a built database: weighted inner product maximized over the
+unknown range shift (FFT), top-k candidates with scores, shifts (bins) and their shape,
+material, finish and attitude quaternion.
+
+Config fields (configs/cli/classify.toml):
+  database       path of a built database (.zarr, from `ppr database build`)
+  observations   "simulate" (held-out noisy observations at random attitudes, from the
+                 database's own signature model) or an .npz with data (N, channels, bins)
+  attribute      weights tuned for "shape", "material", "finish" or "attitude"
+  weights        "uniform", "channel", "range" or "fisher"
+  top_k, max_shift_bins (bins; default: the classifier's)
+  n_simulated, seed, [noise] snr (sqrt of expected total counts; "inf": none),
+                 speckle_cells, jitter_bins, max_offset_bins (bins), gain_min, gain_max
+Outputs: classify.json (candidates, accuracy if simulated, ms per observation),
+classify.npz, classify.png."""
+
+INVERT_HELP = """\
+Recover attitude, roughness m, complex index n, range offset (m) and gain from one
+observation: multi-start least squares (optimistix Levenberg-Marquardt) then posterior
+sampling (emcee, vmapped log-probability) with priors from an MCMC config.
+
+Config fields (configs/cli/invert.toml):
+  scene          scene config (mesh, sensor, pulse, bins; its pose and materials are the
+                 truth of simulated observations and the reference for the starts)
+  channels       PSG/PSA preset: full (16), stokes (8), copol (2), circular (2)
+  brdf           "ppr" (ppr.mueller_brdf) or "glossy" (cheap polarizing stand-in)
+  free           parameter groups to fit; solver "lm" | "dogleg" | "gauss_newton"
+  n_starts, start_perturbation_deg (degrees), start_perturbation_frac (fraction)
+  mcmc           priors + sampler config (configs/inversion/*.toml); mcmc_walkers,
+                 mcmc_steps, mcmc_burn_in override its sampler; mcmc_set = {"dotted.key" =
+                 value} overrides any of its fields (e.g. "priors.gain.high")
+  [observation]  source ("simulate" or an .npz with data (channels, bins)), photons
+                 (expected total counts), range_offset_m (metres), seed
+Outputs: invert.json (fit, result codes, attitude error, credible intervals, diagnostics),
+invert_chain.npz, invert_fit.png, invert_corner.png."""
+
+REPORT_HELP = """\
+Evaluate the classifier on held-out simulated observations (random attitudes off the grid,
+random shape/material/finish, Poisson noise at each SNR, speckle, jitter, range offset and
+gain): accuracy and attitude error (degrees) per weight design against SNR and database
+angular resolution, confusion matrices, time per classification.
+
+Config fields (configs/cli/report.toml): database (spec TOML, configs/databases/), optional
+database_path (a built .zarr to use as the bank), snrs, grid_sizes (Hopf nside), n_obs,
+weight_kinds, speckle_cells, jitter_bins and max_offset_bins (bins), gain_range, seed,
+top_k. Outputs: report.json, report.md, accuracy_vs_snr.png, attitude_vs_snr.png,
+attitude_vs_resolution.png, confusion_{shape,material,finish}.png."""
+
 DEMO_HELP = """\
 Write every demo figure into --out: the BRDF figures, the double-bounce (enhancement peak)
 figures, the pulse figures and a Mueller image of the example satellite. Figures that exist
@@ -963,6 +1591,55 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_simulate)
 
+    p = sub.add_parser(
+        "database", help="signature databases (database build)", formatter_class=_Formatter
+    )
+    dsub = p.add_subparsers(dest="database_command", metavar="SUBCOMMAND")
+    pb = dsub.add_parser(
+        "build",
+        help="build or resume a signature database",
+        description=DATABASE_HELP,
+        formatter_class=_Formatter,
+    )
+    _common(pb, "databases/synthetic_small.toml", "out/database")
+    pb.add_argument(
+        "--shard-index",
+        type=int,
+        default=0,
+        help="build only chunks i with i %% num_shards == shard_index (several "
+        "processes or hosts sharing one --out)",
+    )
+    pb.add_argument("--num-shards", type=int, default=1, help="number of cooperating builders")
+    pb.set_defaults(func=cmd_database_build)
+    p.set_defaults(func=None, _sub=p)
+
+    p = sub.add_parser(
+        "classify",
+        help="top-k database candidates for observations",
+        description=CLASSIFY_HELP,
+        formatter_class=_Formatter,
+    )
+    _common(p, "cli/classify.toml", "out/classify")
+    p.set_defaults(func=cmd_classify)
+
+    p = sub.add_parser(
+        "invert",
+        help="least-squares + MCMC inversion of one observation",
+        description=INVERT_HELP,
+        formatter_class=_Formatter,
+    )
+    _common(p, "cli/invert.toml", "out/invert")
+    p.set_defaults(func=cmd_invert)
+
+    p = sub.add_parser(
+        "report",
+        help="classifier evaluation report",
+        description=REPORT_HELP,
+        formatter_class=_Formatter,
+    )
+    _common(p, "cli/report.toml", "out/report")
+    p.set_defaults(func=cmd_report)
+
     for extra in _EXTRA_COMMANDS:
         extra(sub)
     return parser
@@ -998,7 +1675,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
-        parser.print_help(sys.stderr)
+        (getattr(args, "_sub", None) or parser).print_help(sys.stderr)
         raise SystemExit(2)
     enable_compile_cache()
     try:
