@@ -478,6 +478,8 @@ def main(argv=None):
     )
     mcmc_cfg = mcmc_config_from_dict(
         {
+            # the simulator returns m^2/sr per bin: counts need gains of ~1e15-1e20
+            "priors": {"gain": {"kind": "loguniform", "low": 1e-30, "high": 1e30}},
             "sampler": {
                 "n_walkers": 24,
                 "n_steps": args.mcmc_steps,
