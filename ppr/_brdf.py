@@ -55,6 +55,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -110,13 +111,6 @@ def _split(v: Array) -> Vec:
 
 def _d3(a: Vec, b: Vec) -> Array:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _vis_order(dt) -> int:
-    """Quadrature order of ``<h.k>+`` inside the BRDF: max abs error of ``P(k)`` against order
-    256 over m in [0, 1e6] and cos in [1e-7, 1] was 1.4e-7 at 24 (float32 rounding level) and
-    2e-14 at 64 (measured; see the report of issue 2)."""
-    return 24 if np.finfo(dt).bits <= 32 else 64
 
 
 def _geometry3(ki: Vec, ko: Vec, nr: Vec):
@@ -183,11 +177,17 @@ def _single_scalar3(ki, ko, nr, m):
     """
     dt = ki[0].dtype
     valid, ki_s, ko_s, ci, co, h = _geometry3(ki, ko, nr)
-    order = _vis_order(dt)
-    vi = visibility(m, ci, order=order) / ci
-    vo = visibility(m, co, order=order) / co
+    # V = P(k)/(k.n): finite down to k.n -> 0 (ppr._microfacet continues <h.k>+ linearly
+    # below its smallest resolved cosine)
+    vi = visibility(m, ci) / ci
+    vo = visibility(m, co) / co
     f = _azimuth_factor3(ki_s, ko_s, nr, ci, co)
-    g = (1.0 - f) * vi * vo + f * jnp.minimum(vi / co, vo / ci)
+    # min(P, P') / (ci co) = min(V / co, V' / ci) in log space: XLA's algebraic simplifier
+    # rewrites a / b / c as a / (b * c), which underflows in float32 at ci, co ~ 1e-20
+    lci, lco = jnp.log(ci), jnp.log(co)
+    t = tiny(dt)
+    log_min = jnp.minimum(jnp.log(jnp.maximum(vi, t)) - lco, jnp.log(jnp.maximum(vo, t)) - lci)
+    g = (1.0 - f) * vi * vo + f * jnp.exp(log_min)
     log_p = jnp.log((m + 1.0) / (2.0 * math.pi)) + _log_lobe3(m, h, nr)
     scal = jnp.exp(log_p) * g / (4.0 * mean_cosine_n(m))
     return jnp.where(valid, scal, 0.0), ki_s, ko_s, h
@@ -353,6 +353,14 @@ def _double_term(k_in, k_out, normal, material, frame_in, frame_out, *, waveleng
     )
 
 
+def _double_auto_term(k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9):
+    from ._double import double_bounce_term_auto
+
+    return double_bounce_term_auto(
+        k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength
+    )
+
+
 TermFn = Callable[..., Array]
 
 TERMS: dict[str, TermFn] = {
@@ -393,10 +401,9 @@ def _resolve_terms(terms) -> tuple[str, ...]:
         return implemented_terms()
     if isinstance(terms, str):
         if terms == "auto":
-            raise NotImplementedError(
-                'terms="auto" (per-geometry term selection) arrives with the double-bounce '
-                "term (issue 3, ppr/_double.py)"
-            )
+            # the double term is kept only where its measured contribution exceeds the rule's
+            # tolerance (ppr/_double.py: AUTO_TOL, AUTO_M_MAX; docs/double_bounce_table.md)
+            return tuple("double:auto" if t == "double" else t for t in implemented_terms())
         terms = (terms,)
     terms = tuple(terms)
     if len(terms) == 0:
@@ -501,21 +508,22 @@ def _validate_material(material: Material) -> Material:
 
 
 def mueller_brdf(
-    k_in: Float[ArrayLike, "*#b 3"],
-    k_out: Float[ArrayLike, "*#b 3"],
-    normal: Float[ArrayLike, "*#b 3"],
+    k_in: Any,
+    k_out: Any,
+    normal: Any,
     material: Material,
     *,
     terms: tuple[str, ...] | str | None = None,
-    frame_in: Float[ArrayLike, "*#b 3"] | None = None,
-    frame_out: Float[ArrayLike, "*#b 3"] | None = None,
+    frame_in: Any = None,
+    frame_out: Any = None,
     wavelength: float | Array = 532e-9,
-) -> Float[Array, "*b 4 4"]:
+) -> Float[Array, "... 4 4"]:
     """Polarized microfacet Mueller BRDF (1/sr), ``S_out = M @ S_in``.
 
     **Arguments:**
 
-    - `k_in`: unit direction from the surface toward the source, ``(..., 3)``.
+    - `k_in`: unit direction from the surface toward the source, ``(..., 3)`` (array-like;
+      shapes are checked here, with errors naming the argument, not by the annotation).
     - `k_out`: unit direction from the surface toward the receiver, ``(..., 3)``; exact
       monostatic backscatter is ``k_out == k_in``.
     - `normal`: unit macro-surface normal, ``(..., 3)``.
@@ -602,7 +610,8 @@ def _brdf_core(k_in, k_out, normal, material, frame_in, frame_out, wavelength, *
         elif name == "multiple":
             rows = _add_rows(rows, _multiple_rows(ki, ko, nr, material, m))
         else:
-            t = TERMS[name](k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength)
+            fn = _double_auto_term if name == "double:auto" else TERMS[name]
+            t = fn(k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength)
             out = t if out is None else out + t
     if rows is not None:
         r = _stack_rows(rows, batch, dt)
