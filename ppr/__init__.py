@@ -30,7 +30,7 @@ from ._mesh import Mesh, MeshArrays, check_mesh, load_mesh, mesh_arrays, subdivi
 from ._pose import quat_from_axis_angle, quat_to_matrix
 from ._scene import Pose, Pulse, RangeBins, Scene, Sensor, load_scene, load_sensor
 from ._visibility import VisibilityCaster
-from ._pulse import Profile, render, simulate, stack_materials, tent_gaussian_cdf, window_size
+from ._pulse import Profile, double_bounce, render, simulate, stack_materials, tent_gaussian_cdf, window_size
 
 __all__ = [
     "Material",
@@ -50,6 +50,6 @@ __all__ = [
     "polarizance",
     "retardance",
 ]
-__all__ += ["shapes", "Mesh", "MeshArrays", "check_mesh", "load_mesh", "mesh_arrays", "subdivide", "quat_from_axis_angle", "quat_to_matrix", "Pose", "Pulse", "RangeBins", "Scene", "Sensor", "load_scene", "load_sensor", "VisibilityCaster", "Profile", "render", "simulate", "stack_materials", "tent_gaussian_cdf", "window_size"]
+__all__ += ["shapes", "Mesh", "MeshArrays", "check_mesh", "load_mesh", "mesh_arrays", "subdivide", "quat_from_axis_angle", "quat_to_matrix", "Pose", "Pulse", "RangeBins", "Scene", "Sensor", "load_scene", "load_sensor", "VisibilityCaster", "Profile", "double_bounce", "render", "simulate", "stack_materials", "tent_gaussian_cdf", "window_size"]
 __all__ += ["mueller_brdf"]
 __version__ = "0.1.0"
