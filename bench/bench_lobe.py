@@ -109,16 +109,26 @@ def main() -> None:
     # NumPy reference of the same formula at the default orders (float64 arithmetic)
     n_np = 200_000
     np_rates = {}
-    for dt, order, tail, cs in ((np.float64, mf.DEFAULT_ORDER, 28.0, 1e-5), (np.float32, mf.DEFAULT_ORDER_F32, 16.0, 3e-4)):
+    for dt, order, tail, cs in (
+        (np.float64, mf.DEFAULT_ORDER, 28.0, 1e-5),
+        (np.float32, mf.DEFAULT_ORDER_F32, 16.0, 3e-4),
+    ):
         t0 = time.perf_counter()
         v = numpy_mean_cosine_plus(m_in[:n_np], c_in[:n_np], order, tail, cs)
         rate = n_np / (time.perf_counter() - t0)
-        jx = np.asarray(mf.mean_cosine_plus(jnp.asarray(m_in[:n_np], dt), jnp.asarray(c_in[:n_np], dt)), np.float64)
+        jx = np.asarray(
+            mf.mean_cosine_plus(jnp.asarray(m_in[:n_np], dt), jnp.asarray(c_in[:n_np], dt)),
+            np.float64,
+        )
         agree = float(np.max(np.abs(v - jx) / v))
-        jrate = next(r["rate"] for r in rows if r["dtype"] == np.dtype(dt).name and r["order"] == order)
+        jrate = next(
+            r["rate"] for r in rows if r["dtype"] == np.dtype(dt).name and r["order"] == order
+        )
         np_rates[np.dtype(dt).name] = (order, rate, jrate, agree)
-        print(f"NumPy order {order} ({np.dtype(dt).name} settings): {rate / 1e6:.2f} M evals/s; "
-              f"JAX {np.dtype(dt).name} / NumPy = {jrate / rate:.1f}x; max rel diff {agree:.1e}")
+        print(
+            f"NumPy order {order} ({np.dtype(dt).name} settings): {rate / 1e6:.2f} M evals/s; "
+            f"JAX {np.dtype(dt).name} / NumPy = {jrate / rate:.1f}x; max rel diff {agree:.1e}"
+        )
 
     lines = [
         "# <h.k>+ quadrature: error vs speed",
@@ -131,15 +141,29 @@ def main() -> None:
         "| dtype | order | max rel. error | M evals/s |",
         "|---|---|---|---|",
     ]
-    lines += [f"| {r['dtype']} | {r['order']} | {r['err']:.1e} | {r['rate'] / 1e6:.2f} |" for r in rows]
-    lines += ["", "| dtype | fast path (m = 1e6, cos in [0.2, 1], quadrature skipped) M evals/s |", "|---|---|"]
+    lines += [
+        f"| {r['dtype']} | {r['order']} | {r['err']:.1e} | {r['rate'] / 1e6:.2f} |" for r in rows
+    ]
+    lines += [
+        "",
+        "| dtype | fast path (m = 1e6, cos in [0.2, 1], quadrature skipped) M evals/s |",
+        "|---|---|",
+    ]
     lines += [f"| {k} | {v / 1e6:.1f} |" for k, v in fast.items()]
-    lines += ["", "| settings | order | NumPy M evals/s | JAX M evals/s | JAX / NumPy | max rel. diff |",
-              "|---|---|---|---|---|---|"]
-    lines += [f"| {k} | {o} | {r / 1e6:.2f} | {j / 1e6:.2f} | {j / r:.1f}x | {a:.1e} |"
-              for k, (o, r, j, a) in np_rates.items()]
-    lines += ["", f"Defaults: float64 order {mf.DEFAULT_ORDER}, float32 order {mf.DEFAULT_ORDER_F32} "
-              "(reasoning in the docstring of bench/bench_lobe.py)."]
+    lines += [
+        "",
+        "| settings | order | NumPy M evals/s | JAX M evals/s | JAX / NumPy | max rel. diff |",
+        "|---|---|---|---|---|---|",
+    ]
+    lines += [
+        f"| {k} | {o} | {r / 1e6:.2f} | {j / 1e6:.2f} | {j / r:.1f}x | {a:.1e} |"
+        for k, (o, r, j, a) in np_rates.items()
+    ]
+    lines += [
+        "",
+        f"Defaults: float64 order {mf.DEFAULT_ORDER}, float32 order {mf.DEFAULT_ORDER_F32} "
+        "(reasoning in the docstring of bench/bench_lobe.py).",
+    ]
     (OUT / "lobe_error_vs_speed.md").write_text("\n".join(lines) + "\n")
 
     import matplotlib
@@ -152,8 +176,13 @@ def main() -> None:
         rr = [r for r in rows if r["dtype"] == name]
         ax.loglog([r["rate"] / 1e6 for r in rr], [r["err"] for r in rr], mk, label=name)
         for r in rr:
-            ax.annotate(str(r["order"]), (r["rate"] / 1e6, r["err"]), fontsize=7,
-                        xytext=(3, 3), textcoords="offset points")
+            ax.annotate(
+                str(r["order"]),
+                (r["rate"] / 1e6, r["err"]),
+                fontsize=7,
+                xytext=(3, 3),
+                textcoords="offset points",
+            )
     ax.axhline(1e-9, color="k", lw=0.8, ls="--", label="1e-9 requirement")
     ax.set_xlabel("M evaluations / s (N = 1e6, jit)")
     ax.set_ylabel("max relative error vs mpmath")

@@ -21,8 +21,29 @@ import numpy as np
 
 DPS = 40
 M_VALUES = [0.0, 1e-3, 0.5, 1.0, 10.0, 100.0, 1e3, 5e3, 1e4, 1e5, 1e6]
-ANGLES_DEG = [0, 15, 30, 45, 60, 70, 75, 80, 84, 86, 88, 89, 89.5, 89.8, 89.9, 89.95,
-              89.98, 89.99, 89.995, 89.998, 89.999]
+ANGLES_DEG = [
+    0,
+    15,
+    30,
+    45,
+    60,
+    70,
+    75,
+    80,
+    84,
+    86,
+    88,
+    89,
+    89.5,
+    89.8,
+    89.9,
+    89.95,
+    89.98,
+    89.99,
+    89.995,
+    89.998,
+    89.999,
+]
 # extra points inside the grazing band of each m: c = z sqrt(2 / (m + 2))
 Z_BAND = [0.1, 0.3, 1.0, 2.0, 3.0, 5.0]
 
@@ -75,7 +96,7 @@ def grid() -> tuple[np.ndarray, np.ndarray]:
 
 def main() -> None:
     ms, cs = grid()
-    vals = np.array([float(mean_cosine_plus_ref(m, c)) for m, c in zip(ms, cs)])
+    vals = np.array([float(mean_cosine_plus_ref(m, c)) for m, c in zip(ms, cs, strict=True)])
     out = pathlib.Path(__file__).with_name("lobe_reference.npz")
     np.savez(out, m=ms, cos_theta=cs, mean_cosine_plus=vals, dps=DPS)
     print(f"wrote {out} ({len(ms)} points)")
