@@ -49,8 +49,9 @@ The mean projected cosine ``<h . k>+`` (derivation, used by :func:`mean_cosine_p
     range stays bounded down to ``c = 0``. Where ``s^M / 2`` (an upper bound of the correction)
     is below ``exp(-44)`` (float64; ``exp(-20)`` float32) of ``c <h.n>`` the correction is
     dropped (``jnp.where``, both branches safe), and a batch in which every element is
-    dropped skips the quadrature (``lax.cond``). The derivatives in ``m`` and ``c`` (``jax.custom_jvp``) are the integrals of the differentiated
-    integrand, evaluated by the same loop. Checks (tests/test_microfacet.py): an mpmath
+    dropped skips the quadrature (``lax.cond``). The derivatives in ``m`` and ``c``
+    (``jax.custom_jvp``) are the integrals of the differentiated integrand, evaluated by the
+    same loop. Checks (tests/test_microfacet.py): an mpmath
     reference at 1e-9, Monte Carlo over the lobe, ``m = 0`` closed form
     ``<h.k>+ = (1 + c) / 4``, ``c = 0`` gives ``I = int_0^{pi/2} cos^M``, ``m -> inf`` gives ``c``.
 
