@@ -23,9 +23,11 @@ import dataclasses
 import functools
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+VecLike = Any  # a 3-vector (or quaternion): list, tuple or array of numbers
 EXAMPLE_SATELLITE = Path(__file__).resolve().parent / "data" / "example_satellite.glb"
 
 QUANTITIES = ("reflectance", "depolarization_index", "polarizance", "diattenuation", "retardance")
@@ -82,7 +84,7 @@ def supported_terms(terms):
 
 
 # --------------------------------------------------------------------------- geometry helpers
-def quaternion_to_matrix(q: Sequence[float]) -> np.ndarray:
+def quaternion_to_matrix(q: VecLike) -> np.ndarray:
     """Rotation matrix of a quaternion ``(w, x, y, z)`` (any norm > 0, either sign)."""
     q = np.asarray(q, dtype=float)
     if q.shape != (4,) or not np.all(np.isfinite(q)):
@@ -420,11 +422,11 @@ def render_mueller_image(
     mesh: PartMesh,
     materials: Sequence,
     *,
-    laser_dir: Sequence[float],
-    receiver_dir: Sequence[float] | None = None,
-    frame_tx: Sequence[float] | None = None,
-    frame_rx: Sequence[float] | None = None,
-    quaternion: Sequence[float] = (1.0, 0.0, 0.0, 0.0),
+    laser_dir: VecLike,
+    receiver_dir: VecLike | None = None,
+    frame_tx: VecLike | None = None,
+    frame_rx: VecLike | None = None,
+    quaternion: VecLike = (1.0, 0.0, 0.0, 0.0),
     n_pixels: int = 128,
     half_width: float | None = None,
     wavelength: float = 532e-9,

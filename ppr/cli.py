@@ -1179,6 +1179,7 @@ def cmd_invert(args) -> int:
                 "range_offset_m": float(truth.range_offset),
                 "gain": float(truth.gain),
             }
+            # geodesic angle to the true attitude, not reduced by the shape's symmetry group
             summary["refine"]["attitude_error_deg"] = float(
                 quat_angle_deg(fit.params.unit_quaternion(), truth.quaternion)
             )
@@ -1343,7 +1344,9 @@ def cmd_demo(args) -> int:
         _say(args, "ppr demo: Mueller image of the example satellite ...")
         t0 = time.perf_counter()
         cfg_path = CONFIG_DIR / "cli" / "image.toml"
-        cfg = load_toml_model(ImageConfig, cfg_path, {"render.n_pixels": args.pixels})
+        cfg = load_toml_model(
+            ImageConfig, cfg_path, {"render.n_pixels": args.pixels, **_overrides(args)}
+        )
         img = run_image(cfg, cfg_path, progress=_progress(args))
         with outputs(out, IMAGE_OUTPUTS, overwrite=True) as demo_out:
             write_image_outputs(img, cfg, cfg_path, demo_out, seconds=time.perf_counter() - t0)
@@ -1545,6 +1548,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="STEPS",
         default=None,
         help=f"comma-separated subset of the steps {', '.join(DEMO_KEYS)} (default: all)",
+    )
+    p.add_argument(
+        "--set",
+        "-s",
+        metavar="KEY=VALUE",
+        action="append",
+        default=[],
+        help="override a field of the Mueller image's config (configs/cli/image.toml)",
     )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars or messages")
     p.set_defaults(func=cmd_demo)

@@ -43,7 +43,7 @@ def error_line(capsys) -> str:
 def test_help_lists_every_command(capsys):
     assert run("--help") == 0
     text = capsys.readouterr().out
-    for cmd in ("demo", "brdf", "image", "simulate"):
+    for cmd in ("demo", "brdf", "image", "simulate", "database", "classify", "invert", "report"):
         assert cmd in text
 
 
@@ -54,6 +54,9 @@ def test_help_lists_every_command(capsys):
         ("image", ["microradians", "metres", "1/sr", "[rad]"]),
         ("simulate", ["picoseconds", "microradians", "m^2/sr"]),
         ("demo", ["--out"]),
+        ("classify", ["bins", "sqrt of expected total counts"]),
+        ("invert", ["degrees", "metres", "expected total counts"]),
+        ("report", ["bins", "degrees"]),
     ],
 )
 def test_subcommand_help_explains_units(capsys, cmd, units):
@@ -149,7 +152,21 @@ def test_simulate_end_to_end(tmp_path):
 
 def test_demo_runs_and_writes_summary(tmp_path):
     out = tmp_path / "demo"
-    assert run("demo", "-q", "--out", out, "--pixels", "16", "--only", "image") == 0
+    assert (
+        run(
+            "demo",
+            "-q",
+            "--out",
+            out,
+            "--pixels",
+            "16",
+            "--only",
+            "image",
+            "--set",
+            'render.terms=["single"]',
+        )
+        == 0
+    )
     summary = json.loads((out / "demo.json").read_text())
     if HAVE_BRDF:
         assert "Mueller image" in summary["steps_seconds"]
@@ -299,3 +316,135 @@ def test_subprocess_smoke(tmp_path):
         timeout=120,
     )
     assert ok.returncode == 0 and "simulate" in ok.stdout
+
+
+# ------------------------------------------------------------------------- inversion side
+SMALL_DB = """name = "tiny"
+model = "synthetic"
+materials = ["aluminium", "white_paint"]
+chunk_rows = 64
+[finishes]
+polished = 3000.0
+matte = 5.0
+[[shapes]]
+name = "cube"
+symmetry = "octahedral"
+[[shapes]]
+name = "box3u"
+symmetry = "dihedral:4"
+[grid]
+kind = "hopf"
+size = 1
+[sensor]
+channels = "copol"
+n_bins = 32
+bin_width_m = 0.01
+"""
+
+
+@pytest.fixture(scope="module")
+def tiny_db(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("db")
+    spec = _write(tmp / "tiny.toml", SMALL_DB)
+    out = tmp / "out"
+    assert run("database", "build", "-q", "-c", spec, "-o", out) == 0
+    return spec, out
+
+
+def test_database_build_and_refuse(tiny_db, capsys):
+    spec, out = tiny_db
+    summary = json.loads((out / "database.json").read_text())
+    assert summary["complete"] and summary["n_rows"] > 0 and summary["missing_chunks"] == 0
+    assert (out / "database.zarr" / "zarr.json").is_file()
+    capsys.readouterr()
+    assert run("database", "build", "-q", "-c", spec, "-o", out) == 2
+    assert "already exists" in error_line(capsys)
+
+
+def test_database_without_subcommand_is_usage_error(capsys):
+    assert run("database") == 2
+
+
+def test_classify_end_to_end(tiny_db, tmp_path):
+    _, db = tiny_db
+    cfg = _write(
+        tmp_path / "c.toml",
+        f'database = "{db / "database.zarr"}"\nn_simulated = 6\ntop_k = 3\n[noise]\nsnr = 100.0\n',
+    )
+    out = tmp_path / "cls"
+    assert run("classify", "-q", "-c", cfg, "-o", out) == 0
+    summary = json.loads((out / "classify.json").read_text())
+    assert summary["n_observations"] == 6 and len(summary["candidates"][0]) == 3
+    assert set(summary["accuracy"]) == {"shape", "material", "finish"}
+    with np.load(out / "classify.npz") as z:
+        assert z["index"].shape == (6, 3)
+    # the observations written by one run classify again from the file
+    cfg2 = _write(
+        tmp_path / "c2.toml",
+        f'database = "{db / "database.zarr"}"\nobservations = "{out / "classify.npz"}"\n',
+    )
+    assert run("classify", "-q", "-c", cfg2, "-o", tmp_path / "cls2") == 0
+
+
+def test_classify_missing_database(tmp_path, capsys):
+    cfg = _write(tmp_path / "c.toml", 'database = "nowhere.zarr"\n')
+    assert run("classify", "-c", cfg, "-o", tmp_path / "o") == 2
+    line = error_line(capsys)
+    assert "database" in line and "nowhere.zarr" in line
+
+
+def test_report_end_to_end(tiny_db, tmp_path):
+    spec, _ = tiny_db
+    cfg = _write(
+        tmp_path / "r.toml",
+        f'database = "{spec}"\nsnrs = [30.0]\ngrid_sizes = [1]\nn_obs = 4\n'
+        'weight_kinds = ["uniform", "fisher"]\n',
+    )
+    out = tmp_path / "rep"
+    assert run("report", "-q", "-c", cfg, "-o", out) == 0
+    assert json.loads((out / "report.json").read_text())
+    assert (out / "report.md").stat().st_size > 0
+    assert (out / "accuracy_vs_snr.png").is_file()
+
+
+INV_SENSOR = """wavelength_nm = 532.0
+line_of_sight = [0.0, 0.0, -1.0]
+polarization_reference = [1.0, 0.0, 0.0]
+[pulse]
+fwhm_ps = 100.0
+[bins]
+width_mm = 10.0
+count = 32
+"""
+INV_SCENE = """sensor = "sensor.toml"
+[shape]
+name = "cubesat"
+params = { units = 1 }
+[materials]
+body = { n_real = 1.5, n_imag = 0.05, m = 10.0 }
+[pose]
+quaternion = [0.9317252, 0.2504638, 0.2003711, 0.1703154]
+[visibility]
+samples_per_face = 1
+"""
+
+
+@needs_brdf
+def test_invert_end_to_end(tmp_path):
+    _write(tmp_path / "sensor.toml", INV_SENSOR)
+    _write(tmp_path / "scene.toml", INV_SCENE)
+    mcmc = ROOT / "configs" / "inversion" / "default.toml"
+    cfg = _write(
+        tmp_path / "inv.toml",
+        f'scene = "scene.toml"\nbrdf = "glossy"\nn_starts = 1\nmcmc = "{mcmc}"\n'
+        "mcmc_walkers = 16\nmcmc_steps = 20\nmcmc_burn_in = 5\n"
+        'mcmc_set = { "priors.gain.high" = 1e15 }\n',
+    )
+    out = tmp_path / "inv"
+    assert run("invert", "-q", "-c", cfg, "-o", out) == 0
+    for name in cli.INVERT_OUTPUTS:
+        assert (out / name).is_file(), name
+    summary = json.loads((out / "invert.json").read_text())
+    assert summary["refine"]["result"]
+    assert len(summary["mcmc"]["interval95"]) == len(summary["mcmc"]["labels"])
+    assert summary["mcmc"]["warnings"]  # a 20-step chain is flagged as too short
