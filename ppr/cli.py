@@ -1291,19 +1291,10 @@ def _find(module: str, names: Sequence[str]) -> Callable | None:
 DEMO_STEPS: list[tuple[str, str, str, tuple[str, ...]]] = [
     # (key, label, module, candidate function names); the first one found per key runs
     ("brdf", "BRDF figures", "ppr.demo", ("brdf_figures",)),
-    (
-        "double",
-        "double-bounce figures",
-        "ppr.demo",
-        ("double_bounce_figures", "enhancement_figures"),
-    ),
-    (
-        "double",
-        "double-bounce figures",
-        "ppr._double",
-        ("double_bounce_figures", "enhancement_figures"),
-    ),
+    ("double", "double-bounce figures", "ppr.demo", ("double_figures", "double_bounce_figures")),
+    ("double", "double-bounce figures", "ppr._double", ("double_figures", "double_bounce_figures")),
     ("pulse", "pulse figures", "ppr.demo", ("pulse_figures",)),
+    ("pulse", "pulse figures", "ppr.plots_pulse", ("pulse_figures",)),
     ("pulse", "pulse figures", "ppr._pulse", ("pulse_figures",)),
 ]
 DEMO_KEYS = ("brdf", "double", "pulse", "image")
