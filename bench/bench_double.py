@@ -31,7 +31,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ppr._double import DEFAULT_ORDER, INNER_ORDER, _nodes, double_bounce_term  # noqa: E402
+from ppr._double import DEFAULT_ORDER, INNER_ORDER, double_bounce_term  # noqa: E402
 from ppr._material import Material  # noqa: E402
 
 OUT = os.path.join(os.path.dirname(__file__), "results")
@@ -54,7 +54,9 @@ def geometry(rng, n, max_inc=85.0, max_psi=30.0):
     t1 = np.cross(k, [0.3, 0.2, 0.9])
     t1 /= np.linalg.norm(t1, axis=-1, keepdims=True)
     t2 = np.cross(k, t1)
-    kp = np.cos(psi)[:, None] * k + np.sin(psi)[:, None] * (np.cos(a)[:, None] * t1 + np.sin(a)[:, None] * t2)
+    kp = np.cos(psi)[:, None] * k + np.sin(psi)[:, None] * (
+        np.cos(a)[:, None] * t1 + np.sin(a)[:, None] * t2
+    )
     kp[:, 2] = np.abs(kp[:, 2])
     kp /= np.linalg.norm(kp, axis=-1, keepdims=True)
     kp[:, 2] = np.maximum(kp[:, 2], 1e-3)
@@ -73,7 +75,9 @@ def make_fn(order, coherent=True):
     @jax.jit
     def f(k, kp, n, m):
         fi, fo, z = frames(k, kp)
-        return double_bounce_term(k, kp, z, Material(n=n, m=m), fi, fo, order=order, coherent=coherent)
+        return double_bounce_term(
+            k, kp, z, Material(n=n, m=m), fi, fo, order=order, coherent=coherent
+        )
 
     return f
 
@@ -124,7 +128,14 @@ def accuracy(n_geo=60, quick=False, seed=0):
                 per_m=per_m,
             )
         )
-        print(order, {k_: (f"{v:.2e}" if isinstance(v, float) else v) for k_, v in rows[-1].items() if k_ != "per_m"})
+        print(
+            order,
+            {
+                k_: (f"{v:.2e}" if isinstance(v, float) else v)
+                for k_, v in rows[-1].items()
+                if k_ != "per_m"
+            },
+        )
     return rows
 
 
@@ -177,7 +188,9 @@ def numpy_double_m00(k, kp, n, m, order, inner_order=INNER_ORDER):
         cc = c[..., None]
         f = cb ** mm[..., None] * sb * (sb - cc * cb * np.arctan2(sb, cc * cb))
         s2 = np.clip(1 - c * c, 0, 1)
-        return c * (mm + 1) / (mm + 2) + (mm + 1) / np.pi * s2 ** (0.5 * (mm + 2)) * bmax * np.sum(wg * f, -1)
+        return c * (mm + 1) / (mm + 2) + (mm + 1) / np.pi * s2 ** (0.5 * (mm + 2)) * bmax * np.sum(
+            wg * f, -1
+        )
 
     def fres(cos_t):
         w = np.sqrt(n * n - 1 + cos_t**2 + 0j)
@@ -189,7 +202,9 @@ def numpy_double_m00(k, kp, n, m, order, inner_order=INNER_ORDER):
         xneg = np.maximum(-cph, 0)
         sx = s[:, None] * xneg
         with np.errstate(divide="ignore", invalid="ignore"):
-            lcm = np.where(sx > 0, -0.5 * np.log1p((c[:, None] / np.where(sx > 0, sx, 1)) ** 2), -np.inf)
+            lcm = np.where(
+                sx > 0, -0.5 * np.log1p((c[:, None] / np.where(sx > 0, sx, 1)) ** 2), -np.inf
+            )
         umin = np.exp((m[:, None] + 1) * lcm)
         u = umin[..., None] + (1 - umin[..., None]) * t
         w = wph[:, None] * (1 - umin[..., None]) * wt
@@ -204,7 +219,9 @@ def numpy_double_m00(k, kp, n, m, order, inner_order=INNER_ORDER):
         t1n = np.linalg.norm(t1, axis=-1, keepdims=True)
         t1 = np.where(t1n > 1e-9, t1 / np.maximum(t1n, 1e-300), [1.0, 0, 0])
         t2 = np.cross([0, 0, 1.0], t1)
-        h = st[..., None] * (cp_[:, None] * t1[:, None] + sp_[:, None] * t2[:, None]) + ct[..., None] * np.array([0, 0, 1.0])
+        h = st[..., None] * (cp_[:, None] * t1[:, None] + sp_[:, None] * t2[:, None]) + ct[
+            ..., None
+        ] * np.array([0, 0, 1.0])
         c1 = np.clip(np.sum(h * ka[:, None], -1), 0, 1)
         d1 = 2 * c1[..., None] * h - ka[:, None]
         v = kb[:, None] - d1
@@ -214,7 +231,15 @@ def numpy_double_m00(k, kp, n, m, order, inner_order=INNER_ORDER):
         p2 = np.where(h2n > 0, np.clip(h2n, 0, 1) ** mm, 0)
         p1 = ct**mm
         bal = p1 / np.maximum(p1 + p2, 1e-300)
-        wgt = w * bal * c1 * (mm + 1) / (2 * np.pi) * p2 / (4 * mcp(np.broadcast_to(mm, d1[..., 2].shape), np.abs(d1[..., 2])))
+        wgt = (
+            w
+            * bal
+            * c1
+            * (mm + 1)
+            / (2 * np.pi)
+            * p2
+            / (4 * mcp(np.broadcast_to(mm, d1[..., 2].shape), np.abs(d1[..., 2])))
+        )
         rs1, rp1 = fres(c1)
         rs2, rp2 = fres(np.clip(vn / 2, 0, 1))
         # unpolarized two-facet M00 needs the plane rotation: cos/sin of the angle between
@@ -248,7 +273,9 @@ def numpy_ratio(order, n=2000):
     t_np = time.perf_counter() - t0
     t_jax = timeit(f, args, 3)
     err = float(np.max(np.abs(np_m00 / jax_m00 - 1)))
-    return dict(order=order, numpy_evals_per_s=n / t_np, jax_f64_evals_per_s=n / t_jax, max_rel_diff=err)
+    return dict(
+        order=order, numpy_evals_per_s=n / t_np, jax_f64_evals_per_s=n / t_jax, max_rel_diff=err
+    )
 
 
 def full_brdf_throughput(n, repeats):
@@ -264,7 +291,11 @@ def full_brdf_throughput(n, repeats):
             z = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], k.dtype), k.shape)
             return mueller_brdf(k, kp, z, Material(n=jnp.complex64(0.94 + 6.42j), m=m), terms=terms)
 
-        args = (jnp.asarray(k, jnp.float32), jnp.asarray(kp, jnp.float32), jnp.full((n,), 3.0, jnp.float32))
+        args = (
+            jnp.asarray(k, jnp.float32),
+            jnp.asarray(kp, jnp.float32),
+            jnp.full((n,), 3.0, jnp.float32),
+        )
         t = timeit(f, args, repeats)
         out.append(dict(terms="+".join(terms), evals_per_s=n / t))
         print(out[-1])
@@ -276,7 +307,9 @@ def write(acc, thr, nprow, full, path_md, path_png):
         "# Double-bounce quadrature: error vs evaluations/s",
         "",
         f"Reference: order {REF_ORDER} float64. Geometries: incidence 0-85 deg, bistatic 0-30 deg "
-        "(1/8 exact backscatter), m in " + ", ".join(f"{x:g}" for x in MS) + ", Al 532 nm and TiO2. "
+        "(1/8 exact backscatter), m in "
+        + ", ".join(f"{x:g}" for x in MS)
+        + ", Al 532 nm and TiO2. "
         "`err_full` = max |M_double - M_ref| / M00(single + double): the double term's error as a "
         "fraction of the BRDF. Default order: " + f"{DEFAULT_ORDER}.",
         "",
@@ -291,7 +324,11 @@ def write(acc, thr, nprow, full, path_md, path_png):
             f"| {o} | {2 * o[0] * (o[1] // 4) * 4} | {r['err_full']:.2e} | {r['err_full_p95']:.2e} | {r['rel00_med']:.2e} | "
             f"{r['rel00_p95']:.2e} | " + " | ".join(f"{r['per_m'][x]:.1e}" for x in MS) + " |"
         )
-    lines += ["", "## Throughput of the double term alone (jit, one call of N pairs, m = 3, Al)", ""]
+    lines += [
+        "",
+        "## Throughput of the double term alone (jit, one call of N pairs, m = 3, Al)",
+        "",
+    ]
     lines += ["| dtype | order | evals/s |", "|---|---|---|"]
     for r in thr:
         lines.append(f"| {r['dtype']} | {r['order']} | {r['evals_per_s']:.3g} |")
@@ -305,7 +342,13 @@ def write(acc, thr, nprow, full, path_md, path_png):
             f"{nprow['max_rel_diff']:.1e}.",
         ]
     if full:
-        lines += ["", "## Full BRDF (float32, default order, m = 3, Al)", "", "| terms | evals/s |", "|---|---|"]
+        lines += [
+            "",
+            "## Full BRDF (float32, default order, m = 3, Al)",
+            "",
+            "| terms | evals/s |",
+            "|---|---|",
+        ]
         for r in full:
             lines.append(f"| {r['terms']} | {r['evals_per_s']:.3g} |")
     with open(path_md, "w") as fh:

@@ -169,9 +169,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._fresnel import fresnel_amplitudes_re
 from ._frames import A_STOKES, mueller_rotator, perpendicular_unit, rotation_cos_sin_2a
-from ._microfacet import mean_cosine_plus
+from ._fresnel import fresnel_amplitudes_re
 from ._safe import float_dtype, safe_sqrt, tiny
 from ._types import Array, ArrayLike, Complex, Float
 
@@ -267,7 +266,7 @@ def _mueller_of_h(H: np.ndarray) -> np.ndarray:
 _L = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], float)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _linear_maps() -> tuple[np.ndarray, np.ndarray]:
     """(G_inc, G_coh): 16 x 16 real maps from the 16 coherency reals to the Mueller elements
     (row-major) of ``sum w J_f (x) J_f^*`` and of the fully coherent pair
@@ -434,7 +433,7 @@ CHEB_DEGREE = 8
 """Degree of the Chebyshev interpolant in ``c`` of ``<h.u>+`` used per quadrature node."""
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _cheb(deg: int):
     """Chebyshev nodes ``x_j`` on [-1, 1] and the matrix taking values at them to coefficients."""
     j = np.arange(deg + 1)
@@ -490,7 +489,7 @@ def _mcp_eval(coef: Array, m: Array, c: Array) -> Array:
     return c * (m + 1.0) / (m + 2.0) + sm2 * g
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _nodes(n_u: int, n_phi: int):
     """Gauss-Legendre nodes/weights on [0, 1] for u, and azimuth nodes on two GL panels
     [-pi/2, pi/2] (facets tilted toward k: all lit) and [pi/2, 3pi/2] (lit only up to
@@ -546,9 +545,9 @@ def _accumulate(k, kp, normal, e, m, n_re, n_im, *, order, inner_order, white, c
     if coef is None:
         coef = _mcp_interpolant(m, inner_order)
     kw = dict(order=order, coef=coef, white=white)
-    return _accumulate_half(k, kp, normal, e, m, n_re, n_im, reverse=False, **kw) + _accumulate_half(
-        kp, k, normal, e, m, n_re, n_im, reverse=True, **kw
-    )
+    return _accumulate_half(
+        k, kp, normal, e, m, n_re, n_im, reverse=False, **kw
+    ) + _accumulate_half(kp, k, normal, e, m, n_re, n_im, reverse=True, **kw)
 
 
 def _accumulate_half(k, kp, normal, e, m, n_re, n_im, *, reverse, order, coef, white):
@@ -630,7 +629,9 @@ def _accumulate_half(k, kp, normal, e, m, n_re, n_im, *, reverse, order, coef, w
     rho = jnp.where(up, _rho(p_a, p_d, _azimuth_f(kq, d1, nq, thr)), 1.0) * jnp.where(
         up, 1.0, _rho(p_b, p_d, _azimuth_f(kpq, _sneg(d1), nq, thr))
     )
-    w = jnp.where(valid, wq * bal * rho * c1 * ((mq + 1.0) / (2.0 * math.pi)) * p2 / (4.0 * inner), 0.0)
+    w = jnp.where(
+        valid, wq * bal * rho * c1 * ((mq + 1.0) / (2.0 * math.pi)) * p2 / (4.0 * inner), 0.0
+    )
     if reverse:  # this half is parametrized by the second facet: forward path is k' -> ... -> k
         J = _path_jones(kpq, kq, _sneg(d1), eq, ex(n_re), ex(n_im), white, thr)
     else:
@@ -665,7 +666,19 @@ def _mueller_e_frames(k, kp, normal, e, m, n_re, n_im, gamma, *, order, inner_or
     """(..., 16) row-major Mueller matrix of the double term in the common frames e."""
     dt = k.dtype
     coef = _mcp_interpolant(m, inner_order)
-    h16 = _accumulate(k, kp, normal, e, m, n_re, n_im, order=order, inner_order=inner_order, white=white, coef=coef)
+    h16 = _accumulate(
+        k,
+        kp,
+        normal,
+        e,
+        m,
+        n_re,
+        n_im,
+        order=order,
+        inner_order=inner_order,
+        white=white,
+        coef=coef,
+    )
     g_inc, g_x = (jnp.asarray(g, dt) for g in _linear_maps())
     m_inc = h16 @ g_inc.T
     m_coh = h16 @ g_x.T
@@ -717,7 +730,9 @@ def double_bounce_term(
     )
     e = _common_frame(k, kp, nrm, dt)
     if coherent:
-        gamma = jnp.broadcast_to(coherence_factor(k, kp, wavelength, material.corr_length).astype(dt), batch)
+        gamma = jnp.broadcast_to(
+            coherence_factor(k, kp, wavelength, material.corr_length).astype(dt), batch
+        )
     else:
         gamma = jnp.zeros(batch, dt)
     white = bool(getattr(material, "white", False))
@@ -740,7 +755,14 @@ def double_bounce_incoherent(
 ) -> Float[Array, "*batch 4 4"]:
     """:func:`double_bounce_term` without the coherent interference (``gamma = 0``)."""
     return double_bounce_term(
-        k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength, order=order,
+        k_in,
+        k_out,
+        normal,
+        material,
+        frame_in,
+        frame_out,
+        wavelength=wavelength,
+        order=order,
         coherent=False,
     )
 
@@ -819,7 +841,11 @@ def double_bounce_term_auto(
     n = jnp.asarray(material.n)
     dt = float_dtype(k_in, k_out, normal, material.m, n)
     batch = jnp.broadcast_shapes(
-        jnp.shape(k_in)[:-1], jnp.shape(k_out)[:-1], jnp.shape(normal)[:-1], jnp.shape(material.m), n.shape
+        jnp.shape(k_in)[:-1],
+        jnp.shape(k_out)[:-1],
+        jnp.shape(normal)[:-1],
+        jnp.shape(material.m),
+        n.shape,
     )
     need = jnp.any(double_needed(material.m, k_in, k_out))
 
@@ -867,11 +893,17 @@ def double_figures(out_dir: str, *, order: tuple[int, int] = (16, 16)) -> list[s
     deg = np.degrees(psi)
     fig, axes = plt.subplots(3, 3, figsize=(12, 9), sharex=True)
     for col, (lab, n, m) in enumerate(mats):
-        mat = Material_(n, m)
-        with_d = mueller_brdf(k, kp, z, mat, terms=("single", "double", "multiple"), wavelength=532e-9)
+        mat = _material_of(n, m)
+        with_d = mueller_brdf(
+            k, kp, z, mat, terms=("single", "double", "multiple"), wavelength=532e-9
+        )
         without = mueller_brdf(k, kp, z, mat, terms=("single", "multiple"), wavelength=532e-9)
         for row, (name, fn) in enumerate(
-            [("depolarization index", depolarization_index), ("diattenuation", diattenuation), ("retardance [rad]", retardance)]
+            [
+                ("depolarization index", depolarization_index),
+                ("diattenuation", diattenuation),
+                ("retardance [rad]", retardance),
+            ]
         ):
             ax = axes[row, col]
             ax.plot(deg, np.asarray(fn(with_d)), label="single+double+multiple")
@@ -889,10 +921,31 @@ def double_figures(out_dir: str, *, order: tuple[int, int] = (16, 16)) -> list[s
 
     # enhancement peak of the double term
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    mat = Material_(0.94 + 6.42j, 2.0)
+    mat = _material_of(0.94 + 6.42j, 2.0)
     fi = np.broadcast_to([0.0, 1.0, 0.0], k.shape)
-    coh = np.asarray(double_bounce_term(jnp.asarray(k), jnp.asarray(kp), jnp.asarray(z), mat, jnp.asarray(fi), jnp.asarray(fi), order=order))
-    inc = np.asarray(double_bounce_term(jnp.asarray(k), jnp.asarray(kp), jnp.asarray(z), mat, jnp.asarray(fi), jnp.asarray(fi), order=order, coherent=False))
+    coh = np.asarray(
+        double_bounce_term(
+            jnp.asarray(k),
+            jnp.asarray(kp),
+            jnp.asarray(z),
+            mat,
+            jnp.asarray(fi),
+            jnp.asarray(fi),
+            order=order,
+        )
+    )
+    inc = np.asarray(
+        double_bounce_term(
+            jnp.asarray(k),
+            jnp.asarray(kp),
+            jnp.asarray(z),
+            mat,
+            jnp.asarray(fi),
+            jnp.asarray(fi),
+            order=order,
+            coherent=False,
+        )
+    )
     for s_in, s_out, lab in [
         ((1, 1, 0, 0), (1, 1, 0, 0), "linear co-pol"),
         ((1, 1, 0, 0), (1, -1, 0, 0), "linear cross-pol"),
@@ -913,7 +966,7 @@ def double_figures(out_dir: str, *, order: tuple[int, int] = (16, 16)) -> list[s
     return [p1, p2]
 
 
-def Material_(n, m):
+def _material_of(n, m):
     from ._material import Material
 
     return Material(n=n, m=m)

@@ -169,7 +169,9 @@ def measure_matter_table(out_dir):
             tot, nod = f(jnp.asarray(K), jnp.asarray(KP), jnp.full(len(K), n), jnp.full(len(K), m))
             tot, nod = np.asarray(tot), np.asarray(nod)
             r00 = (tot[:, 0, 0] - nod[:, 0, 0]) / tot[:, 0, 0]
-            ddi = np.abs(np.asarray(depolarization_index(tot)) - np.asarray(depolarization_index(nod)))
+            ddi = np.abs(
+                np.asarray(depolarization_index(tot)) - np.asarray(depolarization_index(nod))
+            )
             for i, (th, psi, az, _, _) in enumerate(rows):
                 key = (m, psi)
                 r = res.setdefault(key, [0.0, 0.0])
@@ -193,11 +195,13 @@ def measure_matter_table(out_dir):
     ]
     for m in MS:
         lines.append(
-            f"| {m:g} | " + " | ".join(f"{res[(m, p)][0]:.1e} / {res[(m, p)][1]:.1e}" for p in PSIS) + " |"
+            f"| {m:g} | "
+            + " | ".join(f"{res[(m, p)][0]:.1e} / {res[(m, p)][1]:.1e}" for p in PSIS)
+            + " |"
         )
     lines += [
         "",
-        f"Rule for `terms=\"auto\"` (tolerance AUTO_TOL = {AUTO_TOL:g} on both measures): "
+        f'Rule for `terms="auto"` (tolerance AUTO_TOL = {AUTO_TOL:g} on both measures): '
         f"the double term matters for every m below {m_rule:g}; above it, both measures stay below "
         f"the tolerance at every geometry of the table (worst: "
         + ", ".join(f"m={m:g}: {worst_m[m]:.1e}" for m in MS)
@@ -226,7 +230,9 @@ def measure_matter_table(out_dir):
         for j, name in enumerate(["r00 = M00_double / M00_total", "dDI"]):
             ax = axes[j]
             for m in MS:
-                ax.semilogy(PSIS, [max(res[(m, p)][j], 1e-12) for p in PSIS], "o-", label=f"m={m:g}")
+                ax.semilogy(
+                    PSIS, [max(res[(m, p)][j], 1e-12) for p in PSIS], "o-", label=f"m={m:g}"
+                )
             ax.axhline(AUTO_TOL, color="gray", lw=0.8)
             ax.set_xlabel("bistatic angle [deg]")
             ax.set_ylabel(name + " (max over geometry, material)")
