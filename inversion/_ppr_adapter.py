@@ -38,7 +38,7 @@ class PprSignatures:
     - `materials`: ``ppr.load_material`` names; `finishes`: Blinn-Phong ``m`` per finish id.
     - `measurement`: PSG/PSA channels; `n_bins`, `bin_width_m`, `pulse_fwhm_s`, `wavelength`.
     - `vis_samples`: barycentric samples per face for partial visibility.
-    - `brdf`: Mueller BRDF (default ``ppr.mueller_brdf``).
+    - `brdf`: Mueller BRDF (default ``ppr.mueller_brdf``); `terms`: its terms (default all).
     """
 
     def __init__(
@@ -53,6 +53,7 @@ class PprSignatures:
         wavelength: float = 532e-9,
         vis_samples: int = 4,
         brdf=None,
+        terms=None,
         dtype=jnp.float32,
     ):
         if len(shapes) == 0 or len(materials) == 0 or len(finishes) == 0:
@@ -96,6 +97,7 @@ class PprSignatures:
         chan = measurement.channel_matrix()  # (C, 4, 4)
         self.projection = jnp.asarray(chan.reshape(len(chan), 16).T, dtype)  # (16, C)
         self.brdf = ppr.mueller_brdf if brdf is None else brdf
+        self.terms = None if terms is None else (terms if isinstance(terms, str) else tuple(terms))
         half = 0.5 * self.bin_width_m * self.n_bins
         if extent / 2 + 6 * self.sigma_r > half:
             raise ValueError(
@@ -167,6 +169,7 @@ class PprSignatures:
             n_bins=self.n_bins,
             window=self.window,
             brdf=self.brdf,
+            terms=self.terms,
         )
 
 
@@ -191,6 +194,7 @@ def _batch_render(
     n_bins,
     window,
     brdf,
+    terms=None,
 ):
     dt = arrays.tri.dtype
 
@@ -215,6 +219,7 @@ def _batch_render(
             window=window,
             projection=projection,
             brdf=brdf,
+            terms=terms,
         )
 
     out = jax.vmap(one)(shape_id, material_id, finish_id, quat, vis)
