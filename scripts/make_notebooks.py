@@ -49,8 +49,8 @@ rough surface: Blinn-Phong facet normals, Ashikhmin shadowing, the facets' compl
 reflection as Mueller matrices rotated between the beams' frames and each facet's s/p frame,
 plus an energy-conserving depolarizing remainder for light scattered more than once. This
 notebook shows (1) Mueller maps over the outgoing hemisphere, (2) how depolarization grows
-with roughness and bistatic angle, and (3) what that means for the few-degree bistatic
-angles of a PPR sensor. Conventions: `ppr._conventions`; physics notes: `PHYSICS.md`.""",
+with roughness and bistatic angle, (3) the Lu-Chipman quantities along a bistatic sweep and
+(4) the coherent enhancement peak of the double bounce near exact backscatter. Conventions: `ppr._conventions`; physics notes: `PHYSICS.md`.""",
     SETUP,
     """md:## Materials from the library
 `configs/materials.toml` holds sourced optical constants at 532 and 1064 nm and finish presets
@@ -142,6 +142,25 @@ for ax, (label, val) in zip(axes, [("M00 [1/sr]", lc.m00), ("diattenuation", lc.
         ax.plot(np.degrees(psi), np.asarray(val)[i], label=f"{finish} (m={m_f[i]:g})")
     ax.set_title(label); ax.set_xlabel("bistatic angle [deg]")
 axes[0].set_yscale("log"); axes[0].legend(fontsize=8);""",
+    """md:## 4. The enhancement peak of the double bounce
+Two-bounce paths and their reversed partners add in amplitude near exact backscatter
+(coherent backscatter): the co-polarized return of the double term rises up to 2x within a
+cone of about `lambda / (4 d)` (d: the material's correlation length), the cross-polarized
+channel much less. Transmitted H; co-pol = analyzer H, cross-pol = analyzer V.""",
+    """psi = np.radians(np.linspace(0.0, 5.0, 11 if SMALL else 101))
+th = np.radians(30.0)
+k_in = np.array([np.sin(th), 0.0, np.cos(th)])
+k_out = np.stack([np.sin(th - psi), 0 * psi, np.cos(th - psi)], -1)
+mat = ppr.load_material("aluminium", 532e-9, "rough")
+Md = np.asarray(brdf(k_in, k_out, normal, mat, frame_in=ey, frame_out=ey, terms=("double",)))
+co = 0.5 * (Md[:, 0, 0] + Md[:, 0, 1] + Md[:, 1, 0] + Md[:, 1, 1])
+cross = 0.5 * (Md[:, 0, 0] + Md[:, 0, 1] - Md[:, 1, 0] - Md[:, 1, 1])
+fig, ax = plt.subplots(figsize=(7, 3.6))
+ax.plot(np.degrees(psi), co / co[-1], label="co-pol (H -> H)")
+ax.plot(np.degrees(psi), cross / cross[-1], label="cross-pol (H -> V)")
+ax.set_xlabel("bistatic angle [deg]"); ax.set_ylabel("double term / its value at 5 deg")
+ax.set_title(f"{mat.name}, corr. length {float(mat.corr_length) * 1e6:g} um"); ax.legend();
+print("co-pol enhancement at 0 deg:", co[0] / co[-1], " cross-pol:", cross[0] / cross[-1])""",
 ]
 
 # ------------------------------------------------------------ 02 CubeSat simulation
