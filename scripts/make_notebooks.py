@@ -37,6 +37,8 @@ def nb(cells):
     out.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
     out.metadata["language_info"] = {"name": "python"}
     out.cells = [new_markdown_cell(c[3:]) if c.startswith("md:") else new_code_cell(c) for c in cells]
+    for i, cell in enumerate(out.cells):  # deterministic ids: regenerating gives no diff
+        cell.id = f"cell-{i:02d}"
     return out
 
 

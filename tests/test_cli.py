@@ -13,10 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ppr import _image, cli
+from ppr import cli
 
-HAVE_BRDF = _image.api("mueller_brdf") is not None
-needs_brdf = pytest.mark.skipif(not HAVE_BRDF, reason="ppr.mueller_brdf not available")
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -79,7 +77,6 @@ def _write(path: Path, text: str) -> Path:
     return path
 
 
-@needs_brdf
 def test_brdf_end_to_end(tmp_path):
     cfg = _write(
         tmp_path / "brdf.toml",
@@ -97,7 +94,6 @@ def test_brdf_end_to_end(tmp_path):
     assert (out / "brdf.png").stat().st_size > 1000
 
 
-@needs_brdf
 def test_image_end_to_end_example_satellite(tmp_path):
     out = tmp_path / "img"
     assert (
@@ -123,7 +119,6 @@ def test_image_end_to_end_example_satellite(tmp_path):
     assert not [p for p in out.iterdir() if p.name.startswith(".ppr-tmp")]
 
 
-@needs_brdf
 def test_simulate_end_to_end(tmp_path):
     out = tmp_path / "sim"
     assert (
@@ -168,9 +163,8 @@ def test_demo_runs_and_writes_summary(tmp_path):
         == 0
     )
     summary = json.loads((out / "demo.json").read_text())
-    if HAVE_BRDF:
-        assert "Mueller image" in summary["steps_seconds"]
-        assert (out / "image.png").is_file()
+    assert "Mueller image" in summary["steps_seconds"]
+    assert (out / "image.png").is_file()
 
 
 # ------------------------------------------------------------------------ config errors
@@ -275,7 +269,6 @@ def test_bad_scene_is_one_line_exit_2(tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------- overwriting
-@needs_brdf
 def test_refuses_to_overwrite(tmp_path, capsys):
     cfg = _write(
         tmp_path / "brdf.toml",
@@ -429,7 +422,6 @@ samples_per_face = 1
 """
 
 
-@needs_brdf
 def test_invert_end_to_end(tmp_path):
     _write(tmp_path / "sensor.toml", INV_SENSOR)
     _write(tmp_path / "scene.toml", INV_SCENE)

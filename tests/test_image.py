@@ -17,8 +17,7 @@ import pytest
 import ppr
 from ppr import _image, cli
 
-BRDF = _image.api("mueller_brdf")
-pytestmark = pytest.mark.skipif(BRDF is None, reason="ppr.mueller_brdf not available")
+BRDF = ppr.mueller_brdf
 
 N_PIX = 48
 HALF_WIDTH = 1.1
