@@ -249,10 +249,12 @@ def _multiple_rows(ki, ko, nr, material: Material, m: Array) -> Rows:
 
 
 def _stack_rows(rows: Rows, batch, dt) -> Array:
+    """SoA rows -> (..., 4, 4). Stacked on a *leading* axis then transposed: stacking 16
+    arrays directly on trailing axes ran ~40x slower on XLA CPU (measured, bench_brdf)."""
     z = jnp.zeros(batch, dt)
-    return jnp.stack(
-        [jnp.stack([z if e is None else e for e in r], axis=-1) for r in rows], axis=-2
-    )
+    flat = jnp.stack([z if e is None else e for r in rows for e in r], axis=0)  # (16, ...)
+    flat = jnp.moveaxis(flat, 0, -1)
+    return flat.reshape(batch + (4, 4))
 
 
 def _add_rows(a: Rows | None, b: Rows) -> Rows:
