@@ -728,6 +728,16 @@ def double_bounce_term(
     k, kp, nrm, f_in, f_out, m, n_re, n_im, dt, batch = _broadcast_inputs(
         k_in, k_out, normal, material, frame_in, frame_out
     )
+    # exactly grazing rows (k.n or k'.n <= ~tiny): the BRDF is 0 there (P = 0); replace them by
+    # harmless directions before the kernel (double where: zero value, zero gradient)
+    g = tiny(dt) * 1e8
+    valid = (jnp.sum(k * nrm, -1) > g) & (jnp.sum(kp * nrm, -1) > g)
+    v3 = valid[..., None]
+    fb = perpendicular_unit(nrm)
+    k = jnp.where(v3, k, nrm)
+    kp = jnp.where(v3, kp, nrm)
+    f_in = jnp.where(v3, f_in, fb)
+    f_out = jnp.where(v3, f_out, fb)
     e = _common_frame(k, kp, nrm, dt)
     if coherent:
         gamma = jnp.broadcast_to(
@@ -739,7 +749,7 @@ def double_bounce_term(
     M16 = _mueller_e_frames(
         k, kp, nrm, e, m, n_re, n_im, gamma, order=order, inner_order=inner_order, white=white
     )
-    return _to_user_frames(M16, k, kp, e, f_in, f_out)
+    return jnp.where(v3[..., None], _to_user_frames(M16, k, kp, e, f_in, f_out), 0.0)
 
 
 def double_bounce_incoherent(
