@@ -1,7 +1,7 @@
 """Inversion: signature databases, classifier, refiners and MCMC for PPR."""
 
 # measurement model, attitude grids, signature database, classifier, report (issue 5)
-from ._classifier import (  # noqa: E402
+from ._classifier import (
     ATTRIBUTES,
     WEIGHT_KINDS,
     Classification,
@@ -12,7 +12,7 @@ from ._classifier import (  # noqa: E402
     line_of_sight_error_deg,
     prepare,
 )
-from ._database import (  # noqa: E402
+from ._database import (
     BuildReport,
     CorruptChunkError,
     DatabaseSpec,
@@ -28,14 +28,23 @@ from ._database import (  # noqa: E402
     make_signature_fn,
     spec_from_dict,
 )
-from ._grid import (  # noqa: E402
+from ._grid import (
     AttitudeGrid,
     covering_radius,
     fibonacci_grid,
     hopf_grid,
     symmetry_group,
 )
-from ._noise import (  # noqa: E402
+
+# refiners and MCMC (issue 6)
+from ._mcmc import (
+    ChainTooShortWarning,
+    MCMCConfig,
+    MCMCResult,
+    load_mcmc_config,
+    sample_posterior,
+)
+from ._noise import (
     MeasurementModel,
     NoiseModel,
     Observation,
@@ -44,19 +53,8 @@ from ._noise import (  # noqa: E402
     observe,
     shift_profile,
 )
-from ._report import evaluate  # noqa: E402
-from ._synthetic import SyntheticSignatures  # noqa: E402
-
-# refiners and MCMC (issue 6)
-from ._mcmc import (  # noqa: E402
-    ChainTooShortWarning,
-    MCMCConfig,
-    MCMCResult,
-    load_mcmc_config,
-    sample_posterior,
-)
-from ._params import Parametrisation, PhysicalParams  # noqa: E402
-from ._refine import (  # noqa: E402
+from ._params import Parametrisation, PhysicalParams
+from ._refine import (
     GaussianNoise,
     PhysicalBounds,
     PoissonNoise,
@@ -65,3 +63,59 @@ from ._refine import (  # noqa: E402
     refine,
     refine_bounded,
 )
+from ._report import evaluate
+from ._synthetic import SyntheticSignatures
+
+__all__ = [
+    "ATTRIBUTES",
+    "WEIGHT_KINDS",
+    "Classification",
+    "PreparedBank",
+    "attitude_error_deg",
+    "classify",
+    "design_weights",
+    "line_of_sight_error_deg",
+    "prepare",
+    "BuildReport",
+    "CorruptChunkError",
+    "DatabaseSpec",
+    "IncompleteDatabaseError",
+    "TemplateBank",
+    "bank_in_memory",
+    "build_database",
+    "chunk_status",
+    "enumerate_rows",
+    "init_database",
+    "load_database",
+    "load_spec",
+    "make_signature_fn",
+    "spec_from_dict",
+    "AttitudeGrid",
+    "covering_radius",
+    "fibonacci_grid",
+    "hopf_grid",
+    "symmetry_group",
+    "MeasurementModel",
+    "NoiseModel",
+    "Observation",
+    "measure",
+    "measure_stokes",
+    "observe",
+    "shift_profile",
+    "evaluate",
+    "SyntheticSignatures",
+    "ChainTooShortWarning",
+    "MCMCConfig",
+    "MCMCResult",
+    "load_mcmc_config",
+    "sample_posterior",
+    "Parametrisation",
+    "PhysicalParams",
+    "GaussianNoise",
+    "PhysicalBounds",
+    "PoissonNoise",
+    "RefineResult",
+    "SimulatorModel",
+    "refine",
+    "refine_bounded",
+]

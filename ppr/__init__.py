@@ -8,11 +8,14 @@ Conventions (directions, frames, Stokes handedness, complex index sign, units) a
 :mod:`ppr._conventions`. The library never enables ``jax_enable_x64``; dtypes follow inputs.
 """
 
-from ._material import Material
-from ._fresnel import fresnel_amplitudes, fresnel_mueller_params
-from ._frames import jones_to_mueller, mueller_rotator
-from ._library import load_material, material_names
 from . import _polarimetry as polarimetry
+from . import microfacet, shapes
+from ._brdf import mueller_brdf
+from ._frames import jones_to_mueller, mueller_rotator
+from ._fresnel import fresnel_amplitudes, fresnel_mueller_params
+from ._library import load_material, material_names
+from ._material import Material
+from ._mesh import Mesh, MeshArrays, check_mesh, load_mesh, mesh_arrays, subdivide
 from ._polarimetry import (
     cloude_eigenvalues,
     degree_of_polarization,
@@ -23,14 +26,18 @@ from ._polarimetry import (
     polarizance,
     retardance,
 )
-from . import microfacet
-from ._brdf import mueller_brdf
-from . import shapes
-from ._mesh import Mesh, MeshArrays, check_mesh, load_mesh, mesh_arrays, subdivide
 from ._pose import quat_from_axis_angle, quat_to_matrix
+from ._pulse import (
+    Profile,
+    double_bounce,
+    render,
+    simulate,
+    stack_materials,
+    tent_gaussian_cdf,
+    window_size,
+)
 from ._scene import Pose, Pulse, RangeBins, Scene, Sensor, load_scene, load_sensor
 from ._visibility import VisibilityCaster
-from ._pulse import Profile, double_bounce, render, simulate, stack_materials, tent_gaussian_cdf, window_size
 
 __all__ = [
     "Material",
@@ -49,7 +56,31 @@ __all__ = [
     "lu_chipman",
     "polarizance",
     "retardance",
+    "microfacet",
+    "mueller_brdf",
+    "shapes",
+    "Mesh",
+    "MeshArrays",
+    "check_mesh",
+    "load_mesh",
+    "mesh_arrays",
+    "subdivide",
+    "quat_from_axis_angle",
+    "quat_to_matrix",
+    "Pose",
+    "Pulse",
+    "RangeBins",
+    "Scene",
+    "Sensor",
+    "load_scene",
+    "load_sensor",
+    "VisibilityCaster",
+    "Profile",
+    "double_bounce",
+    "render",
+    "simulate",
+    "stack_materials",
+    "tent_gaussian_cdf",
+    "window_size",
 ]
-__all__ += ["shapes", "Mesh", "MeshArrays", "check_mesh", "load_mesh", "mesh_arrays", "subdivide", "quat_from_axis_angle", "quat_to_matrix", "Pose", "Pulse", "RangeBins", "Scene", "Sensor", "load_scene", "load_sensor", "VisibilityCaster", "Profile", "double_bounce", "render", "simulate", "stack_materials", "tent_gaussian_cdf", "window_size"]
-__all__ += ["mueller_brdf"]
 __version__ = "0.1.0"
