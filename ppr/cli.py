@@ -1101,7 +1101,14 @@ def cmd_invert(args) -> int:
         shape = np.asarray(model.expected(truth, model.prepare(truth)))
         gain = ob.photons / max(float(shape.sum()), 1e-300)
         truth = eqx_replace(truth, gain=jnp.asarray(gain, jnp.float64))
-        expected = np.clip(shape * gain, 0.0, None)  # the kernel's roundoff can give -1e-22
+        expected = shape * gain
+        # the kernel's roundoff can give -1e-22 counts; anything beyond roundoff is a bug
+        if np.min(expected) < -1e-9 * max(float(np.max(expected)), 1e-300):
+            raise RuntimeError(
+                f"simulated expected counts are negative beyond roundoff "
+                f"(min {np.min(expected):.3g}, max {np.max(expected):.3g}); refusing to observe"
+            )
+        expected = np.maximum(expected, 0.0)
         data = np.random.default_rng(ob.seed).poisson(expected).astype(np.float64)
     else:
         path = _resolve_path(ob.source, cfg_path)
