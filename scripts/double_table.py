@@ -4,16 +4,21 @@ remainder, (2) the measured "where does the double term matter" table behind ter
     .venv/bin/python scripts/double_table.py --albedo   # writes ppr/data/albedo_double_single.npz
     .venv/bin/python scripts/double_table.py --matter   # writes docs/double_bounce_table.md + PNG
 
-(1) ``E_single + E_double`` on the grid of ``ppr/data/albedo_single.npz`` (C's table, same
-nodes): ``E_double(m, mu) = int M00_double(white, incoherent, default order) (k'.n) d omega'``
-by Gauss-Legendre in ``cos theta'`` (N_MU) times Gauss-Legendre in ``phi'`` over [0, pi]
-(mirror symmetry, N_PHI), for ``m <= M_CUT`` (above it E_double < 1e-7 at every node
-checked, and it is set to 0). The deficit ``D = D_single - E_double`` goes through
-``ppr._albedo.build_table``. The double term's own table uses the *runtime default order*,
-so that single + double + multiple closes the white furnace with the BRDF that is actually
-evaluated. The coherent backscatter peak is left out of E (gamma = 0): it adds about
-``f_double(backscatter) (k.n) pi psi_h^2 / ln 2`` (~1e-4 at 532 nm, d = 5 um), stated in
-ppr/_double.py.
+(1) ``E_single + E_double`` on the grid of ``ppr/data/albedo_single.npz`` (same nodes):
+``E_double(m, mu) = int M00_double(white, incoherent, default order) (k'.n) d omega'`` by the
+half-vector rule of :func:`ppr._albedo.albedo_nodes` (HV_PHI x HV_W), which resolves the
+double lobe at every m (at large m it sits next to the mirror direction: two small facet
+tilts; at small m the rule covers the whole hemisphere). The former k' product rule
+(Gauss-Legendre 20 x 16 in ``cos theta'``, ``phi'``) could not resolve it at large m and the
+table set ``E_double = 0`` for m > 3000 (wrong at grazing: ``E_double(1e4, 89 deg)`` = 0.078).
+Rows with m >= M_MU_CUT are integrated for ``mu <= MU_CUT_K / sqrt(m + 1)`` only (the double
+lobe needs grazing incidence there); the first node above the cut is integrated too and
+its value is reported in the table's info string (the dropped part). The deficit
+``D = D_single - E_double`` goes through ``ppr._albedo.build_table``. The double term's
+table uses the *runtime default order*, so that single + double + multiple closes the white
+furnace with the BRDF that is actually evaluated. The coherent backscatter peak is left out
+of E (gamma = 0): it adds about ``f_double(backscatter) (k.n) pi psi_h^2 / ln 2`` (~1e-4 at
+532 nm, d = 5 um), stated in ppr/_double.py.
 
 (2) Relative contribution of the double term to the full BRDF vs bistatic angle and m,
 maximized over incidence 0-80 deg and the bistatic azimuth, for aluminium, TiO2 paint
@@ -24,6 +29,7 @@ without double)|`` (depolarization index).
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 import time
@@ -43,8 +49,11 @@ from ppr._double import DEFAULT_ORDER, double_bounce_term  # noqa: E402
 from ppr._frames import default_frame  # noqa: E402
 from ppr._material import Material  # noqa: E402
 
-N_MU, N_PHI = 20, 16
-M_CUT = 3e3
+N_MU, N_PHI = 20, 16  # k' product rule of :func:`kprime_nodes` (tests, broad lobes)
+HV_PHI, HV_W = 20, 10  # half-vector rule of ppr._albedo.albedo_nodes for the albedo table
+MU_CUT_K = 10.0  # rows m >= M_MU_CUT: nodes with mu > MU_CUT_K / sqrt(m) are not integrated
+M_MU_CUT = 300.0
+CHUNK = 4096  # k' evaluations per jitted call (one compilation)
 
 
 def kprime_nodes(n_mu=N_MU, n_phi=N_PHI):
@@ -61,10 +70,8 @@ def kprime_nodes(n_mu=N_MU, n_phi=N_PHI):
     return kp, wt
 
 
-def e_double(m_vals, mu_vals, order=DEFAULT_ORDER, n_mu=N_MU, n_phi=N_PHI, chunk=16):
-    kp, wt = kprime_nodes(n_mu, n_phi)
-    Q = len(kp)
-
+@functools.cache
+def _white_double(order):
     @jax.jit
     def f(k, kp, m):
         z = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0]), k.shape)
@@ -74,21 +81,66 @@ def e_double(m_vals, mu_vals, order=DEFAULT_ORDER, n_mu=N_MU, n_phi=N_PHI, chunk
         )
         return M[..., 0, 0]
 
-    out = np.zeros(len(m_vals))
-    for s in range(0, len(m_vals), chunk):
-        mm = np.asarray(m_vals[s : s + chunk], float)
-        mu = np.maximum(np.asarray(mu_vals[s : s + chunk], float), 1e-9)
-        nb = len(mm)
-        pad = chunk - nb
-        mm = np.concatenate([mm, np.ones(pad)])
-        mu = np.concatenate([mu, np.full(pad, 0.5)])
-        k = np.stack([np.sqrt(1 - mu**2), np.zeros_like(mu), mu], -1)
-        kk = np.repeat(k[:, None, :], Q, 1).reshape(-1, 3)
-        kpp = np.broadcast_to(kp[None], (chunk, Q, 3)).reshape(-1, 3)
-        m_rep = np.repeat(mm, Q)
-        v = np.asarray(f(jnp.asarray(kk), jnp.asarray(kpp), jnp.asarray(m_rep))).reshape(chunk, Q)
-        out[s : s + nb] = (v * wt).sum(-1)[:nb]
+    return f
+
+
+def _eval_pairs(k, kp, m, order):
+    """M00 of the white incoherent double term for rows of (k, k', m), in fixed-size chunks."""
+    f = _white_double(order)
+    n = len(m)
+    out = np.empty(n)
+    for s in range(0, n, CHUNK):
+        e = min(s + CHUNK, n)
+        pad = CHUNK - (e - s)
+        kk = np.concatenate([k[s:e], np.repeat(k[:1], pad, 0)])
+        kq = np.concatenate([kp[s:e], np.repeat(kp[:1], pad, 0)])
+        mm = np.concatenate([m[s:e], np.repeat(m[:1], pad)])
+        v = f(jnp.asarray(kk), jnp.asarray(kq), jnp.asarray(mm))
+        out[s:e] = np.asarray(v)[: e - s]
     return out
+
+
+def e_double_hv(m_vals, mu_vals, order=DEFAULT_ORDER, n_phi=HV_PHI, n_w=HV_W):
+    """``E_double(m, mu)`` by the half-vector rule of :func:`ppr._albedo.albedo_nodes`
+    (adapted to the double lobe too: at large m it sits near the mirror direction; at small m
+    the rule covers the whole hemisphere)."""
+    m_vals = np.asarray(m_vals, float)
+    mu_vals = np.maximum(np.asarray(mu_vals, float), 1e-9)
+    k_in, k_out, wt = _albedo.albedo_nodes(m_vals, mu_vals, n_phi, n_w)  # (N,3) (N,Q,3) (N,Q)
+    Q = k_out.shape[-2]
+    kk = np.repeat(k_in[:, None, :], Q, 1).reshape(-1, 3)
+    v = _eval_pairs(kk, k_out.reshape(-1, 3), np.repeat(m_vals, Q), order)
+    return np.sum(v.reshape(-1, Q) * wt, -1)
+
+
+def e_double(m_vals, mu_vals, order=DEFAULT_ORDER, n_mu=N_MU, n_phi=N_PHI, chunk=16):
+    """``E_double`` by the k' product rule (broad lobes, small m only)."""
+    kp, wt = kprime_nodes(n_mu, n_phi)
+    Q = len(kp)
+    m_vals = np.asarray(m_vals, float)
+    mu = np.maximum(np.asarray(mu_vals, float), 1e-9)
+    k = np.stack([np.sqrt(1 - mu**2), np.zeros_like(mu), mu], -1)
+    kk = np.repeat(k[:, None, :], Q, 1).reshape(-1, 3)
+    kpp = np.broadcast_to(kp[None], (len(mu), Q, 3)).reshape(-1, 3)
+    v = _eval_pairs(kk, kpp, np.repeat(m_vals, Q), order)
+    return np.sum(v.reshape(-1, Q) * wt, -1)
+
+
+GRAZING_ORDER, GRAZING_HV = (16, 48), (12, 6)
+
+
+def grazing_limit(m_nodes, e_default):
+    """E_double at the mu = 0 column (limit mu -> 0+) with a converged order.
+
+    The runtime default order overshoots in the last ~0.1 deg before the horizon
+    (E_single + E_double up to 1.01 at mu = 1e-9, m >= 10; (12, 32) and (16, 48) agree to
+    ~5e-4 there, with E_single + E_double <= 1 + 3e-4). The mu = 0 node only anchors the
+    interpolant for mu < ~1e-4; a negative deficit there would zero the multiple-scattering
+    lobe at grazing. Returns (values, max |default - converged|)."""
+    e = e_double_hv(
+        m_nodes, np.zeros_like(m_nodes), order=GRAZING_ORDER, n_phi=GRAZING_HV[0], n_w=GRAZING_HV[1]
+    )
+    return e, float(np.max(np.abs(e - e_default)))
 
 
 def make_albedo():
@@ -96,27 +148,44 @@ def make_albedo():
     nx, nv = t_single.nx, t_single.nv
     _, _, m_nodes, mu_nodes = _albedo.grid_nodes(nx, nv)
     M, MU = np.meshgrid(m_nodes, mu_nodes, indexing="ij")
-    E2 = np.zeros_like(M)
-    sel = M <= M_CUT
+    mu_cut = np.where(M >= M_MU_CUT, MU_CUT_K / np.sqrt(M + 1.0), 2.0)
+    sel = MU <= mu_cut
+    # first node above the cut in each cut row: integrated too, to measure what is dropped
+    edge = np.zeros_like(sel)
+    for i in range(nx):
+        j = np.nonzero(~sel[i])[0]
+        if j.size:
+            edge[i, j[0]] = True
     t0 = time.perf_counter()
-    E2[sel] = e_double(M[sel], MU[sel])
+    E2 = np.zeros_like(M)
+    todo = sel | edge
+    E2[todo] = e_double_hv(M[todo], MU[todo])
     t1 = time.perf_counter()
-    # k'-quadrature self-convergence on a sub-grid (doubled N_MU, N_PHI)
+    dropped = float(np.max(np.abs(E2[edge]))) if edge.any() else 0.0
+    E2[~sel] = 0.0
+    E2[:, 0], grazing_gap = grazing_limit(m_nodes, E2[:, 0])
+    # self-convergence on a sub-grid: doubled half-vector order, and doubled double-term
+    # order against the default (the table must match the runtime default order)
     sub = np.zeros_like(sel)
-    sub[::6, ::8] = True
+    sub[::5, ::8] = True
+    sub[::5, :3] = True  # grazing rows
     sub &= sel
-    E2b = e_double(M[sub], MU[sub], n_mu=2 * N_MU, n_phi=2 * N_PHI)
+    E2b = e_double_hv(M[sub], MU[sub], n_phi=2 * HV_PHI, n_w=2 * HV_W)
     conv = float(np.max(np.abs(E2b - E2[sub])))
-    # tail check above the cut
-    big = np.array([M_CUT, 1e4])
-    tail = e_double(big, np.array([0.02, 0.02]))
+    S = 1.0 - t_single.D
+    over = float(np.max(S + E2 - 1.0))
     D = t_single.D - E2
     info = (
         f"terms=('double','single'); single from albedo_single.npz ({t_single.info}); "
-        f"E_double: default order {DEFAULT_ORDER}, k' GL {N_MU}x{N_PHI} (phi in [0,pi]), "
-        f"max |E_double(2x k' order) - E_double| on a sub-grid = {conv:.2e}; "
-        f"m > {M_CUT:g}: E_double set to 0 (E_double(m={M_CUT:g}, mu=0.02) = {tail[0]:.1e}, "
-        f"m=1e4: {tail[1]:.1e}); max E_double = {E2.max():.4f}"
+        f"E_double: white incoherent double term at the runtime default order {DEFAULT_ORDER}, "
+        f"half-vector rule (n_phi, n_w) = ({HV_PHI}, {HV_W}) at every node with m < "
+        f"{M_MU_CUT:g} and, for m >= {M_MU_CUT:g}, at mu <= {MU_CUT_K:g}/sqrt(m+1) (0 above; "
+        f"max E_double at the first node above = {dropped:.1e}); "
+        f"max |E_double(2 x hv order) - E_double| on a sub-grid = {conv:.2e}; "
+        f"mu = 0 column (the limit mu -> 0+, never evaluated at runtime): order "
+        f"{GRAZING_ORDER}, hv ({GRAZING_HV[0]}, {GRAZING_HV[1]}) (the default order is not "
+        f"converged there: it differs by up to {grazing_gap:.1e}); "
+        f"max E_single + E_double - 1 at the nodes = {over:.1e}; max E_double = {E2.max():.4f}"
     )
     table = _albedo.build_table(("double", "single"), D, info=info)
     path = _albedo.save_table(table)
