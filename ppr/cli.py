@@ -1660,7 +1660,13 @@ _EXTRA_COMMANDS: list[Callable[[Any], None]] = []
 def enable_compile_cache() -> None:
     """Persistent XLA compilation cache for repeated ``ppr`` runs (the CLI is a program, so it
     may set JAX config; the library never does). ``PPR_JAX_CACHE=0`` turns it off,
-    ``PPR_JAX_CACHE_DIR`` moves it (default ``~/.cache/ppr/jax``)."""
+    ``PPR_JAX_CACHE_DIR`` moves it (default ``~/.cache/ppr/jax``).
+
+    Known limit (measured 2026-11-30, jax 0.10.2): JAX does not persist executables that
+    contain host callbacks, and the kernels that validate *traced* inputs with
+    ``equinox.error_if`` (``mueller_brdf`` under an outer ``jit``, the pulse kernels) carry
+    one, so those compilations are not cached ("Not writing persistent cache entry ...
+    because it uses host callbacks" in JAX's debug log); callback-free ones are."""
     if os.environ.get("PPR_JAX_CACHE", "1") == "0":
         return
     import jax
