@@ -242,8 +242,9 @@ def main(argv=None):
         fh.write("# Mueller BRDF throughput (bench/bench_brdf.py)\n\n")
         fh.write(f"N = {args.n} random direction pairs (NumPy on {args.n_numpy}), aluminium "
                  f"n = {N_INDEX}, m = {M_ROUGH}, jit, chunks of {CHUNK}, median of "
-                 f"{args.repeats}; 2-core shared machine (other jobs running: absolute rates "
-                 "are noisy, the ratio is measured in the same process).\n\n")
+                 f"{args.repeats}; {os.cpu_count()} cores, load average at the end "
+                 f"{os.getloadavg()[0]:.2f} (absolute rates depend on load; the ratio is "
+                 "measured in the same process).\n\n")
         fh.write("| dtype | terms | JAX M evals/s | NumPy M evals/s | ratio | compile s | "
                  "max rel diff vs NumPy |\n|---|---|---|---|---|---|---|\n")
         for r in rows:
