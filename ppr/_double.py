@@ -500,7 +500,8 @@ def _mcp_interpolant(m: Array, order: int):
     large there: ``E_single + E_double`` = 1.016 at m = 1e4, 89 deg). Relative error of the
     resulting ``<h.u>+`` vs ``ppr.microfacet.mean_cosine_plus`` (order 256), max over
     ``c`` in [0, 1]: 2.2e-4 at m = 0.3 (the inner rule's ``cos^m`` endpoint), <= 1.5e-5 for
-    m in [1, 10], 3e-6 at m = 30, <= 2.8e-5 for m in [100, 1e6] (/tmp/mcp_new.py).
+    m in [1, 10], 3e-6 at m = 30, <= 2.8e-5 for m in [100, 1e6]
+    (tests/test_double.py::test_inner_mean_cosine_interpolant_against_quadrature).
     """
     dt = m.dtype
     x, C = _cheb(CHEB_DEGREE)

@@ -723,3 +723,22 @@ def test_auto_rule_skips_only_where_negligible():
         np.testing.assert_allclose(
             _full("auto", k, kk, mat), _full(None, k, kk, mat), rtol=1e-12, atol=0
         )
+
+
+def test_inner_mean_cosine_interpolant_against_quadrature():
+    """The double term's cached <h.u>+ (Chebyshev in a warped c on [0, 7/sqrt(m+1)]) against
+    ppr.microfacet.mean_cosine_plus at order 256, down to c = 0. Measured max relative error:
+    2.2e-4 at m = 0.3 (the inner rule's cos^m endpoint), <= 3.6e-6 for m in [1, 30],
+    2.7e-5 for m in [100, 1e6]. (The former interpolant on the fixed c range [0, 1] was 46%
+    low at m = 1e4 near c = 0 and made single + double exceed 1 at grazing.)"""
+    from ppr._double import INNER_ORDER, _mcp_eval, _mcp_interpolant
+
+    ms = np.array([0.0, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 1e3, 1e4, 1e5, 1e6])
+    c = np.concatenate([[0.0, 1e-6, 1e-4], np.geomspace(1e-3, 1.0, 200)])
+    M, C = np.meshgrid(ms, c, indexing="ij")
+    coef = _mcp_interpolant(jnp.asarray(ms), INNER_ORDER)
+    got = np.asarray(_mcp_eval(coef[:, None, :], jnp.asarray(M), jnp.asarray(C)))
+    ref = np.asarray(mean_cosine_plus(M, C, order=256))
+    rel = np.max(np.abs(got / ref - 1), axis=1)
+    tol = np.where(ms == 0.3, 3e-4, 5e-5)
+    assert np.all(rel < tol), dict(zip(ms.tolist(), rel.tolist()))
