@@ -741,4 +741,4 @@ def test_inner_mean_cosine_interpolant_against_quadrature():
     ref = np.asarray(mean_cosine_plus(M, C, order=256))
     rel = np.max(np.abs(got / ref - 1), axis=1)
     tol = np.where(ms == 0.3, 3e-4, 5e-5)
-    assert np.all(rel < tol), dict(zip(ms.tolist(), rel.tolist()))
+    assert np.all(rel < tol), dict(zip(ms.tolist(), rel.tolist(), strict=True))
