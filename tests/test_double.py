@@ -705,6 +705,12 @@ def test_auto_rule_skips_only_where_negligible():
         ]
     )
     kp[:6] = k[:6]
+    # beyond the table's 0-80 deg: grazing pairs near backscatter (measured worst double/total
+    # where the rule skips, incidence up to 89.9 deg, m >= 30: 9e-15)
+    for i, (t, tp, a) in enumerate(
+        [(85.0, 80.0, 0.0), (88.0, 86.0, 0.0), (89.0, 89.0, 10.0), (89.9, 80.0, 20.0)]
+    ):
+        k[-1 - i], kp[-1 - i] = direction(t, 0.0), direction(tp, a)
     for m in (AUTO_M_MAX * 1.01, AUTO_M_MAX * 3, AUTO_M_MAX * 30):
         for n in (AL, TIO2):
             mat = Material(n=n, m=m)
