@@ -16,7 +16,10 @@ point away from the surface (:mod:`ppr._conventions`). It is the sum of named te
     drops the 4 and ``(k'.n)``; PHYSICS.md section 3 restores them.
 
 ``"double"``
-    The double-bounce term of ``ppr/_double.py`` (issue 3; ``NotImplementedError`` until then).
+    The double-bounce term of ``ppr/_double.py`` (quadrature over the first facet's normal),
+    from the material-independent exact-backscatter tables of ``ppr/_double_table.py``
+    wherever the whole batch is within 1e-4 rad of backscatter (``"double:backscatter"``
+    forces the tables).
 
 ``"multiple"`` (:func:`multiple_scattering_term`)
     Depolarizing remainder of the explicit terms (PHYSICS.md section 5),
@@ -268,7 +271,9 @@ def _add_rows(a: Rows | None, b: Rows) -> Rows:
             return x
         return x + y
 
-    return tuple(tuple(add(x, y) for x, y in zip(ra, rb, strict=True)) for ra, rb in zip(a, b, strict=True))
+    return tuple(
+        tuple(add(x, y) for x, y in zip(ra, rb, strict=True)) for ra, rb in zip(a, b, strict=True)
+    )
 
 
 _F_AVG_ORDER = 32
@@ -317,8 +322,15 @@ def single_bounce_term(
     batch = k_in.shape[:-1]
     m, n_re, n_im = _material_batch(material, batch, dt)
     rows = _single_rows(
-        _split(k_in), _split(k_out), _split(normal), m, n_re, n_im,
-        _split(frame_in), _split(frame_out), material.white,
+        _split(k_in),
+        _split(k_out),
+        _split(normal),
+        m,
+        n_re,
+        n_im,
+        _split(frame_in),
+        _split(frame_out),
+        material.white,
     )
     return _stack_rows(rows, batch, dt)
 
@@ -350,7 +362,20 @@ def _double_term(k_in, k_out, normal, material, frame_in, frame_out, *, waveleng
             'terms: "double" (the double-bounce term, ppr/_double.py, issue 3) is not '
             'implemented yet; use terms=("single", "multiple")'
         ) from err
-    return double_bounce_term(
+    del double_bounce_term
+    from ._double_table import double_term_dispatch
+
+    return double_term_dispatch(
+        k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength
+    )
+
+
+def _double_backscatter_term(
+    k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9
+):
+    from ._double_table import double_backscatter_term
+
+    return double_backscatter_term(
         k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength
     )
 
@@ -369,9 +394,15 @@ TERMS: dict[str, TermFn] = {
     "single": single_bounce_term,
     "double": _double_term,
     "multiple": multiple_scattering_term,
+    "double:backscatter": _double_backscatter_term,
 }
 """Term registry: name -> ``term(k_in, k_out, normal, material, frame_in, frame_out, *,
-wavelength) -> (..., 4, 4)`` (contract in docs/DESIGN.md)."""
+wavelength) -> (..., 4, 4)`` (contract in docs/DESIGN.md). ``"double"`` uses the
+exact-backscatter table of :mod:`ppr._double_table` when every element of the batch is
+within ``PSI_MAX`` (1e-4 rad) of backscatter and the quadrature otherwise;
+``"double:backscatter"`` forces the table (inputs beyond ``PSI_MAX`` are an error): a
+caller that knows its geometry is monostatic (``ppr.render`` for a monostatic sensor) uses it
+to keep the quadrature out of the compiled program."""
 
 EXPLICIT_TERMS = ("single", "double")
 """Terms computed explicitly; ``"multiple"`` is the white-furnace remainder of those
@@ -415,6 +446,10 @@ def _resolve_terms(terms) -> tuple[str, ...]:
             raise ValueError(f"terms: unknown term {t!r}; choose from {tuple(TERMS)} or 'auto'")
     if len(set(terms)) != len(terms):
         raise ValueError(f"terms: duplicate names in {terms!r}")
+    if "double" in terms and "double:backscatter" in terms:
+        raise ValueError(
+            f'terms: "double" and "double:backscatter" are the same term, got {terms!r}'
+        )
     return terms
 
 
@@ -531,7 +566,9 @@ def mueller_brdf(
     - `normal`: unit macro-surface normal, ``(..., 3)``.
     - `material`: :class:`ppr.Material` (fields may carry batch axes that broadcast with the
       directions' batch shape).
-    - `terms`: names from ``"single"``, ``"double"``, ``"multiple"`` (default: all implemented).
+    - `terms`: names from ``"single"``, ``"double"``, ``"multiple"`` (default: all implemented),
+      or ``"auto"``; ``"double:backscatter"`` is the double term from the exact-backscatter
+      table only (bistatic angle <= 1e-4 rad, else an error; :data:`TERMS`).
       ``"multiple"`` is always the remainder of the model's full set of explicit terms.
     - `frame_in`: x axis of the incident beam's Stokes frame (beam along ``-k_in``); default
       :func:`ppr._frames.default_frame` (the s direction ``normal x d``).
@@ -563,7 +600,9 @@ def mueller_brdf(
     try:
         batch = jnp.broadcast_shapes(*(s[:-1] for s in shapes.values()))
     except ValueError as err:
-        raise ValueError(f"k_in, k_out, normal, frames: batch shapes do not broadcast: {shapes}") from err
+        raise ValueError(
+            f"k_in, k_out, normal, frames: batch shapes do not broadcast: {shapes}"
+        ) from err
     try:
         batch = jnp.broadcast_shapes(batch, jnp.shape(material.m), jnp.shape(material.n))
     except ValueError as err:
@@ -574,6 +613,16 @@ def mueller_brdf(
     normal = _validate_direction("normal", normal, None)
     k_in = _validate_direction("k_in", k_in, normal)
     k_out = _validate_direction("k_out", k_out, normal)
+    if "double:backscatter" in names:
+        from ._double_table import PSI_MAX, near_backscatter
+
+        k_out = _check(
+            "k_out",
+            k_out,
+            ~near_backscatter(k_in, k_out),
+            f'terms "double:backscatter" needs a bistatic angle <= PSI_MAX = {PSI_MAX} rad '
+            '(use "double")',
+        )
     k_in = jnp.broadcast_to(k_in, batch + (3,))
     k_out = jnp.broadcast_to(k_out, batch + (3,))
     normal = jnp.broadcast_to(normal, batch + (3,))
@@ -606,8 +655,9 @@ def _brdf_core(k_in, k_out, normal, material, frame_in, frame_out, wavelength, *
         if name == "single":
             rows = _add_rows(
                 rows,
-                _single_rows(ki, ko, nr, m, n_re, n_im, _split(frame_in), _split(frame_out),
-                             material.white),
+                _single_rows(
+                    ki, ko, nr, m, n_re, n_im, _split(frame_in), _split(frame_out), material.white
+                ),
             )
         elif name == "multiple":
             rows = _add_rows(rows, _multiple_rows(ki, ko, nr, material, m))

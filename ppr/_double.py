@@ -334,16 +334,30 @@ def _fresnel(n_re, n_im, cos_t, white: bool):
     return fresnel_amplitudes_re(n_re, n_im, cos_t)
 
 
-def _path_jones(k, kp, d1, e, n_re, n_im, white, thr):
+def _path_jones(k, kp, d1, e, n_re, n_im, white, thr, probe=None):
     """Jones chain of the path k -> facet 1 -> d1 -> facet 2 -> k' in frames x_in = x_out = e
-    (SoA tuples). Returns the J entries as (re, im) pairs for 11, 12, 21, 22."""
+    (SoA tuples). Returns the J entries as (re, im) pairs for 11, 12, 21, 22.
+
+    ``probe`` (static, for the backscatter tables of :mod:`ppr._double_table`): ``"s"`` or
+    ``"p"`` replaces the Fresnel amplitudes by ``(r_s, r_p) = (1, 0)`` or ``(0, 1)`` at facet 1
+    and ``(1, 1)`` at facet 2, so that ``J = a J_s + b J_p`` (``a = r_s1 r_s2``,
+    ``b = r_p1 r_p2``) wherever the chain is coplanar (``C_12`` diagonal: exact backscatter).
+    """
     # cos t1 = |k + d1| / 2, cos t2 = |k' - d1| / 2 (both mirror geometries)
     a1 = tuple(x + y for x, y in zip(k, d1))
     a2 = tuple(x - y for x, y in zip(kp, d1))
     c1 = jnp.clip(0.5 * safe_sqrt(_sdot(a1, a1)), 0.0, 1.0)
     c2 = jnp.clip(0.5 * safe_sqrt(_sdot(a2, a2)), 0.0, 1.0)
-    rs1r, rs1i, rp1r, rp1i = _fresnel(n_re, n_im, c1, white)
-    rs2r, rs2i, rp2r, rp2i = _fresnel(n_re, n_im, c2, white)
+    if probe is None:
+        rs1r, rs1i, rp1r, rp1i = _fresnel(n_re, n_im, c1, white)
+        rs2r, rs2i, rp2r, rp2i = _fresnel(n_re, n_im, c2, white)
+    else:
+        one, zero = jnp.ones_like(c1), jnp.zeros_like(c1)
+        rs2r, rs2i, rp2r, rp2i = one, zero, one, zero
+        if probe == "s":
+            rs1r, rs1i, rp1r, rp1i = one, zero, zero, zero
+        else:
+            rs1r, rs1i, rp1r, rp1i = zero, zero, one, zero
     # facet s/p frames; fallbacks (normal incidence on a facet) use e, which is _|_ k and k'
     s1, _ = _snormalize(_scross(k, d1), e, thr)
     p_in1 = _scross(_sneg(k), s1)
@@ -636,13 +650,35 @@ def _accumulate(k, kp, normal, e, m, n_re, n_im, *, order, inner_order, white, c
 
 def _accumulate_half(k, kp, normal, e, m, n_re, n_im, *, reverse, order, coef, white):
     """16 coherency reals of sum_nodes w * vec(J_f) vec(J_f)^† for eq. (D) without its
-    prefactor (module docstring, "Quadrature").
+    prefactor (:func:`_half_paths` gives the nodes). Returns (..., 16)."""
+    w, J, _ = _half_paths(
+        k, kp, normal, e, m, n_re, n_im, reverse=reverse, order=order, coef=coef, white=white
+    )
+    # materialize the Jones entries once: without the barrier XLA fuses the whole chain into
+    # each of the 16 reductions below (16x the work, measured)
+    w, J = jax.lax.optimization_barrier((w, J))
+    re = [J[a][0] for a in range(4)]
+    im = [J[a][1] for a in range(4)]
+    out = [jnp.sum(w * (re[a] * re[a] + im[a] * im[a]), axis=-1) for a in range(4)]
+    cross_re, cross_im = [], []
+    for a, b in _PAIRS:
+        # j_a j_b^*
+        cross_re.append(jnp.sum(w * (re[a] * re[b] + im[a] * im[b]), axis=-1))
+        cross_im.append(jnp.sum(w * (im[a] * re[b] - re[a] * im[b]), axis=-1))
+    return jnp.stack(out + cross_re + cross_im, axis=-1)
+
+
+def _half_paths(k, kp, normal, e, m, n_re, n_im, *, reverse, order, coef, white, probe=None):
+    """Nodes of one half of the quadrature: weights ``w`` (..., N), Jones entries ``J`` (4
+    (re, im) pairs of (..., N)) and ``cos t`` at the path's first facet in its
+    parametrization (..., N). ``sum w vec(J) vec(J)^†`` is eq. (D) without its prefactor
+    (module docstring, "Quadrature"); ``probe``: :func:`_path_jones`.
 
     h1 = (sin t cos phi, sin t sin phi, cos t) about n, phi from the projection of k. Lit facets
     (h1.k > 0) are exactly ``t < t_max(phi)``, ``tan t_max = c / (s max(-cos phi, 0))``, so
     the lobe variable u = cos^(m+1) t runs over [u_min(phi), 1], u_min = cos^(m+1) t_max:
     the shadow boundary is a panel end, not a kink inside the rule. Arrays: k, kp, normal, e
-    (..., 3); m, n_re, n_im (...). Returns (..., 16).
+    (..., 3); m, n_re, n_im (...).
     """
     dt = k.dtype
     thr = tiny(dt) * 1e3
@@ -721,21 +757,10 @@ def _accumulate_half(k, kp, normal, e, m, n_re, n_im, *, reverse, order, coef, w
         valid, wq * bal * rho * c1 * ((mq + 1.0) / (2.0 * math.pi)) * p2 / (4.0 * inner), 0.0
     )
     if reverse:  # this half is parametrized by the second facet: forward path is k' -> ... -> k
-        J = _path_jones(kpq, kq, _sneg(d1), eq, ex(n_re), ex(n_im), white, thr)
+        J = _path_jones(kpq, kq, _sneg(d1), eq, ex(n_re), ex(n_im), white, thr, probe)
     else:
-        J = _path_jones(kq, kpq, d1, eq, ex(n_re), ex(n_im), white, thr)
-    # materialize the Jones entries once: without the barrier XLA fuses the whole chain into
-    # each of the 16 reductions below (16x the work, measured)
-    w, J = jax.lax.optimization_barrier((w, J))
-    re = [J[a][0] for a in range(4)]
-    im = [J[a][1] for a in range(4)]
-    out = [jnp.sum(w * (re[a] * re[a] + im[a] * im[a]), axis=-1) for a in range(4)]
-    cross_re, cross_im = [], []
-    for a, b in _PAIRS:
-        # j_a j_b^*
-        cross_re.append(jnp.sum(w * (re[a] * re[b] + im[a] * im[b]), axis=-1))
-        cross_im.append(jnp.sum(w * (im[a] * re[b] - re[a] * im[b]), axis=-1))
-    return jnp.stack(out + cross_re + cross_im, axis=-1)
+        J = _path_jones(kq, kpq, d1, eq, ex(n_re), ex(n_im), white, thr, probe)
+    return w, J, c1
 
 
 def _broadcast_inputs(k_in, k_out, normal, material, frame_in, frame_out):
@@ -929,7 +954,8 @@ def double_bounce_term_auto(
     *,
     wavelength: float | Float[ArrayLike, "..."] = 532e-9,
 ) -> Float[Array, "*batch 4 4"]:
-    """:func:`double_bounce_term` where :func:`double_needed`, else 0.
+    """The double term (:func:`ppr._double_table.double_term_dispatch`: the backscatter table
+    or the quadrature) where :func:`double_needed`, else 0.
 
     One ``lax.cond`` on the whole batch: the quadrature runs only if *some* element needs it
     (jit-compatible; under ``vmap`` a cond becomes a select and saves nothing, so batch by
@@ -948,7 +974,9 @@ def double_bounce_term_auto(
     need = jnp.any(double_needed(material.m, k_in, k_out))
 
     def yes(_):
-        return double_bounce_term(
+        from ._double_table import double_term_dispatch  # noqa: PLC0415 (imports this module)
+
+        return double_term_dispatch(
             k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength
         ).astype(dt)
 

@@ -310,21 +310,54 @@ def facet_weights(
     f_count = nrm.shape[0]
     k_in = jnp.broadcast_to(u_in, (f_count, 3))
     k_out = jnp.broadcast_to(u_out, (f_count, 3))
-    m = brdf(
-        k_in,
-        k_out,
-        safe_n,
-        mat,
-        frame_in=jnp.broadcast_to(x_tx, (f_count, 3)),
-        frame_out=jnp.broadcast_to(x_rx, (f_count, 3)),
-        wavelength=sensor.wavelength,
-        terms=terms,
-    )
+
+    def call(t):
+        return brdf(
+            k_in,
+            k_out,
+            safe_n,
+            mat,
+            frame_in=jnp.broadcast_to(x_tx, (f_count, 3)),
+            frame_out=jnp.broadcast_to(x_rx, (f_count, 3)),
+            wavelength=sensor.wavelength,
+            terms=t,
+        )
+
+    bs = backscatter_terms(brdf, terms)
+    if bs is None:
+        m = call(terms)
+    else:
+        # one decision per sensor (unbatched under vmap over poses, unlike the per-facet
+        # directions): the exact-backscatter table of the double term, or its quadrature
+        near = near_backscatter(sensor.laser_dir, sensor.receiver_dir)
+        m = jax.lax.cond(near, lambda _: call(bs), lambda _: call(terms), None)
     m = m.reshape(f_count, 16)
     g = jnp.where(front, cos_in * cos_out * arrays.areas * vis, 0.0)
     m = jnp.where(front[:, None], m, 0.0)
     wch = m if projection is None else m @ projection.astype(m.dtype)
     return wch * g[:, None], w
+
+
+def backscatter_terms(brdf: Callable, terms) -> tuple[str, ...] | None:
+    """``terms`` for :func:`ppr.mueller_brdf` with its double term taken from the
+    exact-backscatter table (``"double:backscatter"``, :mod:`ppr._double_table`), or None when
+    that changes nothing (another BRDF, or no double term). ``"auto"`` keeps the double term
+    at backscatter: from the table it costs little, and leaving it out was only a saving."""
+    from ._brdf import _resolve_terms, implemented_terms, mueller_brdf  # noqa: PLC0415
+
+    if brdf is not mueller_brdf:
+        return None
+    names = implemented_terms() if terms is None or terms == "auto" else _resolve_terms(terms)
+    if "double" not in names:
+        return None
+    return tuple("double:backscatter" if t == "double" else t for t in names)
+
+
+def near_backscatter(laser_dir: Array, receiver_dir: Array) -> Array:
+    """The sensor's bistatic angle is within the backscatter table's ``PSI_MAX``."""
+    from ._double_table import near_backscatter as near  # noqa: PLC0415
+
+    return near(laser_dir, receiver_dir)
 
 
 def render(
@@ -370,6 +403,18 @@ def render(
     dt = arrays.tri.dtype
     if faces is not None:
         arrays, vis = _take_faces(arrays, vis, faces)
+    bs = backscatter_terms(brdf, terms)
+    concrete = not any(
+        isinstance(a, jax.core.Tracer) for a in (sensor.laser_dir, sensor.receiver_dir)
+    )
+    if (
+        bs is not None
+        and concrete
+        and bool(near_backscatter(sensor.laser_dir, sensor.receiver_dir))
+    ):
+        # decided here, so that the compiled program holds the table only (facet_weights
+        # decides by lax.cond when the sensor is traced)
+        terms = bs
     return _render_jit(
         arrays,
         vis,

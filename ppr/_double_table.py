@@ -1,0 +1,502 @@
+r"""Double-bounce term near exact backscatter from material-independent tables.
+
+PPR sensors are monostatic up to the velocity aberration (tens of microradians), and every
+facet of a mesh is then seen at exact backscatter ``k' = k``. There the double term of
+:mod:`ppr._double` has a structure that removes its quadrature from the per-evaluation cost:
+
+1. Every double path is coplanar (``h1 . h2 = 0``, paper eq. 14) and ``k = cos t1 h1 +
+   cos t2 h2``, so ``t2 = pi/2 - t1``: the path's Jones matrix, in its own s/p frame, is
+   ``diag(a, b)`` with ``a = r_s(t1) r_s(pi/2 - t1)``, ``b = r_p(t1) r_p(pi/2 - t1)``; the
+   material enters only through the angle ``t1`` of the first facet.
+2. In the shared beam frame ``e``, ``J = a J_s + b J_p`` with real 2x2 matrices ``J_s``,
+   ``J_p`` fixed by the geometry (obtained from :func:`ppr._double._path_jones` with the
+   probes ``(r_s, r_p) = (1, 0), (0, 1)``), so the path's coherency is
+   ``|a|^2 U_ss + |b|^2 U_pp + Re(a b*) U_re + Im(a b*) U_im`` with geometric ``U``.
+3. The four products ``g(t) = (|a|^2, |b|^2, Re a b*, Im a b*)`` are smooth in ``t`` on
+   ``[0, pi/2]``; with the Lagrange basis ``l_j`` of ``K`` Chebyshev-Lobatto nodes ``t_j``,
+   ``g(t) ~= sum_j g(t_j) l_j(t)``. Hence
+
+       M_inc(c, m; n) = sum_{q, j} g_q(t_j; n) Z_{q j}(c, m),
+       Z_{q j} = <prefactor> sum_paths w l_j(t1) (G_inc U_q)       (4x4 each),
+
+   ``Z`` independent of the material. Its columns span only three 4x4 matrices (the path
+   azimuths about ``k`` enter through 1, cos 2alpha, cos^2 2alpha; the sine terms cancel in
+   the mirror-symmetric sum), so ``Z_{q j} = sum_r T_{j r}(c, m) V_{r q}`` with constant
+   ``V``: the table stores ``T`` (``K x 3`` per grid point; singular values measured at
+   build time, ``RANK_TOL``).
+4. At exact backscatter the reversed path's Jones matrix equals the forward one, so the
+   coherent part is exactly ``2 M_inc`` (tested) and ``M = (1 + gamma(psi)) M_inc``.
+
+Error of the Fresnel interpolation (``K = K_NODES = 20``; max over t of ``|g - interp|``,
+``|g| <= 1``): 2.8e-4 for aluminium at 532 nm (``n = 0.94 + 6.42i``, the hardest library
+material: its pseudo-Brewster dip is narrow), 4e-7 for gold, 2e-7 for TiO2, < 1e-9 for
+silica (bench/bench_double.py "backscatter table").
+
+Grid: ``x = acosh(1/c) = log((1 + sin theta) / cos theta)`` (``c = k.n``; ``x ~ theta``
+at normal incidence, where the term has a cusp ``|theta|`` (the shadow boundary separates
+from the hemisphere's edge: at m = 0.03 the converged M00 drops linearly, 2.7e-5 per 2 deg,
+3.7e-3 relative); ``x ~ -log(c/2)`` near grazing, where the term is a power of ``c``) on
+``[0, X_MAX]``, and ``u = sqrt(m + 1) - 1`` (analytic at ``m = 0``; ``log E ~ -kappa m`` is
+quadratic in ``u``, reproduced exactly by cubic convolution) on ``[0, U_MAX]``. Stored:
+``log E`` (``E`` the white M00 of the double term, a positive envelope that spans 300
+decades over the grid) and ``T / E``, interpolated by tensor-product Catmull-Rom
+(:mod:`ppr._albedo`'s kernel). Beyond ``X_MAX`` (``c < 1e-4``) ``log E`` continues
+linearly in ``x`` (power law in ``c``) and ``T / E`` is held. Above ``M_MAX`` the term is
+returned as 0: at ``m = M_MAX`` the double term at backscatter is below ``exp(-LOG_FLOOR)``
+... ``1e-59`` of the white M00 at normal incidence and far below the single-bounce term
+everywhere (measured at build time, stored in the file's ``info``).
+
+The table is built by ``scripts/double_backscatter_table.py`` from the quadrature of
+:mod:`ppr._double` at a high order (``BUILD_ORDER``); its error against that quadrature at a
+still higher order, off the grid nodes, is measured in tests/test_double_table.py and
+bench/bench_double.py.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _double as D
+from ._albedo import _cell, _cr_weights, _pad_quadratic
+from ._frames import perpendicular_unit, rotation_cos_sin_2a
+from ._fresnel import fresnel_amplitudes_re
+from ._microfacet import mean_cosine_plus
+from ._safe import tiny
+from ._types import Array, ArrayLike, Float
+
+__all__ = [
+    "K_NODES",
+    "M_MAX",
+    "PSI_MAX",
+    "backscatter_moments",
+    "build_table",
+    "double_backscatter_term",
+    "double_term_dispatch",
+    "load_table",
+    "near_backscatter",
+]
+
+K_NODES: int = 16
+"""Chebyshev-Lobatto nodes in the first facet's angle ``t1`` (module docstring, step 3)."""
+
+TAU: float = 2.0
+"""Scale of the incidence variable ``x = asinh(TAU tan theta)``."""
+
+C_MIN: float = 1e-3
+"""Grid end in ``c``: incidence 89.94 deg; beyond, ``log E`` continues linearly in ``x``."""
+
+X_MAX: float = math.asinh(TAU * math.sqrt(1.0 - C_MIN**2) / C_MIN)
+
+M_MAX: float = 200.0
+"""Largest tabulated Blinn-Phong exponent; above it the backscatter double term is 0."""
+
+M_SHIFT: float = 1.0
+"""Roughness variable ``u = sqrt(m + M_SHIFT) - sqrt(M_SHIFT)``."""
+
+U_MAX: float = math.sqrt(M_MAX + M_SHIFT) - math.sqrt(M_SHIFT)
+
+BUILD_ORDER: tuple[int, int] = (24, 96)
+"""Quadrature order ``(n_u, n_phi)`` of :mod:`ppr._double` used to build the table."""
+
+LOG_FLOOR: float = -700.0
+"""``log E`` is clipped below at this value (``exp`` of it is 0 in float32 and subnormal in
+float64); ``T / E`` is 0 where ``E`` underflowed."""
+
+RANK_TOL: float = 1e-9
+"""Singular values of the stacked ``Z`` below ``RANK_TOL`` times the largest are dropped."""
+
+PSI_MAX: float = 1e-3
+"""Largest bistatic angle (rad) at which ``mueller_brdf`` uses the table for the double
+term (the rest of the term's dependence on ``psi`` is through ``gamma(psi)``, exact here);
+measured: tests/test_double_table.py::test_near_backscatter_against_quadrature."""
+
+TABLE_FILE = os.path.join(os.path.dirname(__file__), "data", "double_backscatter.npz")
+
+
+# --------------------------------------------------------------------------------------------
+# the Lagrange basis in t1 and the material's node values
+
+
+@functools.cache
+def lobatto(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Chebyshev-Lobatto nodes ``x_j`` on [-1, 1], angles ``t_j = (x_j + 1) pi/4`` in
+    [0, pi/2] and the barycentric weights."""
+    x = np.cos(np.pi * np.arange(k) / (k - 1))
+    t = (x + 1.0) * np.pi / 4.0
+    w = np.ones(k)
+    w[0] = w[-1] = 0.5
+    w *= (-1.0) ** np.arange(k)
+    return x, t, w
+
+
+def angle_basis(t: Array, k: int) -> Array:
+    """Lagrange basis ``l_j(t)``, ``(..., k)``, of the nodes :func:`lobatto` (barycentric
+    form, exact 0/1 at the nodes)."""
+    x, _, w = lobatto(k)
+    dt = t.dtype
+    xx = 4.0 * t / math.pi - 1.0
+    d = xx[..., None] - jnp.asarray(x, dt)
+    at = jnp.abs(d) < 1e-12
+    lam = jnp.asarray(w, dt) / jnp.where(at, 1.0, d)
+    lam = lam / jnp.sum(lam, axis=-1, keepdims=True)
+    return jnp.where(jnp.any(at, axis=-1, keepdims=True), at.astype(dt), lam)
+
+
+def node_products(n_re: Array, n_im: Array, k: int, *, white: bool = False) -> Array:
+    """``g_q(t_j)`` for ``q`` in (``|a|^2``, ``|b|^2``, ``Re a b*``, ``Im a b*``): ``(..., 4,
+    k)``. ``white``: the ideal white facet (``r_s = -1``, ``r_p = 1``: ``a = b = 1``)."""
+    dt = n_re.dtype
+    if white:
+        g = np.zeros((4, k))
+        g[:3] = 1.0
+        return jnp.broadcast_to(jnp.asarray(g, dt), n_re.shape + (4, k))
+    _, t, _ = lobatto(k)
+    c = jnp.asarray(np.cos(t), dt)
+    ex = lambda a: a[..., None]  # noqa: E731
+    rs_r, rs_i, rp_r, rp_i = fresnel_amplitudes_re(ex(n_re), ex(n_im), c)
+    # the complementary angle pi/2 - t_j is the node k-1-j (symmetric nodes)
+    rev = lambda a: a[..., ::-1]  # noqa: E731
+    a_r = rs_r * rev(rs_r) - rs_i * rev(rs_i)
+    a_i = rs_r * rev(rs_i) + rs_i * rev(rs_r)
+    b_r = rp_r * rev(rp_r) - rp_i * rev(rp_i)
+    b_i = rp_r * rev(rp_i) + rp_i * rev(rp_r)
+    return jnp.stack(
+        [
+            a_r * a_r + a_i * a_i,
+            b_r * b_r + b_i * b_i,
+            a_r * b_r + a_i * b_i,
+            a_i * b_r - a_r * b_i,
+        ],
+        axis=-2,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# building the table (float64)
+
+
+def _pack(s: list, p: list) -> list[Array]:
+    """16 coherency reals (``ppr._double`` layout) of ``U_ss, U_pp, U_re, U_im``."""
+    z = jnp.zeros_like(s[0])
+    pairs = D._PAIRS
+    u_ss = [s[a] * s[a] for a in range(4)] + [s[a] * s[b] for a, b in pairs] + [z] * 6
+    u_pp = [p[a] * p[a] for a in range(4)] + [p[a] * p[b] for a, b in pairs] + [z] * 6
+    u_re = [2.0 * s[a] * p[a] for a in range(4)]
+    u_re += [s[a] * p[b] + p[a] * s[b] for a, b in pairs] + [z] * 6
+    u_im = [z] * 10 + [s[a] * p[b] - p[a] * s[b] for a, b in pairs]
+    return [jnp.stack(u, axis=-1) for u in (u_ss, u_pp, u_re, u_im)]
+
+
+@functools.partial(jax.jit, static_argnames=("order", "k"))
+def backscatter_moments(
+    c: Float[Array, " G"], m: Float[Array, " G"], *, order: tuple[int, int], k: int
+) -> Float[Array, "G 4 k 16"]:
+    """``Z_{q j}(c, m)`` (module docstring, step 3): row-major e-frame Mueller matrices of the
+    incoherent double term at exact backscatter, per Fresnel product ``q`` and node ``j``,
+    with the prefactor ``<h.n> / <h.k>+^2``. ``k = (sin, 0, cos)``, ``n = z``,
+    ``e = normalize(n x k)`` (:func:`ppr._double._common_frame`)."""
+    s = jnp.sqrt(jnp.clip((1.0 - c) * (1.0 + c), 0.0, 1.0))
+    z = jnp.zeros_like(c)
+    kv = jnp.stack([s, z, c], axis=-1)
+    nv = jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0], c.dtype), kv.shape)
+    e = D._common_frame(kv, kv, nv, c.dtype)
+    coef = D._mcp_interpolant(m, D.INNER_ORDER)
+    g_inc = jnp.asarray(D._linear_maps()[0], c.dtype)
+    out = 0.0
+    for reverse in (False, True):
+        kw = dict(reverse=reverse, order=order, coef=coef, white=False)
+        w, js, c1 = D._half_paths(kv, kv, nv, e, m, z, z, probe="s", **kw)
+        _, jp, _ = D._half_paths(kv, kv, nv, e, m, z, z, probe="p", **kw)
+        t1 = jnp.arccos(jnp.clip(c1, 0.0, 1.0))
+        wl = w[..., None] * angle_basis(t1, k)  # (G, N, k)
+        us = _pack([js[a][0] for a in range(4)], [jp[a][0] for a in range(4)])
+        out = out + jnp.stack([jnp.einsum("gnk,gnq->gkq", wl, u) for u in us], axis=1)
+    hn = (m + 1.0) / (m + 2.0)
+    pref = hn / mean_cosine_plus(m, c, order=128) ** 2
+    return pref[:, None, None, None] * (out @ g_inc.T)
+
+
+def grid(nx: int, nu: int) -> tuple[np.ndarray, np.ndarray]:
+    """Node coordinates ``x`` (``nx``) and ``u`` (``nu``)."""
+    return np.linspace(0.0, X_MAX, nx), np.linspace(0.0, U_MAX, nu)
+
+
+def build_table(
+    nx: int = 84,
+    nu: int = 100,
+    *,
+    order: tuple[int, int] = BUILD_ORDER,
+    k: int = K_NODES,
+    chunk: int = 32,
+    progress: bool = True,
+) -> dict[str, np.ndarray]:
+    """Compute the table (float64; minutes at the defaults on 2 cores). Returns the arrays
+    that :func:`save_table` writes."""
+    from tqdm.auto import tqdm  # noqa: PLC0415
+
+    jax.config.update("jax_enable_x64", True)
+    xs, us = grid(nx, nu)
+    X, U = np.meshgrid(xs, us, indexing="ij")
+    c = 1.0 / np.sqrt(1.0 + (np.sinh(X.ravel()) / TAU) ** 2)
+    m = (U.ravel() + math.sqrt(M_SHIFT)) ** 2 - M_SHIFT
+    m[U.ravel() == 0.0] = 0.0
+    n = c.size
+    pad = (-n) % chunk
+    cp = np.concatenate([c, np.full(pad, c[-1])])
+    mp = np.concatenate([m, np.full(pad, m[-1])])
+    zs = []
+    for a in tqdm(range(0, n + pad, chunk), desc="double backscatter table", disable=not progress):
+        zs.append(
+            np.asarray(
+                backscatter_moments(
+                    jnp.asarray(cp[a : a + chunk]),
+                    jnp.asarray(mp[a : a + chunk]),
+                    order=order,
+                    k=k,
+                )
+            )
+        )
+    Z = np.concatenate(zs)[:n]  # (G, 4, k, 16)
+    # rank reduction: rows (G, j), columns (q, Mueller element)
+    rows = np.transpose(Z, (0, 2, 1, 3)).reshape(n * k, 64)
+    scale = np.abs(rows).max(axis=1, keepdims=True)
+    rows_n = rows / np.where(scale > 0, scale, 1.0)
+    _, sv, vt = np.linalg.svd(rows_n, full_matrices=False)
+    r = int(np.sum(sv > RANK_TOL * sv[0]))
+    V = vt[:r]  # (r, 64), orthonormal rows
+    T = rows @ V.T  # (G k, r)
+    resid = np.abs(rows - T @ V).max() / np.abs(rows).max()
+    T = T.reshape(n, k, r)
+    white = node_products(jnp.zeros(()), jnp.zeros(()), k, white=True)
+    E = np.einsum("qj,gjqe->ge", np.asarray(white), Z.transpose(0, 2, 1, 3))[:, 0]
+    logE = np.where(E > 0, np.log(np.where(E > 0, E, 1.0)), LOG_FLOOR)
+    logE = np.maximum(logE, LOG_FLOOR)
+    Tn = np.where(E[:, None, None] > 0, T / np.where(E > 0, E, 1.0)[:, None, None], 0.0)
+    info = (
+        f"order={order} K={k} nx={nx} nu={nu} rank={r} singular values={sv[: r + 2].tolist()} "
+        f"rank-{r} max residual {resid:.2e}"
+    )
+    return dict(
+        logE=logE.reshape(nx, nu),
+        Tn=Tn.reshape(nx, nu, k * r),
+        V=V.reshape(r, 4, 16),
+        x=xs,
+        u=us,
+        info=np.asarray(info),
+    )
+
+
+def save_table(tab: dict[str, np.ndarray], path: str = TABLE_FILE) -> str:
+    np.savez_compressed(
+        path,
+        logE=tab["logE"].astype(np.float32),
+        Tn=tab["Tn"].astype(np.float32),
+        V=tab["V"],
+        x=tab["x"],
+        u=tab["u"],
+        info=tab["info"],
+    )
+    load_table.cache_clear()
+    return path
+
+
+class _Table:
+    """The padded interpolation arrays (NumPy, float64)."""
+
+    def __init__(self, f):
+        x, u = np.asarray(f["x"], float), np.asarray(f["u"], float)
+        self.nx, self.nu = len(x), len(u)
+        self.dx, self.du = x[1] - x[0], u[1] - u[0]
+        self.V = np.asarray(f["V"], float)  # (r, 4, 16)
+        self.rank = self.V.shape[0]
+        logE = np.asarray(f["logE"], float)
+        self.slope_end = (logE[-1] - logE[-2]) / self.dx  # (nu,) d log E / dx at X_MAX
+        vals = np.concatenate([logE[..., None], np.asarray(f["Tn"], float)], axis=-1)
+        self.k = (vals.shape[-1] - 1) // self.rank
+        self.vals = _pad_quadratic(_pad_quadratic(vals, 0), 1)  # (nx+2, nu+2, 1 + k r)
+        self.slope_pad = _pad_quadratic(self.slope_end, 0)
+        self.info = str(f["info"])
+
+
+@functools.cache
+def load_table(path: str = TABLE_FILE) -> _Table:
+    if not os.path.exists(path):
+        raise FileNotFoundError(
+            f"double-bounce backscatter table {path} is missing; build it with "
+            "`python scripts/double_backscatter_table.py`"
+        )
+    with np.load(path) as f:
+        return _Table(f)
+
+
+def _interp(tab: _Table, x: Array, u: Array, dt) -> tuple[Array, Array, Array]:
+    """Catmull-Rom values ``(log E, T / E, d log E / dx at X_MAX)`` at ``(x, u)`` (clamped to
+    the grid)."""
+    i, tx = _cell(x, 0.0, tab.dx, tab.nx)
+    j, tu = _cell(u, 0.0, tab.du, tab.nu)
+    # rows of flat (nodes, values) arrays by jnp.take: on XLA CPU 7x faster than indexing the
+    # 3-D array with two index arrays, and log E comes from its own array (slicing it off a
+    # joint result made XLA recompute the gathers per output: 9x slower; both measured,
+    # 2.5e5 points, float32)
+    nv = tab.vals.shape[-1]
+    flat_e = jnp.asarray(tab.vals[..., 0].reshape(-1), dt)
+    flat_t = jnp.asarray(tab.vals[..., 1:].reshape(-1, nv - 1), dt)
+    nu2 = tab.vals.shape[1]
+    wx = _cr_weights(tx)
+    wu = _cr_weights(tu)
+    out_e = 0.0
+    out_t = 0.0
+    for a in range(4):
+        row_e = 0.0
+        row_t = 0.0
+        for b in range(4):
+            idx = (i + a) * nu2 + (j + b)
+            row_e = row_e + wu[b] * jnp.take(flat_e, idx, axis=0)
+            row_t = row_t + wu[b][..., None] * jnp.take(flat_t, idx, axis=0)
+        out_e = out_e + wx[a] * row_e
+        out_t = out_t + wx[a][..., None] * row_t
+    sl = jnp.asarray(tab.slope_pad, dt)
+    slope = sum(wu[b] * sl[j + b] for b in range(4))
+    return out_e, out_t, slope
+
+
+# --------------------------------------------------------------------------------------------
+# evaluation
+
+
+def near_backscatter(
+    k_in: Float[ArrayLike, "... 3"], k_out: Float[ArrayLike, "... 3"], psi_max: float = PSI_MAX
+) -> Array:
+    """``psi <= psi_max`` per element (``|k' - k| = 2 sin(psi / 2)``)."""
+    dk = jnp.asarray(k_out) - jnp.asarray(k_in)
+    return jnp.sum(dk * dk, axis=-1) <= (2.0 * math.sin(0.5 * psi_max)) ** 2
+
+
+def _rotate(M16: Array, c_in: Array, s_in: Array, c_out: Array, s_out: Array) -> Array:
+    """``R(c_out, s_out) M R(c_in, s_in)`` (:func:`ppr._frames.mueller_rotator`) on row-major
+    ``(..., 16)`` Mueller matrices, element by element (batched 4x4 products are slow on CPU)."""
+    m = [[M16[..., 4 * i + j] for j in range(4)] for i in range(4)]
+    for i in range(4):  # columns 1, 2: M R_in
+        a, b = m[i][1], m[i][2]
+        m[i][1], m[i][2] = c_in * a - s_in * b, s_in * a + c_in * b
+    for j in range(4):  # rows 1, 2: R_out M
+        a, b = m[1][j], m[2][j]
+        m[1][j], m[2][j] = c_out * a + s_out * b, -s_out * a + c_out * b
+    return jnp.stack([m[i][j] for i in range(4) for j in range(4)], axis=-1)
+
+
+def double_backscatter_term(
+    k_in: Float[Array, "*batch 3"],
+    k_out: Float[Array, "*batch 3"],
+    normal: Float[Array, "*batch 3"],
+    material,
+    frame_in: Float[Array, "*batch 3"],
+    frame_out: Float[Array, "*batch 3"],
+    *,
+    wavelength: float | Float[ArrayLike, "..."] = 532e-9,
+    coherent: bool = True,
+) -> Float[Array, "*batch 4 4"]:
+    """Double-bounce Mueller BRDF (1/sr) at exact backscatter from the table, with the
+    coherent enhancement ``(1 + gamma(psi))`` (module docstring). Valid where
+    ``psi <= PSI_MAX`` (the incoherent part is taken at ``psi = 0``); same signature as
+    :func:`ppr._double.double_bounce_term`. Differentiable in the directions, ``m`` and
+    ``n``; exactly grazing rows give 0."""
+    tab = load_table()
+    k, kp, nrm, f_in, f_out, m, n_re, n_im, dt, batch = D._broadcast_inputs(
+        k_in, k_out, normal, material, frame_in, frame_out
+    )
+    g_min = tiny(dt) * 1e8
+    c = jnp.sum(k * nrm, axis=-1)
+    cp = jnp.sum(kp * nrm, axis=-1)
+    valid = (c > g_min) & (cp > g_min) & (m <= M_MAX)
+    c_safe = jnp.where(valid, jnp.clip(c, 0.0, 1.0), 1.0)
+    # x = asinh(TAU s / c); s by the double where (the term has a cusp |theta| at normal
+    # incidence: zero gradient there instead of 0 * inf)
+    s2 = jnp.clip((1.0 - c_safe) * (1.0 + c_safe), 0.0, 1.0)
+    s_ok = s2 > tiny(dt) * 1e8
+    sn = jnp.where(s_ok, jnp.sqrt(jnp.where(s_ok, s2, 1.0)), 0.0)
+    x = jnp.arcsinh(TAU * sn / c_safe)
+    m_safe = jnp.where(valid, m, 0.0)
+    u = jnp.sqrt(m_safe + M_SHIFT) - math.sqrt(M_SHIFT)
+    # materialized once: without the barrier XLA fused the gathers into several consumers
+    # (recomputing them; 4.6x slower with the coherent factor, measured)
+    if coherent:
+        # D.coherence_factor, with |k' - k|^2 summed component by component (a last-axis
+        # jnp.sum here became a YNN reduction fusion that made the whole term 6x slower on
+        # XLA CPU, measured)
+        dk = [kp[..., i] - k[..., i] for i in range(3)]
+        q2 = dk[0] * dk[0] + dk[1] * dk[1] + dk[2] * dk[2]
+        psi_h = jnp.asarray(wavelength, dt) / (4.0 * jnp.asarray(material.corr_length, dt))
+        gamma = jnp.broadcast_to(jnp.exp(-math.log(2.0) * q2 / (psi_h * psi_h)), batch)
+    else:
+        gamma = jnp.zeros(batch, dt)
+    log_e, tn, slope, gamma = jax.lax.optimization_barrier((*_interp(tab, x, u, dt), gamma))
+    log_e = log_e + slope * jnp.maximum(x - X_MAX, 0.0)
+    env = jnp.where(valid, jnp.exp(jnp.minimum(log_e, 50.0)), 0.0)
+    white = bool(getattr(material, "white", False))
+    n_re0 = jnp.real(jnp.asarray(material.n)).astype(dt)
+    n_im0 = jnp.imag(jnp.asarray(material.n)).astype(dt)
+    g = node_products(n_re0, n_im0, tab.k, white=white)  # (..., 4, k), material's own shape
+    V = jnp.asarray(tab.V, dt)  # (r, 4, 16)
+    # the envelope and the coherent enhancement scale whole rows; applied before the
+    # contraction, behind barriers: XLA CPU's YNN dot fusion otherwise pulled the elementwise
+    # chain of gamma into the GEMM's epilogue (6x slower, measured)
+    tn = jax.lax.optimization_barrier(tn * (env * (1.0 + gamma))[..., None])
+    if g.ndim == 2:
+        # one material for the whole batch: fold it into the (k r, 16) map, then one GEMM
+        W = jnp.einsum("qj,rqe->jre", g, V).reshape(tab.k * tab.rank, 16)
+        M16 = tn @ W
+    else:
+        # per-element material (e.g. a mesh's facets): its 16 Fresnel evaluations per element
+        # dominate (1.5e5 evals/s float32 against 1.6e6 for one material, measured)
+        T = tn.reshape(batch + (tab.k, tab.rank))
+        gb = jnp.broadcast_to(jnp.swapaxes(g, -1, -2), batch + (tab.k, 4))
+        beta = jnp.sum(T[..., :, :, None] * gb[..., :, None, :], axis=-3)  # (..., r, 4)
+        M16 = beta.reshape(batch + (4 * tab.rank,)) @ V.reshape(4 * tab.rank, 16)
+    M16 = jax.lax.optimization_barrier(M16)
+    # frames: e = normalize(n x k) (as in the table), its projection _|_ k' for the output
+    e = D._common_frame(k, k, nrm, dt)
+    e_out = e - jnp.sum(e * kp, axis=-1, keepdims=True) * kp
+    sq = jnp.sum(e_out * e_out, axis=-1, keepdims=True)
+    ok = sq > 0.25
+    e_out = jnp.where(ok, e_out / jnp.sqrt(jnp.where(ok, sq, 1.0)), perpendicular_unit(kp))
+    c_in, s_in = rotation_cos_sin_2a(f_in, e, -k)
+    c_out, s_out = rotation_cos_sin_2a(e_out, f_out, kp)
+    M = _rotate(M16, c_in, s_in, c_out, s_out).reshape(batch + (4, 4))
+    return jnp.where(valid[..., None, None], M, 0.0)
+
+
+def double_term_dispatch(
+    k_in: Float[Array, "*batch 3"],
+    k_out: Float[Array, "*batch 3"],
+    normal: Float[Array, "*batch 3"],
+    material,
+    frame_in: Float[Array, "*batch 3"],
+    frame_out: Float[Array, "*batch 3"],
+    *,
+    wavelength: float | Float[ArrayLike, "..."] = 532e-9,
+) -> Float[Array, "*batch 4 4"]:
+    """The double term: the backscatter table where *every* element of the batch is within
+    ``PSI_MAX`` of exact backscatter, else the quadrature of :mod:`ppr._double`.
+
+    One ``lax.cond`` on the whole batch (under ``vmap`` with a batched predicate it becomes a
+    select that evaluates both; ``ppr.render`` therefore decides once per sensor, see
+    ``ppr._pulse.facet_weights``)."""
+    n = jnp.asarray(material.n)
+    dt = D.float_dtype(k_in, k_out, normal, material.m, n)
+    near = jnp.all(near_backscatter(k_in, k_out))
+    args = (k_in, k_out, normal, material, frame_in, frame_out)
+
+    def table(_):
+        return double_backscatter_term(*args, wavelength=wavelength).astype(dt)
+
+    def quadrature(_):
+        return D.double_bounce_term(*args, wavelength=wavelength).astype(dt)
+
+    return jax.lax.cond(near, table, quadrature, None)
