@@ -98,6 +98,12 @@ class PprSignatures:
         self.projection = jnp.asarray(chan.reshape(len(chan), 16).T, dtype)  # (16, C)
         self.brdf = ppr.mueller_brdf if brdf is None else brdf
         self.terms = None if terms is None else (terms if isinstance(terms, str) else tuple(terms))
+        # monostatic sensor: the double term from the exact-backscatter table, chosen here (the
+        # sensor is concrete) so that the compiled kernel holds no double-bounce quadrature
+        bs = ppr.backscatter_terms(self.brdf, self.terms)
+        near = ppr.near_backscatter(self.sensor_model.laser_dir, self.sensor_model.receiver_dir)
+        if bs is not None and bool(near):
+            self.terms = bs
         half = 0.5 * self.bin_width_m * self.n_bins
         if extent / 2 + 6 * self.sigma_r > half:
             raise ValueError(
@@ -200,11 +206,8 @@ def _batch_render(
 
     def one(sid, mid, fid, q, v):
         arr = jax.tree_util.tree_map(lambda a: a[sid], arrays)
-        mat = ppr.Material(
-            jnp.broadcast_to(n_tab[mid], (n_parts,)),
-            jnp.broadcast_to(m_tab[fid], (n_parts,)),
-            jnp.broadcast_to(corr_tab[mid], (n_parts,)),
-        )
+        # one entry shared by every part (ppr.render): per-material work done once per row
+        mat = ppr.Material(n_tab[mid][None], m_tab[fid][None], corr_tab[mid][None])
         pose = ppr.Pose(q.astype(dt), jnp.zeros(3, dt))
         return ppr.render(
             arr,

@@ -29,7 +29,9 @@ from ._polarimetry import (
 from ._pose import quat_from_axis_angle, quat_to_matrix
 from ._pulse import (
     Profile,
+    backscatter_terms,
     double_bounce,
+    near_backscatter,
     render,
     simulate,
     stack_materials,
@@ -79,6 +81,8 @@ __all__ = [
     "double_bounce",
     "render",
     "simulate",
+    "backscatter_terms",
+    "near_backscatter",
     "stack_materials",
     "tent_gaussian_cdf",
     "window_size",

@@ -306,7 +306,12 @@ def facet_weights(
     w = 0.5 * (u_in + u_out)
     w_unit = w / jnp.linalg.norm(w)
     safe_n = jnp.where(front[:, None], nrm, w_unit[None, :])
-    mat = jax.tree_util.tree_map(lambda a: a[arrays.material_ids], materials)
+    if jnp.shape(materials.m)[:1] == (1,):
+        # one material for every facet: unbatched, so that the BRDF's per-material work
+        # (the double term's node Fresnel products) is done once, not per facet
+        mat = jax.tree_util.tree_map(lambda a: a[0], materials)
+    else:
+        mat = jax.tree_util.tree_map(lambda a: a[arrays.material_ids], materials)
     f_count = nrm.shape[0]
     k_in = jnp.broadcast_to(u_in, (f_count, 3))
     k_out = jnp.broadcast_to(u_out, (f_count, 3))
@@ -384,7 +389,8 @@ def render(
     - `arrays`: :class:`ppr.MeshArrays` (padded body-frame mesh).
     - `vis`: ``(F,)`` lit-and-visible fractions (:class:`ppr.VisibilityCaster`, host).
     - `pose`: :class:`ppr.Pose` (traced; differentiable).
-    - `materials`: batched :class:`ppr.Material`, one entry per part (:func:`stack_materials`).
+    - `materials`: batched :class:`ppr.Material`, one entry per part (:func:`stack_materials`),
+      or a single entry shared by every part (cheaper: see :func:`facet_weights`).
     - `sensor`: :class:`ppr.Sensor`.
     - `sigma_r`: pulse RMS width in range (m), ``c sigma_t / 2``, including jitter; add a
       time offset ``t0`` through ``start`` (``start - c t0 / 2``).

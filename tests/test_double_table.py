@@ -1,0 +1,226 @@
+"""The double-bounce term near exact backscatter from tables (ppr/_double_table.py).
+
+References: the quadrature of ppr/_double.py at order (16, 64) (6144 paths; itself checked
+against an independent NumPy brute force over the whole sphere in tests/test_double.py, and
+within 5e-4 of M00(single + double) of order (24, 96)), and independent NumPy Fresnel for
+the node interpolation. The table is built from order (24, 96); what is tested is what a
+user gets: interpolation in incidence and roughness, the Fresnel node basis, the envelope,
+the frames, the coherent factor and psi > 0 up to PSI_MAX.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ppr import Material, mueller_brdf
+from ppr import _double as D
+from ppr import _double_table as T
+from ppr._polarimetry import cloude_eigenvalues
+from ppr._pulse import backscatter_terms
+
+AL = 0.94 + 6.42j  # aluminium 532 nm
+AU = 0.47 + 2.4j  # gold 532 nm
+TIO2 = 2.67 + 0j
+SILICA = 1.461 + 0j
+REF_ORDER = (16, 64)
+
+
+def unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def random_geometry(rng, n, psi):
+    """Random normals, incidences (half of them beyond 60 deg), receivers at bistatic angle
+    psi in a random azimuth (kept above the horizon), random beam frames."""
+    nrm = unit(rng.normal(size=(n, 3)))
+    t1 = unit(np.cross(nrm, rng.normal(size=(n, 3))))
+    th = np.where(np.arange(n) % 2 == 0, rng.uniform(0, 60, n), rng.uniform(60, 88, n))
+    th = np.radians(th)[:, None]
+    k = np.cos(th) * nrm + np.sin(th) * t1
+    ax = unit(np.cross(k, rng.normal(size=(n, 3))))
+    kp = unit(np.cos(psi) * k + np.sin(psi) * ax)
+    kp = np.where(np.sum(kp * nrm, -1, keepdims=True) > 0, kp, k)
+    fi = unit(np.cross(k, rng.normal(size=(n, 3))))
+    fo = unit(np.cross(kp, rng.normal(size=(n, 3))))
+    return nrm, k, kp, fi, fo
+
+
+@functools.cache
+def _quadrature(order, coherent):
+    return jax.jit(
+        lambda k, kp, n, mat, fi, fo: D.double_bounce_term(
+            k, kp, n, mat, fi, fo, order=order, coherent=coherent
+        )
+    )
+
+
+def test_table_matches_quadrature_near_backscatter():
+    """Error of the table vs the (16, 64) quadrature, as a fraction of M00(single + double):
+    <= 1e-3 (measured 3.3e-4 at psi <= 1e-4, 5.8e-4 at psi = PSI_MAX = 1e-3, aluminium)."""
+    rng = np.random.default_rng(7)
+    rows = []
+    for psi in (0.0, 3e-4, T.PSI_MAX):
+        for n in (AL, AU, TIO2, SILICA):
+            nrm, k, kp, fi, fo = random_geometry(rng, 12, psi)
+            m = np.exp(rng.uniform(np.log(0.02), np.log(150.0), 12))
+            rows.append((nrm, k, kp, fi, fo, np.full(12, n), m))
+    nrm, k, kp, fi, fo, n, m = (np.concatenate(a) for a in zip(*rows, strict=True))
+    mat = Material(n=jnp.asarray(n), m=jnp.asarray(m))
+    ref = np.asarray(_quadrature(REF_ORDER, True)(k, kp, nrm, mat, fi, fo))
+    got = np.asarray(T.double_backscatter_term(k, kp, nrm, mat, fi, fo))
+    single = np.asarray(mueller_brdf(k, kp, nrm, mat, terms=("single",), frame_in=fi, frame_out=fo))
+    err = np.abs(got - ref).max(axis=(1, 2)) / (single[:, 0, 0] + ref[:, 0, 0])
+    assert err.max() < 1e-3, (err.max(), np.argmax(err))
+    # where the double term is a visible part of the return, also relative to itself
+    big = ref[:, 0, 0] > 0.05 * (single[:, 0, 0] + ref[:, 0, 0])
+    assert big.sum() > 20
+    rel = np.abs(got[big] - ref[big]).max(axis=(1, 2)) / ref[big, 0, 0]
+    assert np.median(rel) < 2e-3, np.median(rel)
+
+
+def test_coherent_part_is_twice_the_incoherent_at_backscatter():
+    """Step 4 of the module docstring, on the quadrature itself: at psi = 0 the reversed
+    path's Jones matrix equals the forward one, so M(gamma = 1) = 2 M(gamma = 0) in every
+    element (co- and cross-polarized, linear and circular)."""
+    rng = np.random.default_rng(3)
+    nrm, k, _, fi, _ = random_geometry(rng, 6, 0.0)
+    mat = Material(n=jnp.asarray(np.array([AL, TIO2] * 3)), m=jnp.asarray([0.5, 2.0, 8.0] * 2))
+    inc = np.asarray(_quadrature((4, 16), False)(k, k, nrm, mat, fi, fi))
+    coh = np.asarray(_quadrature((4, 16), True)(k, k, nrm, mat, fi, fi))
+    np.testing.assert_allclose(coh, 2.0 * inc, rtol=1e-9, atol=1e-12 * np.abs(inc).max())
+
+
+def np_fresnel(n, c):
+    w = np.sqrt(n * n - (1.0 - c * c) + 0j)
+    return (c - w) / (c + w), (n * n * c - w) / (n * n * c + w)
+
+
+@pytest.mark.parametrize("n,tol", [(AL, 2e-3), (AU, 2e-5), (TIO2, 2e-5), (SILICA, 1e-6)])
+def test_fresnel_node_interpolation(n, tol):
+    """The four products g(t) = |a|^2, |b|^2, Re a b*, Im a b* (a = r_s(t) r_s(pi/2 - t),
+    b likewise for p) against their Lagrange interpolant on the K Chebyshev-Lobatto nodes,
+    independent complex NumPy Fresnel; |g| <= 1."""
+    t = np.linspace(0.0, np.pi / 2, 3001)
+    rs1, rp1 = np_fresnel(n, np.cos(t))
+    rs2, rp2 = np_fresnel(n, np.sin(t))
+    a, b = rs1 * rs2, rp1 * rp2
+    ab = a * np.conj(b)
+    exact = np.stack([np.abs(a) ** 2, np.abs(b) ** 2, ab.real, ab.imag])
+    g = np.asarray(T.node_products(jnp.asarray(n.real), jnp.asarray(n.imag), T.K_NODES))
+    L = np.asarray(T.angle_basis(jnp.asarray(t), T.K_NODES))
+    assert np.abs(g @ L.T - exact).max() < tol
+
+
+def _stiff():
+    th = np.radians([0.0, 1e-4, 30.0, 60.0, 89.0, 89.99, 89.9999, 90.0])
+    k = np.stack([np.sin(th), 0 * th, np.cos(th)], -1)
+    k[-1] = [1.0, 0.0, 0.0]  # exactly grazing (cos(pi/2) rounds to 6e-17)
+    ms = np.array([0.0, 1e-6, 1.0, 10.0, 199.0, 200.0, 1e3, 1e6])
+    i, j = np.meshgrid(np.arange(len(th)), np.arange(len(ms)), indexing="ij")
+    return k[i.ravel()], ms[j.ravel()], th[i.ravel()]
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_stiff_cases_finite_values_and_gradients(dtype):
+    """PHYSICS.md section 10 for the table path: normal incidence (a cusp |theta|: zero
+    gradient there), grazing to 1e-4 deg and exactly 90 deg (0), m = 0, 1e-6, the table's end
+    M_MAX and beyond (0), in float32 and float64; values and gradients in the directions,
+    m and both parts of n finite."""
+    k, ms, th = _stiff()
+    cdt = jnp.complex64 if dtype == jnp.float32 else jnp.complex128
+    z = jnp.asarray([0.0, 0.0, 1.0], dtype)
+    e = jnp.asarray([0.0, 1.0, 0.0], dtype)
+
+    def f(k, m, nr, ni):
+        mat = Material(n=(nr + 1j * ni).astype(cdt), m=m)
+        return T.double_backscatter_term(k, k, z, mat, e, e)
+
+    args = (jnp.asarray(k, dtype), jnp.asarray(ms, dtype), dtype(0.94), dtype(6.42))
+    val = np.asarray(f(*args))
+    assert np.all(np.isfinite(val))
+    assert np.all(val[th >= np.pi / 2] == 0.0)
+    assert np.all(val[ms > T.M_MAX] == 0.0)
+    assert np.all(val[(th < np.radians(89.0)) & (ms <= 10.0), 0, 0] > 0.0)
+    grads = jax.grad(lambda *a: jnp.sum(f(*a) ** 2), argnums=(0, 1, 2, 3))(*args)
+    for g in grads:
+        assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_float32_matches_float64():
+    rng = np.random.default_rng(11)
+    nrm, k, kp, fi, fo = random_geometry(rng, 64, 2e-4)
+    m = np.exp(rng.uniform(np.log(0.05), np.log(100.0), 64))
+    out = {}
+    for dt, cdt in ((np.float64, np.complex128), (np.float32, np.complex64)):
+        mat = Material(n=jnp.asarray(np.full(64, AL), cdt), m=jnp.asarray(m, dt))
+        a = [jnp.asarray(x, dt) for x in (k, kp, nrm, fi, fo)]
+        out[dt] = np.asarray(T.double_backscatter_term(a[0], a[1], a[2], mat, a[3], a[4]))
+    scale = np.abs(out[np.float64][:, 0, 0])[:, None, None]
+    assert np.max(np.abs(out[np.float32] - out[np.float64]) / scale) < 1e-4
+
+
+def test_reciprocity_and_realizability():
+    """Exact backscatter: reciprocity M(frames fo, fi) = Q M(fi, fo)^T Q (Q = diag(1, 1, -1,
+    1), tests/test_brdf.py) holds through the table's frame handling, and the interpolated
+    matrices stay physically realizable (Cloude coherency eigenvalues >= -1e-6 M00)."""
+    rng = np.random.default_rng(5)
+    nrm, k, _, fi, fo = random_geometry(rng, 24, 0.0)
+    fo = unit(np.cross(k, rng.normal(size=k.shape)))
+    mat = Material(
+        n=jnp.asarray(np.array([AL, TIO2, AU] * 8)), m=jnp.asarray(np.geomspace(0.02, 80, 24))
+    )
+    M = np.asarray(T.double_backscatter_term(k, k, nrm, mat, fi, fo))
+    Mr = np.asarray(T.double_backscatter_term(k, k, nrm, mat, fo, fi))
+    Q = np.diag([1.0, 1.0, -1.0, 1.0])
+    scale = np.abs(M[:, 0, 0])[:, None, None]
+    assert np.max(np.abs(Mr - Q @ np.swapaxes(M, -1, -2) @ Q) / scale) < 1e-9
+    eig = np.asarray(cloude_eigenvalues(M))  # tested against its definition in test_polarimetry
+    assert np.all(eig[:, -1] > -1e-6 * M[:, 0, 0]), (eig[:, -1] / M[:, 0, 0]).min()
+
+
+def test_brdf_routing_and_errors():
+    """mueller_brdf's "double" uses the table when the whole batch is within PSI_MAX of
+    backscatter; "double:backscatter" refuses larger bistatic angles naming the argument;
+    render's choice of terms for ppr.mueller_brdf."""
+    rng = np.random.default_rng(2)
+    nrm, k, _, fi, _ = random_geometry(rng, 8, 0.0)
+    mat = Material(n=AL, m=3.0)
+    via_brdf = np.asarray(
+        mueller_brdf(k, k, nrm, mat, terms=("double",), frame_in=fi, frame_out=fi)
+    )
+    table = np.asarray(T.double_backscatter_term(k, k, nrm, mat, fi, fi))
+    np.testing.assert_allclose(via_brdf, table, rtol=1e-9, atol=0)
+    ax = unit(np.cross(k, rng.normal(size=k.shape)))
+    psi = 3.0 * T.PSI_MAX
+    kp = unit(np.cos(psi) * k + np.sin(psi) * ax)
+    kp = np.where(
+        np.sum(kp * nrm, -1, keepdims=True) > 0, kp, unit(np.cos(psi) * k - np.sin(psi) * ax)
+    )
+    with pytest.raises(ValueError, match="k_out.*PSI_MAX"):
+        mueller_brdf(k, kp, nrm, mat, terms=("double:backscatter",))
+    with pytest.raises(ValueError, match="same term"):
+        mueller_brdf(k, k, nrm, mat, terms=("double", "double:backscatter"))
+    assert backscatter_terms(mueller_brdf, None) == ("single", "double:backscatter", "multiple")
+    assert backscatter_terms(mueller_brdf, "auto") == ("single", "double:backscatter", "multiple")
+    assert backscatter_terms(mueller_brdf, ("single",)) is None
+    assert backscatter_terms(lambda *a, **kw: None, None) is None
+
+
+def test_cut_above_m_max_is_negligible():
+    """Above M_MAX the table returns 0. At m = M_MAX the quadrature's double term is below
+    1e-30 of the rest of the BRDF (single + multiple; at large incidence the single bounce
+    is as small as the double, the depolarizing remainder is not) at exact backscatter for
+    incidence 0-85 deg."""
+    th = np.radians(np.linspace(0.0, 85.0, 12))
+    k = np.stack([np.sin(th), 0 * th, np.cos(th)], -1)
+    z = np.broadcast_to([0.0, 0.0, 1.0], k.shape)
+    e = np.broadcast_to([0.0, 1.0, 0.0], k.shape)
+    mat = Material(n=AL, m=T.M_MAX)
+    dbl = np.asarray(_quadrature(REF_ORDER, True)(k, k, z, mat, e, e))[:, 0, 0]
+    rest = np.asarray(mueller_brdf(k, k, z, mat, terms=("single", "multiple")))[:, 0, 0]
+    assert np.all(dbl <= 1e-30 * rest), (dbl / rest).max()
