@@ -11,6 +11,7 @@ Conventions (directions, frames, Stokes handedness, complex index sign, units) a
 from . import _polarimetry as polarimetry
 from . import microfacet, shapes
 from ._brdf import mueller_brdf
+from ._double_table import PSI_MAX as BACKSCATTER_PSI_MAX
 from ._frames import jones_to_mueller, mueller_rotator
 from ._fresnel import fresnel_amplitudes, fresnel_mueller_params
 from ._library import load_material, material_names
@@ -82,6 +83,7 @@ __all__ = [
     "render",
     "simulate",
     "backscatter_terms",
+    "BACKSCATTER_PSI_MAX",
     "near_backscatter",
     "stack_materials",
     "tent_gaussian_cdf",

@@ -365,6 +365,15 @@ def near_backscatter(laser_dir: Array, receiver_dir: Array) -> Array:
     return near(laser_dir, receiver_dir)
 
 
+def _near_np(laser_dir, receiver_dir) -> bool:
+    """:func:`near_backscatter` of concrete directions in NumPy (jnp ops would be staged
+    into an enclosing jit trace)."""
+    from ._double_table import PSI_MAX  # noqa: PLC0415
+
+    dk = np.asarray(receiver_dir, np.float64) - np.asarray(laser_dir, np.float64)
+    return bool(np.sum(dk * dk) <= (2.0 * math.sin(0.5 * PSI_MAX)) ** 2)
+
+
 def render(
     arrays: MeshArrays,
     vis: Float[Array, " F"],
@@ -413,11 +422,7 @@ def render(
     concrete = not any(
         isinstance(a, jax.core.Tracer) for a in (sensor.laser_dir, sensor.receiver_dir)
     )
-    if (
-        bs is not None
-        and concrete
-        and bool(near_backscatter(sensor.laser_dir, sensor.receiver_dir))
-    ):
+    if bs is not None and concrete and _near_np(sensor.laser_dir, sensor.receiver_dir):
         # decided here, so that the compiled program holds the table only (facet_weights
         # decides by lax.cond when the sensor is traced)
         terms = bs
