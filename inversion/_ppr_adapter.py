@@ -100,11 +100,7 @@ class PprSignatures:
         self.terms = None if terms is None else (terms if isinstance(terms, str) else tuple(terms))
         # monostatic sensor: the double term from the exact-backscatter table, chosen here (the
         # sensor is concrete) so that the compiled kernel holds no double-bounce quadrature
-        bs = ppr.backscatter_terms(self.brdf, self.terms)
-        dk = np.asarray(self.sensor_model.receiver_dir) - np.asarray(self.sensor_model.laser_dir)
-        near = np.linalg.norm(dk) <= 2.0 * np.sin(0.5 * ppr.BACKSCATTER_PSI_MAX)
-        if bs is not None and near:
-            self.terms = bs
+        self.terms = ppr.sensor_terms(self.brdf, self.terms, self.sensor_model)
         half = 0.5 * self.bin_width_m * self.n_bins
         if extent / 2 + 6 * self.sigma_r > half:
             raise ValueError(

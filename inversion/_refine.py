@@ -872,7 +872,9 @@ class SimulatorModel:
             n_bins=int(bins.n_bins),
             window=int(window),
             brdf=_default_brdf() if brdf is None else brdf,
-            terms=terms,
+            # monostatic: the double term's backscatter table, not its quadrature, in the
+            # compiled residual and gradient programs
+            terms=ppr.sensor_terms(_default_brdf() if brdf is None else brdf, terms, sensor),
         )
 
     @property

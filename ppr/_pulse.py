@@ -365,6 +365,19 @@ def near_backscatter(laser_dir: Array, receiver_dir: Array) -> Array:
     return near(laser_dir, receiver_dir)
 
 
+def sensor_terms(brdf: Callable, terms, sensor: Sensor):
+    """``terms`` for a *concrete* sensor: :func:`backscatter_terms` when its bistatic angle is
+    within the backscatter table's ``PSI_MAX`` (monostatic PPR), else ``terms`` unchanged.
+    Callers that jit over the sensor (:class:`inversion.SimulatorModel`, the database's
+    signature function) call it once outside, so that their compiled programs hold no
+    double-bounce quadrature."""
+    bs = backscatter_terms(brdf, terms)
+    dirs = (sensor.laser_dir, sensor.receiver_dir)
+    if bs is None or any(isinstance(a, jax.core.Tracer) for a in dirs):
+        return terms
+    return bs if _near_np(*dirs) else terms
+
+
 def _near_np(laser_dir, receiver_dir) -> bool:
     """:func:`near_backscatter` of concrete directions in NumPy (jnp ops would be staged
     into an enclosing jit trace)."""
@@ -418,14 +431,9 @@ def render(
     dt = arrays.tri.dtype
     if faces is not None:
         arrays, vis = _take_faces(arrays, vis, faces)
-    bs = backscatter_terms(brdf, terms)
-    concrete = not any(
-        isinstance(a, jax.core.Tracer) for a in (sensor.laser_dir, sensor.receiver_dir)
-    )
-    if bs is not None and concrete and _near_np(sensor.laser_dir, sensor.receiver_dir):
-        # decided here, so that the compiled program holds the table only (facet_weights
-        # decides by lax.cond when the sensor is traced)
-        terms = bs
+    # decided here for a concrete sensor, so that the compiled program holds the table only
+    # (facet_weights decides by lax.cond when the sensor is traced)
+    terms = sensor_terms(brdf, terms, sensor)
     return _render_jit(
         arrays,
         vis,
@@ -891,6 +899,7 @@ __all__ = [
     "lambertian_mueller",
     "render",
     "simulate",
+    "sensor_terms",
     "stack_materials",
     "stokes_projection",
     "tent_gaussian_cdf",
