@@ -154,8 +154,9 @@ def main():
     lines = [
         "# Database build rate (issue 5)",
         "",
-        f"{jax.device_count()} JAX device(s), {os.cpu_count()} cores shared with other jobs "
-        f"(load average {load:.1f} at the end of the run: absolute rates are pessimistic).",
+        f"{jax.device_count()} JAX device(s), {os.cpu_count()} cores "
+        f"(load average {load:.1f} at the end of the run). Monostatic sensor: the double term "
+        "comes from the exact-backscatter table (ppr.sensor_terms).",
         "",
         "## Storage plumbing (synthetic stand-in signatures, 16 channels x 128 bins)",
         "",
