@@ -548,8 +548,11 @@ def _sub_covariance(ref: RefineResult, param: Parametrisation):
 def _autocorr(kept: np.ndarray, tol: float) -> tuple[np.ndarray, bool]:
     """Integrated autocorrelation time (in steps of ``kept``) and whether it is reliable."""
     try:
-        tau = emcee.autocorr.integrated_time(kept, tol=tol, quiet=False)
-        return np.asarray(tau), True
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tau = emcee.autocorr.integrated_time(kept, tol=tol, quiet=False)
+        if np.all(np.isfinite(tau)):
+            return np.asarray(tau), True
+        raise emcee.autocorr.AutocorrError(tau, "a parameter never changed")
     except emcee.autocorr.AutocorrError:
         import logging
 
@@ -557,16 +560,29 @@ def _autocorr(kept: np.ndarray, tol: float) -> tuple[np.ndarray, bool]:
         level = logger.level
         logger.setLevel(logging.ERROR)
         try:
-            tau = np.asarray(emcee.autocorr.integrated_time(kept, tol=tol, quiet=True))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                tau = np.asarray(emcee.autocorr.integrated_time(kept, tol=tol, quiet=True))
         finally:
             logger.setLevel(level)
-        need = int(np.ceil(tol * np.max(tau)))
+        # a parameter whose every walker kept one value (zero variance: no accepted move
+        # changed it) has an undefined (NaN) estimate: it did not mix at all, tau = inf
+        stuck = ~np.isfinite(tau)
+        tau = np.where(stuck, np.inf, tau)
+        finite = tau[np.isfinite(tau)]
+        need = int(np.ceil(tol * finite.max())) if finite.size else None
+        msg = (
+            f"chain too short for a reliable autocorrelation time: {kept.shape[0]} kept steps "
+            f"< {tol:g} x tau_max = {need} (tau estimates {np.round(tau, 1).tolist()})"
+        )
+        if stuck.any():
+            msg += (
+                f"; parameters {np.flatnonzero(stuck).tolist()} (theta order) never changed "
+                "within any walker (acceptance too low, or a start outside the posterior's bulk)"
+            )
         warnings.warn(
             ChainTooShortWarning(
-                f"chain too short for a reliable autocorrelation time: {kept.shape[0]} kept steps "
-                f"< {tol:g} x tau_max = {need} (tau estimates {np.round(tau, 1).tolist()}); "
-                "run longer "
-                f"(n_steps) or lower sampler.autocorr_tol; ESS and intervals are approximate"
+                msg + "; run longer (n_steps) or lower sampler.autocorr_tol; ESS and intervals "
+                "are approximate"
             ),
             stacklevel=3,
         )

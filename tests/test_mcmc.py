@@ -158,3 +158,21 @@ def test_posterior_coverage_small():
     assert total == 66
     assert miss99 <= 4, (miss99, hit68)
     assert 34 <= hit68 <= 56, (miss99, hit68)
+
+
+def test_autocorr_of_a_parameter_that_never_moved():
+    """A parameter whose series is constant in every walker (no accepted move changed it) has
+    an undefined autocorrelation estimate: reported as tau = inf (ESS 0), not converged, with
+    a warning naming it; the other parameters keep their estimates."""
+    from inversion._mcmc import _autocorr
+
+    rng = np.random.default_rng(0)
+    kept = np.zeros((400, 8, 3))
+    kept[..., 0] = rng.normal(size=(400, 8))  # white noise: tau ~ 1
+    kept[..., 1] = 0.25  # never moved
+    kept[..., 2] = np.cumsum(rng.normal(size=(400, 8)), axis=0) * 1e-3 + 1.0  # random walk
+    with pytest.warns(ChainTooShortWarning, match=r"parameters \[1\]"):
+        tau, converged = _autocorr(kept, 50.0)
+    assert not converged
+    assert np.isinf(tau[1]) and np.all(np.isfinite(tau[[0, 2]]))
+    assert 0.5 < tau[0] < 2.0
