@@ -318,9 +318,13 @@ def run_one(o, models, bank, prep, k, mcmc_cfg, do_mcmc):
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ChainTooShortWarning)
-        post = sample_posterior(
-            models[names[s_best]], data, fit, config=mcmc_cfg, noise=PoissonNoise(floor=1.0)
-        )
+        try:
+            post = sample_posterior(
+                models[names[s_best]], data, fit, config=mcmc_cfg, noise=PoissonNoise(floor=1.0)
+            )
+        except ValueError as err:  # e.g. the refined optimum outside the prior's support
+            res["mcmc_refused"] = str(err)
+            return res
     t_mc = time.perf_counter() - t0
     med = post.median()
     par = post.parametrisation
@@ -511,7 +515,11 @@ def main(argv=None):
             f"[{i + 1}/{len(obs)}] snr={o['snr']:g} {o['shape']}/{o['material']}: "
             f"cls {r['cls']['att_deg']:.2f} deg ({r['cls']['time'] * 1e3:.0f} ms) | "
             f"ref {r['ref']['att_deg']:.3f} deg ({r['ref']['time']:.2f} s) | "
-            f"mcmc {r['mcmc']['att_deg']:.3f} deg ({r['mcmc']['time']:.2f} s)",
+            + (
+                f"mcmc {r['mcmc']['att_deg']:.3f} deg ({r['mcmc']['time']:.2f} s)"
+                if "mcmc" in r
+                else f"mcmc refused: {r['mcmc_refused'][:80]}"
+            ),
             flush=True,
         )
     stages = ("cls", "ref", "mcmc")
@@ -581,6 +589,14 @@ def main(argv=None):
     for lvl, c in cov.items():
         per = ", ".join(f"{k}: {v:.2f}" for k, v in c["per_param"].items())
         lines.append(f"- {float(lvl):.0%} intervals: {c['rate']:.2f} of {c['n']} ({per})")
+    refused = [r["mcmc_refused"] for r in results if "mcmc_refused" in r]
+    if refused:
+        lines += [
+            "",
+            f"MCMC refused on {len(refused)} of {len(results)} observations (the refined optimum "
+            "outside the prior's support; those rows have no MCMC stage): "
+            + "; ".join(x.split(". ")[0] for x in refused),
+        ]
     lines += ["", NOTES]
     (OUT / "inversion_summary.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
