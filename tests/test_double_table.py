@@ -50,6 +50,10 @@ def random_geometry(rng, n, psi):
     return nrm, k, kp, fi, fo
 
 
+# one compiled program per shape (eager op-by-op dispatch of the table term is slow)
+_table = jax.jit(T.double_backscatter_term, static_argnames=("coherent",))
+
+
 @functools.cache
 def _quadrature(order, coherent):
     return jax.jit(
@@ -72,7 +76,7 @@ def test_table_matches_quadrature_near_backscatter():
     nrm, k, kp, fi, fo, n, m = (np.concatenate(a) for a in zip(*rows, strict=True))
     mat = Material(n=jnp.asarray(n), m=jnp.asarray(m))
     ref = np.asarray(_quadrature(REF_ORDER, True)(k, kp, nrm, mat, fi, fo))
-    got = np.asarray(T.double_backscatter_term(k, kp, nrm, mat, fi, fo))
+    got = np.asarray(_table(k, kp, nrm, mat, fi, fo))
     single = np.asarray(mueller_brdf(k, kp, nrm, mat, terms=("single",), frame_in=fi, frame_out=fo))
     err = np.abs(got - ref).max(axis=(1, 2)) / (single[:, 0, 0] + ref[:, 0, 0])
     assert err.max() < 1e-3, (err.max(), np.argmax(err))
@@ -90,8 +94,10 @@ def test_coherent_part_is_twice_the_incoherent_at_backscatter():
     rng = np.random.default_rng(3)
     nrm, k, _, fi, _ = random_geometry(rng, 6, 0.0)
     mat = Material(n=jnp.asarray(np.array([AL, TIO2] * 3)), m=jnp.asarray([0.5, 2.0, 8.0] * 2))
-    inc = np.asarray(_quadrature((4, 16), False)(k, k, nrm, mat, fi, fi))
-    coh = np.asarray(_quadrature((4, 16), True)(k, k, nrm, mat, fi, fi))
+    both = jax.jit(
+        lambda *a: [D.double_bounce_term(*a, order=(2, 8), coherent=c) for c in (False, True)]
+    )
+    inc, coh = (np.asarray(x) for x in both(k, k, nrm, mat, fi, fi))
     np.testing.assert_allclose(coh, 2.0 * inc, rtol=1e-9, atol=1e-12 * np.abs(inc).max())
 
 
@@ -136,6 +142,7 @@ def test_stiff_cases_finite_values_and_gradients(dtype):
     z = jnp.asarray([0.0, 0.0, 1.0], dtype)
     e = jnp.asarray([0.0, 1.0, 0.0], dtype)
 
+    @jax.jit
     def f(k, m, nr, ni):
         mat = Material(n=(nr + 1j * ni).astype(cdt), m=m)
         return T.double_backscatter_term(k, k, z, mat, e, e)
@@ -146,7 +153,7 @@ def test_stiff_cases_finite_values_and_gradients(dtype):
     assert np.all(val[th >= np.pi / 2] == 0.0)
     assert np.all(val[ms > T.M_MAX] == 0.0)
     assert np.all(val[(th < np.radians(89.0)) & (ms <= 10.0), 0, 0] > 0.0)
-    grads = jax.grad(lambda *a: jnp.sum(f(*a) ** 2), argnums=(0, 1, 2, 3))(*args)
+    grads = jax.jit(jax.grad(lambda *a: jnp.sum(f(*a) ** 2), argnums=(0, 1, 2, 3)))(*args)
     for g in grads:
         assert np.all(np.isfinite(np.asarray(g)))
 
@@ -159,7 +166,7 @@ def test_float32_matches_float64():
     for dt, cdt in ((np.float64, np.complex128), (np.float32, np.complex64)):
         mat = Material(n=jnp.asarray(np.full(64, AL), cdt), m=jnp.asarray(m, dt))
         a = [jnp.asarray(x, dt) for x in (k, kp, nrm, fi, fo)]
-        out[dt] = np.asarray(T.double_backscatter_term(a[0], a[1], a[2], mat, a[3], a[4]))
+        out[dt] = np.asarray(_table(a[0], a[1], a[2], mat, a[3], a[4]))
     scale = np.abs(out[np.float64][:, 0, 0])[:, None, None]
     assert np.max(np.abs(out[np.float32] - out[np.float64]) / scale) < 1e-4
 
@@ -174,8 +181,8 @@ def test_reciprocity_and_realizability():
     mat = Material(
         n=jnp.asarray(np.array([AL, TIO2, AU] * 8)), m=jnp.asarray(np.geomspace(0.02, 80, 24))
     )
-    M = np.asarray(T.double_backscatter_term(k, k, nrm, mat, fi, fo))
-    Mr = np.asarray(T.double_backscatter_term(k, k, nrm, mat, fo, fi))
+    M = np.asarray(_table(k, k, nrm, mat, fi, fo))
+    Mr = np.asarray(_table(k, k, nrm, mat, fo, fi))
     Q = np.diag([1.0, 1.0, -1.0, 1.0])
     scale = np.abs(M[:, 0, 0])[:, None, None]
     assert np.max(np.abs(Mr - Q @ np.swapaxes(M, -1, -2) @ Q) / scale) < 1e-9
@@ -193,7 +200,7 @@ def test_brdf_routing_and_errors():
     via_brdf = np.asarray(
         mueller_brdf(k, k, nrm, mat, terms=("double",), frame_in=fi, frame_out=fi)
     )
-    table = np.asarray(T.double_backscatter_term(k, k, nrm, mat, fi, fi))
+    table = np.asarray(_table(k, k, nrm, mat, fi, fi))
     np.testing.assert_allclose(via_brdf, table, rtol=1e-9, atol=0)
     ax = unit(np.cross(k, rng.normal(size=k.shape)))
     psi = 3.0 * T.PSI_MAX
