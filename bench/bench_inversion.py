@@ -49,9 +49,17 @@ from inversion._grid import AttitudeGrid, random_quaternions, symmetry_group  # 
 from inversion._mcmc import ChainTooShortWarning, mcmc_config_from_dict, sample_posterior  # noqa: E402
 from inversion._noise import MeasurementModel, NoiseModel, observe  # noqa: E402
 from inversion._params import PhysicalParams, quat_multiply  # noqa: E402
-from inversion._refine import PoissonNoise, SimulatorModel, _pure, refine  # noqa: E402
+from inversion._refine import (  # noqa: E402
+    PhysicalBounds,
+    PoissonNoise,
+    SimulatorModel,
+    _pure,
+    refine,
+    refine_bounded,
+)
 
 OUT = Path(__file__).resolve().parent / "results"
+BOUNDS = PhysicalBounds()  # physical box (also the MCMC's uniform index prior)
 NOTES = (
     "Notes: with a monostatic sensor and a single-bounce BRDF the returning microfacets face the "
     "sensor, the Fresnel factor is the normal-incidence scalar and the unknown gain absorbs it: "
@@ -291,6 +299,17 @@ def run_one(o, models, bank, prep, k, mcmc_cfg, do_mcmc):
         fits[s] = refine(
             model, data, starts, noise=PoissonNoise(floor=1.0), max_steps=100, rounds=3
         )
+        n0 = complex(fits[s].params.n[0])
+        if not (
+            BOUNDS.n_re[0] <= n0.real <= BOUNDS.n_re[1]
+            and BOUNDS.n_im[0] <= n0.imag <= BOUNDS.n_im[1]
+        ):
+            # the unbounded LM left the physical index range (the index trades against the
+            # unknown gain): redo this shape with the box-bounded L-BFGS-B refiner
+            fits[s] = refine_bounded(
+                model, data, starts, noise=PoissonNoise(floor=1.0), bounds=BOUNDS, rounds=3
+            )
+            res["bounded_fallback"] = res.get("bounded_fallback", 0) + 1
     s_best = min(fits, key=lambda s: (not fits[s].success, fits[s].cost))
     fit = fits[s_best]
     t_ref = time.perf_counter() - t0
@@ -589,6 +608,15 @@ def main(argv=None):
     for lvl, c in cov.items():
         per = ", ".join(f"{k}: {v:.2f}" for k, v in c["per_param"].items())
         lines.append(f"- {float(lvl):.0%} intervals: {c['rate']:.2f} of {c['n']} ({per})")
+    n_fb = sum(1 for r in results if r.get("bounded_fallback"))
+    if n_fb:
+        lines += [
+            "",
+            f"Refiner: on {n_fb} of {len(results)} observations the Levenberg-Marquardt optimum of "
+            "a candidate shape left the physical index box (n' in [0.05, 5], n'' in [0, 15]); "
+            "that shape was refined again with the box-bounded L-BFGS-B refiner "
+            "(inversion.refine_bounded, jaxopt).",
+        ]
     refused = [r["mcmc_refused"] for r in results if "mcmc_refused" in r]
     if refused:
         lines += [
