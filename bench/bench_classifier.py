@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _timing import median_time
 
 from inversion._classifier import _n_fft, classify, design_weights, prepare
 from inversion._database import bank_in_memory, spec_from_dict
@@ -55,16 +56,6 @@ def spec_for(n_target: int, n_bins: int):
         "chunk_rows": 8192,
     }
     return spec_from_dict(base)
-
-
-def median_time(fn, repeats=5):
-    fn()
-    ts = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts))
 
 
 def numpy_exact(sigs, w, x, n_fft):

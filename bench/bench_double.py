@@ -40,6 +40,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from _timing import median_time  # noqa: E402
 
 from ppr._double import DEFAULT_ORDER, INNER_ORDER, double_bounce_term  # noqa: E402
 from ppr._material import Material  # noqa: E402
@@ -160,16 +161,6 @@ def accuracy(n_geo=60, quick=False, seed=0):
     return rows
 
 
-def timeit(f, args, repeats):
-    jax.block_until_ready(f(*args))
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(f(*args))
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))
-
-
 def throughput(n, repeats, quick=False):
     rng = np.random.default_rng(1)
     k, kp = geometry(rng, n)
@@ -184,7 +175,7 @@ def throughput(n, repeats, quick=False):
             jnp.full((n,), 3.0, dt),
         )
         for order in orders:
-            t = timeit(make_fn(order), args, repeats)
+            t = median_time(make_fn(order), *args, repeats=repeats)
             rows.append(dict(dtype=np.dtype(dt).name, order=order, evals_per_s=n / t))
             print(rows[-1])
     return rows
@@ -349,7 +340,7 @@ def numpy_ratio(order, n=2000):
     t0 = time.perf_counter()
     np_m00 = numpy_double_m00(k, kp, nn, m, order)
     t_np = time.perf_counter() - t0
-    t_jax = timeit(f, args, 3)
+    t_jax = median_time(f, *args, repeats=3)
     err = float(np.max(np.abs(np_m00 / jax_m00 - 1)))
     return dict(
         n=n,
@@ -379,7 +370,7 @@ def full_brdf_throughput(n, repeats):
             jnp.asarray(kp, jnp.float32),
             jnp.full((n,), 3.0, jnp.float32),
         )
-        t = timeit(f, args, repeats)
+        t = median_time(f, *args, repeats=repeats)
         out.append(dict(terms="+".join(terms), evals_per_s=n / t))
         print(out[-1])
     return out

@@ -31,6 +31,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from _timing import median_time  # noqa: E402
 
 from ppr import Material, mueller_brdf  # noqa: E402
 from ppr import _double as D  # noqa: E402
@@ -97,16 +98,6 @@ def accuracy(n_geo):
     psi = np.repeat(PSIS, len(NS) * n_geo)
     mat_name = np.tile(np.repeat(list(NS), n_geo), len(PSIS))
     return res, check, psi, mat_name
-
-
-def timeit(f, args, repeats):
-    jax.block_until_ready(f(*args))
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(f(*args))
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))
 
 
 def inputs(n, dt, per_element, seed=1):
@@ -196,7 +187,7 @@ def throughput(n, repeats, n_numpy):
     for dt in (jnp.float32, jnp.float64):
         for per in (False, True):
             k, nrm, mat, f, _ = inputs(n, dt, per)
-            t = timeit(table, (k, nrm, mat, f), repeats)
+            t = median_time(table, k, nrm, mat, f, repeats=repeats)
             out.append(("table", dt.__name__, "per element" if per else "one", n / t))
     for order in ORDERS:
         nq = max(n // 50, 2000)
@@ -205,7 +196,12 @@ def throughput(n, repeats, n_numpy):
             lambda k, nrm, mat, f, o=order: D.double_bounce_term(k, k, nrm, mat, f, f, order=o)
         )
         out.append(
-            (f"quadrature {order}", "float32", "one", nq / timeit(fq, (k, nrm, mat, f), repeats))
+            (
+                f"quadrature {order}",
+                "float32",
+                "one",
+                nq / median_time(fq, k, nrm, mat, f, repeats=repeats),
+            )
         )
     # NumPy on a subset, float64, one material
     k, nrm, mat, f, _ = inputs(n_numpy, jnp.float64, False)
@@ -224,7 +220,7 @@ def full_brdf(n, repeats):
     k, nrm, mat, f, _ = inputs(n, jnp.float32, False)
     for terms in (("single",), ("double",), ("single", "double", "multiple")):
         fn = jax.jit(lambda k, nrm, mat, terms=terms: mueller_brdf(k, k, nrm, mat, terms=terms))
-        res["+".join(terms)] = n / timeit(fn, (k, nrm, mat), repeats)
+        res["+".join(terms)] = n / median_time(fn, k, nrm, mat, repeats=repeats)
     return res
 
 
@@ -243,7 +239,8 @@ def main():
     lines = [
         "# Double-bounce term near exact backscatter: tables vs quadrature",
         "",
-        f"Command: `.venv/bin/python bench/bench_double_table.py --n {args.n} --repeats {args.repeats}`. "
+        "Command: `.venv/bin/python bench/bench_double_table.py "
+        f"--n {args.n} --repeats {args.repeats}`. "
         f"{os.cpu_count()} cores, load average {load[0]:.1f} at the end of the run. Table: "
         f"`ppr/data/double_backscatter.npz` ({T.load_table().info.split(' singular')[0]}).",
         "",

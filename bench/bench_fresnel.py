@@ -25,21 +25,12 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from _timing import median_time  # noqa: E402
 
 from ppr._frames import facet_mueller_in_beam_frames, facet_mueller_rows  # noqa: E402
 from ppr._fresnel import fresnel_mueller_params  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "results"
-
-
-def median_time(fn, *args, repeats=5):
-    jax.block_until_ready(fn(*args))  # warm-up / compile
-    ts = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts))
 
 
 def fresnel_complex_jax(n_re, n_im, c):
@@ -74,8 +65,9 @@ def facet_numpy(n, ki, ko, h, xi, xo):
     M = np.zeros(c.shape + (4, 4))
     M[:, 0] = np.stack([a, b * Ca, b * Sa, 0 * a], -1)
     M[:, 1] = np.stack([Cb * b, Cb * a * Ca - Sb * cc * Sa, Cb * a * Sa + Sb * cc * Ca, Sb * d], -1)
-    M[:, 2] = np.stack([-Sb * b, -Sb * a * Ca - Cb * cc * Sa, -Sb * a * Sa + Cb * cc * Ca, Cb * d],
-                       -1)
+    M[:, 2] = np.stack(
+        [-Sb * b, -Sb * a * Ca - Cb * cc * Sa, -Sb * a * Sa + Cb * cc * Ca, Cb * d], -1
+    )
     M[:, 3] = np.stack([0 * a, d * Sa, -d * Ca, cc], -1)
     return M
 

@@ -25,6 +25,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _timing import median_time
 from scipy import integrate, special, stats
 
 import ppr
@@ -43,16 +44,6 @@ OUT = Path(__file__).resolve().parent / "results"
 N_BINS, WIDTH = 256, 0.005
 SIGMA_R = 0.5 * C_LIGHT * math.hypot(100e-12 / 2.3548200450309493, 20e-12)
 BATCH = 8  # vmap batch: the dense (F, n_bins) placement matrix is per pose (memory)
-
-
-def median_time(fn, repeats=5):
-    fn()  # warm-up (compile)
-    ts = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts))
 
 
 def random_quats(n, seed=0):
