@@ -55,11 +55,14 @@ from ._noise import (
 )
 from ._params import Parametrisation, PhysicalParams
 from ._refine import (
+    CramerRao,
     GaussianNoise,
     PhysicalBounds,
+    PoissonCounts,
     PoissonNoise,
     RefineResult,
     SimulatorModel,
+    cramer_rao,
     refine,
     refine_bounded,
 )
@@ -111,10 +114,13 @@ __all__ = [
     "sample_posterior",
     "Parametrisation",
     "PhysicalParams",
+    "CramerRao",
     "GaussianNoise",
     "PhysicalBounds",
+    "PoissonCounts",
     "PoissonNoise",
     "RefineResult",
+    "cramer_rao",
     "SimulatorModel",
     "refine",
     "refine_bounded",

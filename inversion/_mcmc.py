@@ -6,8 +6,9 @@ log-posterior in ``theta`` is
 
     log p(theta | d) = log L(d | phys(theta)) + sum_g log pi_g(phys_g) + log |d phys / d theta|
 
-with a Gaussian likelihood whose variance is the noise model's ``variance(expected, phys)``
-(including the ``-1/2 log(2 pi var)`` term, since the variance depends on the parameters),
+with the noise model's likelihood: exact Poisson for :class:`~inversion._refine.PoissonCounts`,
+otherwise Gaussian with the noise model's ``variance(expected, phys)`` (including the
+``-1/2 log(2 pi var)`` term, since the variance depends on the parameters),
 priors ``pi_g`` on *physical* values (from a TOML config, :class:`MCMCConfig`) and the
 Jacobian of the reparametrisation (``m = e^x`` -> ``x``; ``n'' = softplus(u)`` ->
 ``log sigmoid(u)``; rotation vector -> Haar measure ``4 sin^2(|w|/2) / |w|^2`` for a uniform
@@ -49,6 +50,7 @@ from ._refine import (
     _pure,
     _to_physical,
     check_observation,
+    noise_log_likelihood,
 )
 
 __all__ = [
@@ -228,9 +230,7 @@ def _log_prior_and_jacobian(param: Parametrisation, theta, priors: PriorConfig):
 
 def _log_likelihood(model, noise, param, aux, data, theta):
     phys = param.to_physical(theta)
-    mu = model.expected(phys, aux)
-    var = noise.variance(mu, phys)
-    return -0.5 * jnp.sum((data - mu) ** 2 / var + jnp.log(2 * jnp.pi * var))
+    return noise_log_likelihood(noise, data, model.expected(phys, aux), phys)
 
 
 class _LogProb(eqx.Module):
@@ -278,7 +278,10 @@ def make_log_prob(model, data, param: Parametrisation, priors: PriorConfig, nois
     noise = PoissonNoise() if noise is None else noise
     aux = model.prepare(param.reference) if aux is None else aux
     shape = _model_shape(model, param.reference, aux)
-    data = jnp.asarray(check_observation(data, shape))
+    data_np = check_observation(data, shape)
+    if hasattr(noise, "check_data"):
+        noise.check_data(data_np)
+    data = jnp.asarray(data_np)
     lp = _LogProb(_pure(model), noise, param, aux, data, priors)
     # Partition once and call a plain jax.jit: emcee calls this thousands of times, and
     # filter_jit's per-call pytree handling costs more than the toy-sized model itself.

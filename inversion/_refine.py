@@ -9,8 +9,13 @@ its arrays, so that jit traces rather than bakes them in) with
 - ``expected(phys: PhysicalParams, aux) -> Float[Array, "C B"]``: pure, jittable,
   differentiable expected counts per channel and range bin.
 
-A noise model is any object with ``variance(expected, phys) -> Float[Array, "C B"]`` (jittable);
-:class:`PoissonNoise` and :class:`GaussianNoise` are provided.
+A noise model is any object with ``variance(expected, phys) -> Float[Array, "C B"]`` (jittable),
+optionally ``residuals(data, expected, inv_sigma)`` (what the solver minimises; default the
+Gaussian ``(data - expected) * inv_sigma``), ``log_likelihood(data, expected, phys)`` (for the
+MCMC; default Gaussian with that variance) and ``check_data(data)``. Provided:
+:class:`PoissonCounts` (exact Poisson likelihood: deviance residuals; the right choice for
+photo-counts), :class:`PoissonNoise` (Gaussian approximation ``mu + floor``, for scaled or
+background-subtracted data) and :class:`GaussianNoise` (known sigma).
 
 **Algorithm.** Each start (e.g. one of the classifier's top-k candidates) is refined in a few
 *rounds*. At the start of a round the host recomputes ``aux`` (visibility) and the weights
@@ -29,6 +34,7 @@ rotation vector in degrees, ``m``, ``n'``, ``n''``, metres, gain) with the delta
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -47,6 +53,11 @@ from ._params import DEFAULT_FREE, Parametrisation, PhysicalParams, lift_start
 __all__ = [
     "GaussianNoise",
     "PoissonNoise",
+    "PoissonCounts",
+    "noise_residuals",
+    "noise_log_likelihood",
+    "cramer_rao",
+    "CramerRao",
     "RefineResult",
     "StartSummary",
     "check_observation",
@@ -95,6 +106,99 @@ class PoissonNoise(eqx.Module):
         if self.speckle_cells is not None:
             var = var + mu * mu / self.speckle_cells
         return var
+
+
+class PoissonCounts(eqx.Module):
+    r"""Exact Poisson likelihood for photo-counts: the refiner minimises the Poisson deviance.
+
+    The data are counts ``k >= 0`` (not multiplied by a gain) with expectation
+    ``lam = mu + background``. The least-squares residuals are the *deviance residuals*
+
+        r = sign(k - lam) sqrt(2 (lam - k + k log(k / lam)))      (r = -sqrt(2 lam) at k = 0)
+
+    so ``sum(r^2) = -2 log L + const`` and the Levenberg-Marquardt optimum is the
+    maximum-likelihood estimate directly (no Gaussian approximation, no variance floor: the
+    Gaussian models' floor swamps the weights of bins with a fraction of a count, which is most
+    bins of a photon-starved PPR return). The MCMC uses the exact log-likelihood
+    ``sum(k log lam - lam - log k!)``. Covariances use the expected Fisher information
+    ``J^T diag(1/lam) J`` (``variance`` below), i.e. the Cramer-Rao bound at the optimum.
+
+    Written as ``(k - lam) / sqrt(k) * sqrt(g(x))`` with ``x = lam / k - 1`` and
+    ``g(x) = 2 (x - log1p(x)) / x^2`` (``g(0) = 1``; a series below ``|x| < 1e-4``): finite values
+    and gradients at ``lam = k`` and at ``k = 0`` (double-``where`` guards).
+
+    **Arguments:**
+
+    - `background`: expected background (dark, sky) counts per channel and bin, > 0. It keeps
+      the likelihood finite where the model predicts no signal but a count was recorded.
+      Default 1e-3.
+    """
+
+    background: float = 1e-3
+
+    def __check_init__(self):
+        if not (math.isfinite(self.background) and self.background > 0):
+            raise ValueError(
+                f"PoissonCounts.background must be finite and > 0 (counts per bin), "
+                f"got {self.background!r}"
+            )
+
+    def check_data(self, data: np.ndarray, name: str = "data") -> None:
+        """Counts must be >= 0 (a gain-scaled or background-subtracted profile is not)."""
+        bad = np.argwhere(data < 0)
+        if len(bad):
+            raise ValueError(
+                f"{name}: PoissonCounts needs photo-counts >= 0, but {len(bad)} entries are "
+                f"negative (first at {tuple(int(i) for i in bad[0])}: {data[tuple(bad[0])]!r}); "
+                "use PoissonNoise/GaussianNoise for background-subtracted or scaled data"
+            )
+
+    def _lam(self, expected):
+        lam = expected + self.background
+        ok = lam > 0.5 * self.background  # a model dipping below 0 by more than round-off
+        return jnp.where(ok, lam, self.background)
+
+    def variance(self, expected: Array, phys: PhysicalParams | None = None) -> Array:
+        return self._lam(expected)
+
+    def residuals(self, data: Array, expected: Array, inv_sigma: Array | None = None) -> Array:
+        lam = self._lam(expected)
+        pos = data > 0
+        k = jnp.where(pos, data, 1.0)
+        x = lam / k - 1.0
+        small = jnp.abs(x) < 1e-4
+        xs = jnp.where(small, 0.5, x)
+        g_big = 2.0 * (xs - jnp.log1p(xs)) / (xs * xs)
+        g_small = 1.0 - 2.0 * x / 3.0 + 0.5 * x * x
+        g = jnp.where(small, g_small, g_big)
+        r_pos = (k - lam) / jnp.sqrt(k) * jnp.sqrt(g)
+        r_zero = -jnp.sqrt(2.0 * lam)
+        return jnp.where(pos, r_pos, r_zero)
+
+    def log_likelihood(self, data: Array, expected: Array, phys=None) -> Array:
+        lam = self._lam(expected)
+        return jnp.sum(data * jnp.log(lam) - lam - jax.scipy.special.gammaln(data + 1.0))
+
+
+def noise_residuals(noise, data, expected, inv_sigma):
+    """The residuals a noise model hands the least-squares solver.
+
+    Models with a ``residuals(data, expected, inv_sigma)`` method (:class:`PoissonCounts`)
+    define their own; otherwise the Gaussian ``(data - expected) * inv_sigma`` with weights
+    fixed per round (iteratively re-weighted least squares).
+    """
+    f = getattr(noise, "residuals", None)
+    return (data - expected) * inv_sigma if f is None else f(data, expected, inv_sigma)
+
+
+def noise_log_likelihood(noise, data, expected, phys):
+    """Log-likelihood of a noise model: its own ``log_likelihood`` if it has one, otherwise
+    Gaussian with ``variance(expected, phys)`` (including ``-1/2 log(2 pi var)``)."""
+    f = getattr(noise, "log_likelihood", None)
+    if f is not None:
+        return f(data, expected, phys)
+    var = noise.variance(expected, phys)
+    return -0.5 * jnp.sum((data - expected) ** 2 / var + jnp.log(2 * jnp.pi * var))
 
 
 class GaussianNoise(eqx.Module):
@@ -162,8 +266,10 @@ class RefineResult:
 
     - `params`: best physical parameters; `theta` their solver coordinates in
       `parametrisation` (whose reference is ``params``, so the attitude entries are 0).
-    - `cost`: ``chi^2 = sum(residual^2)`` at the optimum; `dof` = n_data - n_params;
-      `reduced_chi2` = cost / dof (about 1 when the noise model is right).
+    - `cost`: ``sum(residual^2)`` at the optimum (``chi^2``; for :class:`PoissonCounts` the
+      Poisson deviance, ``-2 log L`` up to a constant); `dof` = n_data - n_params;
+      `reduced_chi2` = cost / dof (about 1 when a Gaussian noise model is right and counts are
+      large; the deviance of sparse counts is smaller).
     - `success`: the solver reported success and the cost is finite; `result` the optimistix
       (or adapter) result name; `message` a human-readable explanation; `n_steps` total solver
       steps over all rounds; `n_rounds` visibility/weight rounds used.
@@ -207,6 +313,29 @@ class RefineResult:
         i = self.labels.index("rot_x [deg]")
         return float(np.sqrt(np.trace(self.covariance[i : i + 3, i : i + 3])))
 
+    def outside_bounds(self, bounds: PhysicalBounds | None = None) -> list[str]:
+        """Parameters of the optimum outside a physical box (default :class:`PhysicalBounds`),
+        e.g. ``"n_re[0] = 7.3 outside [0.05, 5]"``. The unbounded solvers can leave it (the
+        index trades against the unknown gain): refit with :func:`refine_bounded` then."""
+        b = PhysicalBounds() if bounds is None else bounds
+        p = self.params
+        vals = []
+        for i, n in enumerate(np.asarray(p.n)):
+            vals += [(f"n_re[{i}]", n.real, b.n_re), (f"n_im[{i}]", n.imag, b.n_im)]
+        vals += [(f"m[{i}]", v, b.m) for i, v in enumerate(np.asarray(p.m))]
+        vals += [
+            (f"corr_length[{i}]", v, b.corr_length) for i, v in enumerate(np.asarray(p.corr_length))
+        ]
+        vals += [
+            ("range_offset", float(p.range_offset), b.range_offset),
+            ("gain", float(p.gain), b.gain),
+        ]
+        return [
+            f"{lab} = {float(v):.4g} outside [{lo:g}, {hi:g}]"
+            for lab, v, (lo, hi) in vals
+            if not lo <= float(v) <= hi
+        ]
+
     def summary(self) -> str:
         lines = [
             f"refine[{self.method}]: success={self.success} ({self.result}) cost={self.cost:.4g} "
@@ -215,6 +344,11 @@ class RefineResult:
         ]
         if not self.success:
             lines.append(f"  solver message: {self.message}")
+        out = self.outside_bounds()
+        if out:
+            lines.append(
+                "  outside the physical box (refit with refine_bounded): " + "; ".join(out)
+            )
         vec = np.asarray(self.parametrisation.physical_vector(jnp.asarray(self.theta)))
         for lab, v, s in zip(self.labels, vec, self.sigma, strict=True):
             note = ""
@@ -226,9 +360,16 @@ class RefineResult:
 
 # --------------------------------------------------------------------------- core
 def _residuals(theta, param, model, aux, inv_sigma, data):
+    """Fixed-weight (Pearson) residuals: their Jacobian gives the Fisher information."""
     phys = param.to_physical(theta)
     mu = model.expected(phys, aux)
     return (data - mu) * inv_sigma
+
+
+def _solver_residuals(theta, param, model, aux, inv_sigma, data, noise):
+    """What the solver minimises: the noise model's residuals (Poisson deviance or Pearson)."""
+    phys = param.to_physical(theta)
+    return noise_residuals(noise, data, model.expected(phys, aux), inv_sigma)
 
 
 def _make_solver(solver, rtol, atol):
@@ -256,9 +397,9 @@ def _make_solver(solver, rtol, atol):
 
 
 @eqx.filter_jit
-def _solve_round(model, param, aux, inv_sigma, data, theta0, solver, max_steps):
+def _solve_round(model, param, aux, inv_sigma, data, theta0, solver, max_steps, noise):
     def fn(theta, args):
-        return _residuals(theta, param, model, aux, inv_sigma, data)
+        return _solver_residuals(theta, param, model, aux, inv_sigma, data, noise)
 
     sol = optx.least_squares(fn, solver, theta0, None, max_steps=max_steps, throw=False)
     r = fn(sol.value, None)
@@ -282,10 +423,10 @@ def _weights(model, noise, phys, aux):
 
 
 @eqx.filter_jit
-def _jacobians(model, param, aux, inv_sigma, data, theta):
+def _jacobians(model, param, aux, inv_sigma, data, theta, noise=None):
     J = jax.jacfwd(lambda t: _residuals(t, param, model, aux, inv_sigma, data).ravel())(theta)
     G = jax.jacfwd(param.physical_vector)(theta)
-    r = _residuals(theta, param, model, aux, inv_sigma, data)
+    r = _solver_residuals(theta, param, model, aux, inv_sigma, data, noise)
     return J, G, jnp.sum(r * r)
 
 
@@ -295,15 +436,17 @@ def covariance_at(
     """Gauss-Newton covariance at ``phys``: ``(cov_physical, cov_theta, labels, condition, chi2)``.
 
     ``aux`` (visibility) is recomputed with ``model.prepare`` when not given. Uses a
-    pseudo-inverse (relative cutoff 1e-12) so an unconstrained direction shows as a huge
-    condition number rather than a crash.
+    pseudo-inverse (relative cutoff 1e-12), so an unconstrained direction does not crash: it
+    shows as a huge condition number, and every physical parameter with weight in an exactly
+    unconstrained direction gets an infinite variance in ``cov_physical`` (``cov_theta`` keeps
+    the finite pseudo-inverse, e.g. for sizing an MCMC starting ball).
     """
     param = Parametrisation(phys, tuple(free), range_scale)
     if aux is None:
         aux = model.prepare(phys)
     inv_sigma, _ = _weights(_pure(model), noise, phys, aux)
     theta = _from_physical(param, phys)
-    J, G, chi2 = _jacobians(_pure(model), param, aux, inv_sigma, jnp.asarray(data), theta)
+    J, G, chi2 = _jacobians(_pure(model), param, aux, inv_sigma, jnp.asarray(data), theta, noise)
     J = np.asarray(J, np.float64)
     G = np.asarray(G, np.float64)
     if not np.all(np.isfinite(J)):
@@ -312,11 +455,69 @@ def covariance_at(
             f"(columns {sorted(set(np.argwhere(~np.isfinite(J))[:, 1].tolist()))})"
         )
     JTJ = J.T @ J
-    ev = np.linalg.eigvalsh(JTJ)
-    cond = float(ev[-1] / max(ev[0], 1e-300)) if ev[-1] > 0 else np.inf
+    ev, V = np.linalg.eigh(JTJ)
+    with np.errstate(over="ignore"):  # singular (exact symmetry): condition number inf
+        cond = float(ev[-1] / ev[0]) if ev[-1] > 0 and ev[0] > 0 else np.inf
     cov_theta = np.linalg.pinv(JTJ, rcond=1e-12, hermitian=True)
     cov = G @ cov_theta @ G.T
+    # The pseudo-inverse gives a direction the data do not constrain at all (an exact
+    # symmetry, e.g. the roll about the line of sight when every return is a normal-incidence
+    # Fresnel reflection) zero variance. Report it as infinite instead: every physical
+    # parameter with weight in such a null direction gets an infinite variance.
+    null = ev <= 1e-12 * max(ev[-1], 1e-300)
+    if np.any(null):
+        phys_vec = np.asarray(param.physical_vector(theta))
+        moved = np.abs(G @ V[:, null])  # physical change along each unit null direction
+        loose = np.any(moved > 1e-9 * (1.0 + np.abs(phys_vec))[:, None], axis=1)
+        cov = cov.copy()
+        cov[loose, loose] = np.inf
     return cov, cov_theta, param.labels, cond, float(chi2)
+
+
+@dataclasses.dataclass(frozen=True)
+class CramerRao:
+    """The Cramer-Rao bound at a parameter point: inverse expected Fisher information.
+
+    - `covariance`: in physical units (`labels`, as :class:`RefineResult`); `sigma` the 1-sigma
+      bounds; `attitude_sigma_deg` the root-sum-square attitude bound (degrees).
+    - `condition`: condition number of the Fisher matrix (huge: a parameter the measurement
+      cannot determine at all, e.g. the attitude about a symmetry axis).
+    """
+
+    covariance: np.ndarray
+    labels: list[str]
+    condition: float
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+
+    @property
+    def attitude_sigma_deg(self) -> float | None:
+        if "rot_x [deg]" not in self.labels:
+            return None
+        i = self.labels.index("rot_x [deg]")
+        return float(np.sqrt(np.trace(self.covariance[i : i + 3, i : i + 3])))
+
+
+def cramer_rao(
+    model, phys: PhysicalParams, noise=None, free=DEFAULT_FREE, range_scale=0.01
+) -> CramerRao:
+    """Cramer-Rao bound of the free parameters at ``phys`` (the truth, in a simulation study).
+
+    The expected Fisher information of the noise model, ``J^T diag(1/var(mu)) J`` with
+    ``J = d mu / d theta`` at the noise-free expectation ``mu``: no unbiased estimator of these
+    data can do better, so it separates what the measurement can tell (information) from
+    what a search finds (local optima, grid resolution). For Poisson counts it scales as
+    ``1/SNR`` (the Fisher information is proportional to the number of photons).
+    """
+    noise = PoissonCounts() if noise is None else noise
+    aux = model.prepare(phys)
+    mu = model.expected(phys, aux)
+    cov, _, labels, cond, _ = covariance_at(
+        model, noise, mu, phys, free=free, aux=aux, range_scale=range_scale
+    )
+    return CramerRao(covariance=cov, labels=list(labels), condition=cond)
 
 
 def _as_starts(starts) -> list[PhysicalParams]:
@@ -381,6 +582,8 @@ def refine(
     aux0 = model.prepare(starts[0])
     shape = _model_shape(model, starts[0], aux0)
     data_np = check_observation(data, shape)
+    if hasattr(noise, "check_data"):
+        noise.check_data(data_np)
     dt = starts[0].m.dtype
     data_j = jnp.asarray(data_np, dt)
 
@@ -398,7 +601,7 @@ def refine(
             inv_sigma, _ = _weights(_pure(model), noise, phys, aux)
             theta0 = _from_physical(param, phys)
             theta, result, nsteps, cost_j = _solve_round(
-                _pure(model), param, aux, inv_sigma, data_j, theta0, solv, max_steps
+                _pure(model), param, aux, inv_sigma, data_j, theta0, solv, max_steps, noise
             )
             used_rounds += 1
             total_steps += int(nsteps)
@@ -561,8 +764,14 @@ class _BoxMap(eqx.Module):
         q = ref.unit_quaternion().astype(z.dtype)
         if "attitude" in parts:
             q = quat_multiply(quat_from_rotvec(parts["attitude"]), q)
-        m = jnp.expm1(parts["m"]) if "m" in parts else ref.m
-        n = jax.lax.complex(parts["n"][:k], parts["n"][k:]) if "n" in parts else ref.n
+        # L-BFGS-B's line search can probe a rounding error beyond the box; the material's
+        # domain (m >= 0, n' > 0, n'' >= 0) is part of the box, so project onto it here
+        m = jnp.expm1(jnp.maximum(parts["m"], 0.0)) if "m" in parts else ref.m
+        n = (
+            jax.lax.complex(jnp.maximum(parts["n"][:k], 1e-6), jnp.maximum(parts["n"][k:], 0.0))
+            if "n" in parts
+            else ref.n
+        )
         d = jnp.exp(parts["corr_length"]) if "corr_length" in parts else ref.corr_length
         off = (
             parts["range_offset"][0] * self.range_scale
@@ -619,11 +828,11 @@ class _BoxMap(eqx.Module):
 
 
 @eqx.filter_jit
-def _bounded_round(model, box, aux, inv_sigma, data, z0, lower, upper, maxiter, tol):
+def _bounded_round(model, box, aux, inv_sigma, data, z0, lower, upper, maxiter, tol, noise):
     from ._jaxopt_adapter import lbfgsb_minimize
 
     def chi2(z):
-        r = (data - model.expected(box.to_physical(z), aux)) * inv_sigma
+        r = noise_residuals(noise, data, model.expected(box.to_physical(z), aux), inv_sigma)
         return jnp.sum(r * r)
 
     scale = jnp.maximum(chi2(z0), 1.0)
@@ -670,6 +879,8 @@ def refine_bounded(
     free = tuple(free)
     aux0 = model.prepare(starts[0])
     data_np = check_observation(data, _model_shape(model, starts[0], aux0))
+    if hasattr(noise, "check_data"):
+        noise.check_data(data_np)
     dt = starts[0].m.dtype
     data_j = jnp.asarray(data_np, dt)
 
@@ -684,7 +895,7 @@ def refine_bounded(
             inv_sigma, _ = _weights(_pure(model), noise, phys, aux)
             z0 = _box_from(box, phys)
             sol, cost_j = _bounded_round(
-                _pure(model), box, aux, inv_sigma, data_j, z0, lower, upper, maxiter, tol
+                _pure(model), box, aux, inv_sigma, data_j, z0, lower, upper, maxiter, tol, noise
             )
             used += 1
             steps += int(sol.n_iter)

@@ -1055,6 +1055,9 @@ class InvertConfig(StrictModel):
         "gain",
     ]
     solver: Literal["lm", "dogleg", "gauss_newton"] = "lm"
+    # "poisson": exact Poisson likelihood of photo-counts (inversion.PoissonCounts);
+    # "gaussian": Gaussian approximation mu + 1 (inversion.PoissonNoise) for scaled data
+    likelihood: Literal["poisson", "gaussian"] = "poisson"
     n_starts: int = pydantic.Field(4, ge=1, le=64)
     start_perturbation_deg: float = pydantic.Field(8.0, ge=0.0, le=180.0)
     start_perturbation_frac: float = pydantic.Field(0.3, ge=0.0, lt=1.0)
@@ -1145,10 +1148,13 @@ def cmd_invert(args) -> int:
                 gain=float(ref.gain) * f[3],
             )
         )
+    noise = inversion.PoissonCounts() if cfg.likelihood == "poisson" else inversion.PoissonNoise()
     with outputs(args.out, INVERT_OUTPUTS, args.overwrite) as out:
         t0 = time.perf_counter()
         try:
-            fit = inversion.refine(model, data, starts, free=tuple(cfg.free), solver=cfg.solver)
+            fit = inversion.refine(
+                model, data, starts, free=tuple(cfg.free), solver=cfg.solver, noise=noise
+            )
         except ValueError as err:
             raise ConfigError(f"{cfg_path}: {err}") from None
         t_fit = time.perf_counter() - t0
@@ -1190,6 +1196,14 @@ def cmd_invert(args) -> int:
             summary["refine"]["attitude_error_deg"] = float(
                 quat_angle_deg(fit.params.unit_quaternion(), truth.quaternion)
             )
+            # what no unbiased estimator can beat on these data (infinite: an exact symmetry)
+            crb = inversion.cramer_rao(model, truth, noise, free=tuple(cfg.free))
+            summary["cramer_rao"] = {
+                "labels": crb.labels,
+                "sigma": crb.sigma,
+                "attitude_sigma_deg": crb.attitude_sigma_deg,
+                "condition": crb.condition,
+            }
         chain = {}
         post = None
         if cfg.mcmc is not None:
@@ -1213,7 +1227,7 @@ def cmd_invert(args) -> int:
                 warnings.simplefilter("always", inversion.ChainTooShortWarning)
                 try:
                     post = inversion.sample_posterior(
-                        model, data, fit.params, config=mcfg, free=tuple(cfg.free)
+                        model, data, fit.params, config=mcfg, free=tuple(cfg.free), noise=noise
                     )
                 except ValueError as err:
                     raise ConfigError(f"{cfg_path}: mcmc: {err}") from None

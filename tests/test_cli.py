@@ -438,5 +438,7 @@ def test_invert_end_to_end(tmp_path):
         assert (out / name).is_file(), name
     summary = json.loads((out / "invert.json").read_text())
     assert summary["refine"]["result"]
+    crb = summary["cramer_rao"]  # bound at the simulated truth (null: an exact symmetry)
+    assert len(crb["sigma"]) == len(crb["labels"]) == len(summary["refine"]["labels"])
     assert len(summary["mcmc"]["interval95"]) == len(summary["mcmc"]["labels"])
     assert summary["mcmc"]["warnings"]  # a 20-step chain is flagged as too short
