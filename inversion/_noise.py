@@ -18,7 +18,11 @@ Noise (``NoiseModel``)
 
     1. unknown range offset: a common shift of ``offset`` bins, uniform in
        ``[-max_offset_bins, max_offset_bins]``, applied by exact flux-conserving rebinning of the
-       piecewise-constant profile (integer shifts are exact index shifts);
+       piecewise-constant profile (integer shifts are exact index shifts). A fractional shift
+       of the *binned* profile is not the binned profile of the shifted return: it smooths by
+       up to a bin. A model that shifts the return before binning (``SimulatorModel``'s
+       ``range_offset``) then fits a biased attitude at high SNR; for such studies put the
+       offset into the simulation and leave ``max_offset_bins = 0``;
     2. timing jitter: each channel is recorded in its own acquisition, shifted by a further
        independent ``N(0, jitter_bins^2)`` bins (trigger jitter between channels; per-photon
        jitter blurs the expected pulse and belongs to the simulator's pulse shape);

@@ -468,7 +468,9 @@ def covariance_at(
     if np.any(null):
         phys_vec = np.asarray(param.physical_vector(theta))
         moved = np.abs(G @ V[:, null])  # physical change along each unit null direction
-        loose = np.any(moved > 1e-9 * (1.0 + np.abs(phys_vec))[:, None], axis=1)
+        # (a parameter pinned on a boundary by its reparametrisation, n'' = softplus(u) or
+        # m = e^x at their floors of 1e-9, moves by ~1e-9 along a null direction: not loose)
+        loose = np.any(moved > 1e-6 * (1.0 + np.abs(phys_vec))[:, None], axis=1)
         cov = cov.copy()
         cov[loose, loose] = np.inf
     return cov, cov_theta, param.labels, cond, float(chi2)
