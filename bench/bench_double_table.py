@@ -36,6 +36,7 @@ from _timing import median_time  # noqa: E402
 from ppr import Material, mueller_brdf  # noqa: E402
 from ppr import _double as D  # noqa: E402
 from ppr import _double_table as T  # noqa: E402
+from ppr._sampling import bistatic_geometry  # noqa: E402
 
 OUT = os.path.join(os.path.dirname(__file__), "results")
 REF_ORDER = (32, 128)
@@ -44,21 +45,9 @@ NS = {"Al": 0.94 + 6.42j, "Au": 0.47 + 2.4j, "TiO2": 2.67 + 0j, "silica": 1.461 
 PSIS = (0.0, 3e-4, T.PSI_MAX)
 
 
-def unit(v):
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
 def geometry(rng, n, psi):
-    nrm = unit(rng.normal(size=(n, 3)))
-    t1 = unit(np.cross(nrm, rng.normal(size=(n, 3))))
-    th = np.radians(rng.uniform(0.0, 88.0, n))[:, None]
-    k = np.cos(th) * nrm + np.sin(th) * t1
-    ax = unit(np.cross(k, rng.normal(size=(n, 3))))
-    kp = unit(np.cos(psi) * k + np.sin(psi) * ax)
-    kp = np.where(np.sum(kp * nrm, -1, keepdims=True) > 0, kp, k)
-    fi = unit(np.cross(k, rng.normal(size=(n, 3))))
-    fo = unit(np.cross(kp, rng.normal(size=(n, 3))))
-    return nrm, k, kp, fi, fo
+    """Incidence uniform in 0-88 deg (:func:`ppr._sampling.bistatic_geometry`)."""
+    return bistatic_geometry(rng, rng.uniform(0.0, 88.0, n), psi)
 
 
 def rows(n_geo, seed=0):

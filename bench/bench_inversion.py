@@ -290,6 +290,20 @@ def _att_errors(truth, q_est, sym, shape_ok):
     )
 
 
+def _fit_errors(fit, truth, o, sym, shape_ok):
+    """Errors of a refined fit against the truth (attitude/LOS, m, n, material), its solver
+    verdict and its deviance."""
+    return dict(
+        success=fit.success,
+        shape_ok=shape_ok,
+        material_ok=list(MATERIALS)[nearest_material(fit.params.n[0])] == o["material"],
+        **_att_errors(truth, np.asarray(fit.params.quaternion), sym, shape_ok),
+        m_rel=abs(float(fit.params.m[0]) / float(truth.m[0]) - 1),
+        n_err=abs(complex(fit.params.n[0]) - complex(truth.n[0])),
+        cost=fit.cost,
+    )
+
+
 def crb_at_truth(model, truth):
     """Cramer-Rao bounds at the truth (Poisson counts, all parameters free): what no estimator
     can beat. Attitude as world rotation components: x, y tilt the line of sight in the body
@@ -367,15 +381,9 @@ def run_one(o, models, bank, prep, k, mcmc_cfg, do_mcmc):
     shape_ok = names[s_best] == o["shape"]
     res["ref"] = dict(
         time=t_cls + t_ref,
-        success=fit.success,
-        shape_ok=shape_ok,
-        material_ok=list(MATERIALS)[nearest_material(fit.params.n[0])] == o["material"],
-        **_att_errors(truth, np.asarray(fit.params.quaternion), sym_of[o["shape"]], shape_ok),
-        m_rel=abs(float(fit.params.m[0]) / float(truth.m[0]) - 1),
-        n_err=abs(complex(fit.params.n[0]) - complex(truth.n[0])),
+        **_fit_errors(fit, truth, o, sym_of[o["shape"]], shape_ok),
         att_sigma_deg=fit.attitude_sigma_deg,
         reduced_chi2=fit.reduced_chi2,
-        cost=fit.cost,
         n_shapes_refined=len(fits),
     )
     # diagnostic: the same refiner started at the truth. Its error is what the likelihood and
@@ -384,14 +392,7 @@ def run_one(o, models, bank, prep, k, mcmc_cfg, do_mcmc):
     t0 = time.perf_counter()
     fo = refine(models[o["shape"]], data, [truth], noise=NOISE, max_steps=100, rounds=3)
     res["oracle"] = dict(
-        time=time.perf_counter() - t0,
-        success=fo.success,
-        shape_ok=True,
-        material_ok=list(MATERIALS)[nearest_material(fo.params.n[0])] == o["material"],
-        **_att_errors(truth, np.asarray(fo.params.quaternion), sym_of[o["shape"]], True),
-        m_rel=abs(float(fo.params.m[0]) / float(truth.m[0]) - 1),
-        n_err=abs(complex(fo.params.n[0]) - complex(truth.n[0])),
-        cost=fo.cost,
+        time=time.perf_counter() - t0, **_fit_errors(fo, truth, o, sym_of[o["shape"]], True)
     )
     if not do_mcmc:
         return res

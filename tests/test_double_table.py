@@ -22,6 +22,7 @@ from ppr import _double as D
 from ppr import _double_table as T
 from ppr._polarimetry import cloude_eigenvalues
 from ppr._pulse import backscatter_terms
+from ppr._sampling import bistatic_geometry
 
 AL = 0.94 + 6.42j  # aluminium 532 nm
 AU = 0.47 + 2.4j  # gold 532 nm
@@ -37,17 +38,8 @@ def unit(v):
 def random_geometry(rng, n, psi):
     """Random normals, incidences (half of them beyond 60 deg), receivers at bistatic angle
     psi in a random azimuth (kept above the horizon), random beam frames."""
-    nrm = unit(rng.normal(size=(n, 3)))
-    t1 = unit(np.cross(nrm, rng.normal(size=(n, 3))))
     th = np.where(np.arange(n) % 2 == 0, rng.uniform(0, 60, n), rng.uniform(60, 88, n))
-    th = np.radians(th)[:, None]
-    k = np.cos(th) * nrm + np.sin(th) * t1
-    ax = unit(np.cross(k, rng.normal(size=(n, 3))))
-    kp = unit(np.cos(psi) * k + np.sin(psi) * ax)
-    kp = np.where(np.sum(kp * nrm, -1, keepdims=True) > 0, kp, k)
-    fi = unit(np.cross(k, rng.normal(size=(n, 3))))
-    fo = unit(np.cross(kp, rng.normal(size=(n, 3))))
-    return nrm, k, kp, fi, fo
+    return bistatic_geometry(rng, th, psi)
 
 
 # one compiled program per shape (eager op-by-op dispatch of the table term is slow)
