@@ -66,12 +66,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _albedo
-from ._frames import default_frame, facet_mueller_rows
+from ._frames import (
+    _default_frame3,
+    _neg3,
+    _stack3,
+    facet_rotated_params,
+    rotated_mueller_flat,
+)
 from ._fresnel import fresnel_mueller_params
 from ._material import Material
 from ._microfacet import mean_cosine_n, visibility
 from ._safe import float_dtype, tiny
-from ._types import Array, ArrayLike, Float
+from ._types import Array, Float
 
 __all__ = [
     "EXPLICIT_TERMS",
@@ -105,7 +111,7 @@ def _dot(a: Array, b: Array) -> Array:
 # structure-of-arrays kernels (vectors are tuples of three (...,) arrays; STYLE.md s10)
 
 Vec = tuple[Array, Array, Array]
-Rows = tuple  # 4 rows of 4 entries, each a (...,) array or None (structural zero)
+
 
 
 def _split(v: Array) -> Vec:
@@ -196,43 +202,18 @@ def _single_scalar3(ki, ko, nr, m):
     return jnp.where(valid, scal, 0.0), ki_s, ko_s, h
 
 
-def _white_facet_rows(ki: Vec, ko: Vec, x_in: Vec, x_out: Vec) -> Rows:
-    """Facet Mueller rows of the ideal white reflector (perfect conductor,
-    ``diag(r_s, r_p) = diag(-1, 1)``: Fresnel parameters ``(a, b, c, d) = (1, 0, -1, 0)``) in
-    the beam frames, ``R(b) diag(1, 1, -1, -1) R(a)`` with the facet frames of
-    :mod:`ppr._frames`."""
-    from ._frames import _cross3, _facet_frames3, _neg3
-
-    s, _, p_out = _facet_frames3(ki, ko)
-    y_in = _cross3(_neg3(ki), x_in)
-    ca, sa = _d3(s, x_in), _d3(s, y_in)
-    cb, sb = _d3(x_out, s), _d3(x_out, p_out)
-    Ca, Sa = ca * ca - sa * sa, 2.0 * ca * sa
-    Cb, Sb = cb * cb - sb * sb, 2.0 * cb * sb
-    one = jnp.ones_like(Ca)
-    return (
-        (one, None, None, None),
-        (None, Cb * Ca + Sb * Sa, Cb * Sa - Sb * Ca, None),
-        (None, -Sb * Ca + Cb * Sa, -Sb * Sa - Cb * Ca, None),
-        (None, None, None, -one),
-    )
-
-
-def _single_rows(ki, ko, nr, m, n_re, n_im, x_in, x_out, white: bool) -> Rows:
+def _single_flat(ki, ko, nr, m, n_re, n_im, x_in, x_out, white: bool, add_m00=None) -> Array:
+    """Single-bounce term (plus ``add_m00`` on M00) as ``(16, ...)`` (row-major entries on a
+    leading axis)."""
     scal, ki_s, ko_s, h = _single_scalar3(ki, ko, nr, m)
-    if white:
-        F = _white_facet_rows(ki_s, ko_s, x_in, x_out)
-    else:
-        F = facet_mueller_rows(n_re, n_im, ki_s, ko_s, h, x_in, x_out)
-        # structural zeros of R(b) F R(a): (0,3) and (3,0)
-        F = tuple(
-            tuple(None if (i, j) in ((0, 3), (3, 0)) else e for j, e in enumerate(r))
-            for i, r in enumerate(F)
-        )
-    return tuple(tuple(None if e is None else scal * e for e in r) for r in F)
+    # R(b) F R(a) of the facet; the ideal white reflector (perfect conductor,
+    # diag(r_s, r_p) = diag(-1, 1)) has Fresnel parameters (a, b, c, d) = (1, 0, -1, 0)
+    params = facet_rotated_params(n_re, n_im, ki_s, ko_s, h, x_in, x_out, white=white)
+    return rotated_mueller_flat(params, scal, add_m00)
 
 
-def _multiple_rows(ki, ko, nr, material: Material, m: Array) -> Rows:
+def _multiple_m00(ki, ko, nr, material: Material, m: Array) -> Array:
+    """The multiple-scattering remainder's only non-zero entry, ``M00`` (module docstring)."""
     dt = ki[0].dtype
     table = _albedo.load_table(explicit_terms())
     ci = _d3(ki, nr)
@@ -247,33 +228,12 @@ def _multiple_rows(ki, ko, nr, material: Material, m: Array) -> Rows:
     coef = jnp.where(d_avg_ok, f_add / (math.pi * d_avg_s), 0.0)
     di = jnp.maximum(_albedo.deficit(table, m, jnp.where(valid, ci, 1.0)), 0.0)
     do = jnp.maximum(_albedo.deficit(table, m, jnp.where(valid, co, 1.0)), 0.0)
-    f = jnp.where(valid, jnp.broadcast_to(coef, m.shape) * di * do, 0.0)
-    return ((f, None, None, None), (None,) * 4, (None,) * 4, (None,) * 4)
+    return jnp.where(valid, jnp.broadcast_to(coef, m.shape) * di * do, 0.0)
 
 
-def _stack_rows(rows: Rows, batch, dt) -> Array:
-    """SoA rows -> (..., 4, 4). Stacked on a *leading* axis then transposed: stacking 16
-    arrays directly on trailing axes ran ~40x slower on XLA CPU (measured, bench_brdf)."""
-    z = jnp.zeros(batch, dt)
-    flat = jnp.stack([z if e is None else e for r in rows for e in r], axis=0)  # (16, ...)
-    flat = jnp.moveaxis(flat, 0, -1)
-    return flat.reshape(batch + (4, 4))
-
-
-def _add_rows(a: Rows | None, b: Rows) -> Rows:
-    if a is None:
-        return b
-
-    def add(x, y):
-        if x is None:
-            return y
-        if y is None:
-            return x
-        return x + y
-
-    return tuple(
-        tuple(add(x, y) for x, y in zip(ra, rb, strict=True)) for ra, rb in zip(a, b, strict=True)
-    )
+def _unflatten(flat: Array) -> Array:
+    """``(16, ...)`` -> ``(..., 4, 4)`` (one transposing copy)."""
+    return jnp.moveaxis(flat, 0, -1).reshape(flat.shape[1:] + (4, 4))
 
 
 _F_AVG_ORDER = 32
@@ -321,7 +281,7 @@ def single_bounce_term(
     dt = k_in.dtype
     batch = k_in.shape[:-1]
     m, n_re, n_im = _material_batch(material, batch, dt)
-    rows = _single_rows(
+    flat = _single_flat(
         _split(k_in),
         _split(k_out),
         _split(normal),
@@ -332,7 +292,7 @@ def single_bounce_term(
         _split(frame_out),
         material.white,
     )
-    return _stack_rows(rows, batch, dt)
+    return _unflatten(flat)
 
 
 def multiple_scattering_term(
@@ -350,8 +310,9 @@ def multiple_scattering_term(
     dt = k_in.dtype
     batch = k_in.shape[:-1]
     m, _, _ = _material_batch(material, batch, dt)
-    rows = _multiple_rows(_split(k_in), _split(k_out), _split(normal), material, m)
-    return _stack_rows(rows, batch, dt)
+    f = _multiple_m00(_split(k_in), _split(k_out), _split(normal), material, m)
+    flat = jnp.zeros((16,) + batch, dt).at[0].set(f)
+    return _unflatten(flat)
 
 
 def _double_term(k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9):
@@ -483,10 +444,16 @@ def _check(name: str, x: Array, bad: Array, msg: str) -> Array:
     return eqx.error_if(x, jnp.any(bad), f"{name}: {msg}")
 
 
+def _norm3(k: Array) -> Array:
+    """``|k|`` of a ``(..., 3)`` array by component arithmetic (a trailing-axis reduction ran
+    ~5x slower on XLA CPU)."""
+    return jnp.sqrt(k[..., 0] * k[..., 0] + k[..., 1] * k[..., 1] + k[..., 2] * k[..., 2])
+
+
 def _validate_direction(name: str, k: Array, normal: Array | None) -> Array:
-    finite = jnp.all(jnp.isfinite(k), axis=-1)
+    finite = jnp.isfinite(k[..., 0]) & jnp.isfinite(k[..., 1]) & jnp.isfinite(k[..., 2])
     k = _check(name, k, ~finite, "must be finite")
-    norm = jnp.sqrt(_dot(k, k))
+    norm = _norm3(k)
     k = _check(
         name,
         k,
@@ -494,9 +461,10 @@ def _validate_direction(name: str, k: Array, normal: Array | None) -> Array:
         f"must be unit vectors (| |k| - 1 | <= {UNIT_TOL}), got |k| = "
         + (f"{np.asarray(norm).ravel()[:4]}" if _is_concrete(norm) else "(traced)"),
     )
-    k = k / jnp.where(norm > 0.5, norm, 1.0)[..., None]
+    inv = 1.0 / jnp.where(norm > 0.5, norm, 1.0)
+    k = _stack3(tuple(k[..., i] * inv for i in range(3)))
     if normal is not None:
-        c = _dot(k, normal)
+        c = _d3(_split(k), _split(normal))
         k = _check(
             name,
             k,
@@ -508,18 +476,21 @@ def _validate_direction(name: str, k: Array, normal: Array | None) -> Array:
 
 
 def _validate_frame(name: str, x: Array, d: Array) -> Array:
-    finite = jnp.all(jnp.isfinite(x), axis=-1)
+    finite = jnp.isfinite(x[..., 0]) & jnp.isfinite(x[..., 1]) & jnp.isfinite(x[..., 2])
     x = _check(name, x, ~finite, "must be finite")
-    norm = jnp.sqrt(_dot(x, x))
+    norm = _norm3(x)
     x = _check(name, x, jnp.abs(norm - 1.0) > UNIT_TOL, f"must be unit (tolerance {UNIT_TOL})")
+    x3, d3 = _split(x), _split(d)
+    xd = _d3(x3, d3)
     x = _check(
         name,
         x,
-        jnp.abs(_dot(x, d)) > UNIT_TOL,
+        jnp.abs(xd) > UNIT_TOL,
         f"must be perpendicular to its beam direction (|x.k| <= {UNIT_TOL})",
     )
-    x = x - _dot(x, d)[..., None] * d
-    return x / jnp.sqrt(_dot(x, x))[..., None]
+    x3 = tuple(a - xd * b for a, b in zip(_split(x), d3, strict=True))
+    inv = 1.0 / jnp.sqrt(_d3(x3, x3))
+    return _stack3(tuple(a * inv for a in x3))
 
 
 def _validate_material(material: Material) -> Material:
@@ -643,29 +614,24 @@ def _brdf_core(k_in, k_out, normal, material, frame_in, frame_out, wavelength, *
     """Validated, broadcast inputs -> (..., 4, 4); jitted so that eager calls are fast too."""
     dt = k_in.dtype
     batch = k_in.shape[:-1]
-    if frame_in is None:
-        frame_in = default_frame(-k_in, normal)
-    if frame_out is None:
-        frame_out = default_frame(k_out, normal)
-    rows = None
-    out = None
     ki, ko, nr = _split(k_in), _split(k_out), _split(normal)
+    # frames in component form (trailing-axis-3 arithmetic is ~15x slower on XLA CPU)
+    fi = _default_frame3(_neg3(ki), nr) if frame_in is None else _split(frame_in)
+    fo = _default_frame3(ko, nr) if frame_out is None else _split(frame_out)
+    flat = None  # (16, ...) of the single and multiple terms
+    out = None
     m, n_re, n_im = _material_batch(material, batch, dt)
+    f_ms = _multiple_m00(ki, ko, nr, material, m) if "multiple" in names else None
+    if "single" in names:
+        flat = _single_flat(ki, ko, nr, m, n_re, n_im, fi, fo, material.white, f_ms)
+    elif f_ms is not None:
+        flat = jnp.zeros((16,) + batch, dt).at[0].set(f_ms)
     for name in names:
-        if name == "single":
-            rows = _add_rows(
-                rows,
-                _single_rows(
-                    ki, ko, nr, m, n_re, n_im, _split(frame_in), _split(frame_out), material.white
-                ),
-            )
-        elif name == "multiple":
-            rows = _add_rows(rows, _multiple_rows(ki, ko, nr, material, m))
-        else:
+        if name not in ("single", "multiple"):
             fn = _double_auto_term if name == "double:auto" else TERMS[name]
-            t = fn(k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength)
+            t = fn(k_in, k_out, normal, material, _stack3(fi), _stack3(fo), wavelength=wavelength)
             out = t if out is None else out + t
-    if rows is not None:
-        r = _stack_rows(rows, batch, dt)
+    if flat is not None:
+        r = _unflatten(flat)
         out = r if out is None else out + r
     return out

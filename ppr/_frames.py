@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._fresnel import fresnel_amplitudes_re, fresnel_mueller_params, jax_complex
-from ._safe import float_dtype, safe_div, safe_normalize
+from ._safe import float_dtype, safe_div
 from ._types import Array, ArrayLike, Complex, Float
 
 __all__ = [
@@ -33,6 +33,8 @@ __all__ = [
     "facet_jones_rows",
     "facet_mueller_in_beam_frames",
     "facet_mueller_rows",
+    "facet_rotated_params",
+    "rotated_mueller_flat",
     "jones_rotator",
     "jones_to_mueller",
     "mueller_from_params",
@@ -54,20 +56,48 @@ def _dot(a: Array, b: Array) -> Array:
     return jnp.sum(a * b, axis=-1)
 
 
+def _stack3(v) -> Array:
+    """Three ``(...,)`` components -> ``(..., 3)``, stacked on a leading axis and moved:
+    stacking directly on a trailing axis ran ~2x slower on XLA CPU (bench in STYLE.md s10)."""
+    return jnp.moveaxis(jnp.stack(v, axis=0), 0, -1)
+
+
+def _perp3_any(d: "Vec") -> "Vec":
+    """SoA :func:`perpendicular_unit` for any (not necessarily unit) ``d``; ``+z`` for d = 0."""
+    dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    use_y = jnp.abs(d[0]) > 0.9 * jnp.sqrt(dd)
+    # d x e_x = (0, d_z, -d_y); d x e_y = (-d_z, 0, d_x)
+    z = jnp.zeros_like(d[0])
+    v = (jnp.where(use_y, -d[2], z), jnp.where(use_y, z, d[2]), jnp.where(use_y, d[0], -d[1]))
+    sq = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    ok = sq > jnp.finfo(sq.dtype).tiny * 1e3
+    inv = 1.0 / jnp.sqrt(jnp.where(ok, sq, 1.0))
+    one = jnp.ones_like(sq)
+    return (jnp.where(ok, v[0] * inv, z), jnp.where(ok, v[1] * inv, z),
+            jnp.where(ok, v[2] * inv, one))
+
+
 def perpendicular_unit(d: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
     """A deterministic unit vector perpendicular to ``d`` (piecewise smooth, finite gradient).
 
-    ``normalize(d x e)`` with ``e = e_x`` unless ``|d_x| > 0.9 |d|``, then ``e = e_y``.
+    ``normalize(d x e)`` with ``e = e_x`` unless ``|d_x| > 0.9 |d|``, then ``e = e_y``
+    (``|d x e| >= 0.43 |d|`` by construction; ``+z`` only for ``d = 0``). Component
+    arithmetic: reductions over a trailing axis of 3 ran ~15x slower on XLA CPU.
     """
     d = jnp.asarray(d)
-    ex = jnp.zeros_like(d).at[..., 0].set(1.0)
-    ey = jnp.zeros_like(d).at[..., 1].set(1.0)
-    use_y = (jnp.abs(d[..., 0:1]) > 0.9 * jnp.sqrt(_dot(d, d)[..., None]))
-    e = jnp.where(use_y, ey, ex)
-    v = jnp.cross(d, e)
-    # |d x e| >= 0.43 |d| by construction; the (+z) fallback only matters for d = 0
-    u, _ = safe_normalize(v)
-    return u
+    return _stack3(_perp3_any(_split(d)))
+
+
+def _default_frame3(d: "Vec", normal: "Vec") -> "Vec":
+    """SoA :func:`default_frame`."""
+    fb = _perp3_any(d)
+    cr = _cross3(normal, d)
+    sq = _dot3(cr, cr)
+    # threshold |normal x d|^2 > eps (not tiny): nearly parallel inputs would otherwise give a
+    # rounding-dominated direction and gradients ~1/|normal x d|
+    ok = sq > jnp.finfo(sq.dtype).eps
+    inv = 1.0 / jnp.sqrt(jnp.where(ok, sq, 1.0))
+    return tuple(jnp.where(ok, c * inv, f) for c, f in zip(cr, fb, strict=True))
 
 
 def default_frame(d: VLike, normal: VLike) -> Float[Array, "... 3"]:
@@ -79,13 +109,7 @@ def default_frame(d: VLike, normal: VLike) -> Float[Array, "... 3"]:
     d = jnp.asarray(d, dt)
     normal = jnp.asarray(normal, dt)
     d, normal = jnp.broadcast_arrays(d, normal)
-    fb = perpendicular_unit(d)
-    cr = jnp.cross(normal, d)
-    # threshold |normal x d|^2 > eps (not tiny): nearly parallel inputs would otherwise give a
-    # rounding-dominated direction and gradients ~1/|normal x d|
-    ok = _dot(cr, cr) > jnp.finfo(dt).eps
-    x = cr / jnp.sqrt(jnp.where(ok, _dot(cr, cr), 1.0))[..., None]
-    return jnp.where(ok[..., None], x, fb)
+    return _stack3(_default_frame3(_split(d), _split(normal)))
 
 
 def rotation_cos_sin(
@@ -291,27 +315,98 @@ def facet_jones_in_beam_frames(
     return jax_complex(re, im)
 
 
-def facet_mueller_rows(n_re, n_im, k_in, k_out, h, x_in, x_out):
-    """Structure-of-arrays facet Mueller matrix: a tuple of 4 rows of 4 ``(...,)`` arrays.
-
-    Same arguments and meaning as :func:`facet_mueller_in_beam_frames`; vectors may be
-    ``(..., 3)`` arrays or tuples of three component arrays (fastest: no trailing-axis
-    reductions). Build the 4x4 only where needed (STYLE.md section 10).
-    """
+def facet_rotated_params(n_re, n_im, k_in, k_out, h, x_in, x_out, *, white: bool = False):
+    """``(a, b, c, d, Ca, Sa, Cb, Sb)``: the facet's Fresnel Mueller parameters
+    (:func:`ppr._fresnel.fresnel_mueller_params`; the ideal white reflector ``(1, 0, -1, 0)``
+    if ``white``) and ``cos 2a, sin 2a, cos 2b, sin 2b`` of the rotations ``x_in -> s`` about
+    ``-k_in`` and ``s -> x_out`` about ``+k_out``. Arguments as in
+    :func:`facet_mueller_in_beam_frames`; vectors ``(..., 3)`` or SoA tuples."""
     n_re, n_im, k_in, k_out, x_in, x_out, cos_t = _prep3(n_re, n_im, k_in, k_out, h, x_in, x_out)
-    a, b, c, d = fresnel_mueller_params(n_re, n_im, cos_t)
+    if white:
+        one = jnp.ones_like(cos_t)
+        a, b, c, d = one, jnp.zeros_like(cos_t), -one, jnp.zeros_like(cos_t)
+    else:
+        a, b, c, d = fresnel_mueller_params(n_re, n_im, cos_t)
     s, _, p_out = _facet_frames3(k_in, k_out)
     y_in = _cross3(_neg3(k_in), x_in)
     # rotation x_in -> s about -k_in: cos = s.x_in, sin = s.y_in ; s -> x_out about k_out:
     # cos = x_out.s, sin = x_out.p_out ; frames are orthonormal so no renormalization needed
     ca, sa = _dot3(s, x_in), _dot3(s, y_in)
     cb, sb = _dot3(x_out, s), _dot3(x_out, p_out)
-    ca, sa, cb, sb = jax.lax.optimization_barrier((ca, sa, cb, sb))
-    Ca, Sa = ca * ca - sa * sa, 2.0 * ca * sa
-    Cb, Sb = cb * cb - sb * sb, 2.0 * cb * sb
-    # materialize the 8 inputs of the 16 outputs: otherwise XLA CPU re-computes the Fresnel
-    # and frame arithmetic inside each output's fusion (measured ~10x slower)
-    a, b, c, d, Ca, Sa, Cb, Sb = jax.lax.optimization_barrier((a, b, c, d, Ca, Sa, Cb, Sb))
+    return a, b, c, d, ca * ca - sa * sa, 2.0 * ca * sa, cb * cb - sb * sb, 2.0 * cb * sb
+
+
+# R(b) F R(a) = sum over 18 monomials p q r (p in a, b, c, d; q in 1, Ca, Sa; r in 1, Cb, Sb)
+# with constant coefficients: entry (i, j) -> [(coefficient, p, q, r), ...]
+_ROTATED_ENTRIES = {
+    (0, 0): [(1, "a", "1", "1")],
+    (0, 1): [(1, "b", "Ca", "1")],
+    (0, 2): [(1, "b", "Sa", "1")],
+    (1, 0): [(1, "b", "1", "Cb")],
+    (1, 1): [(1, "a", "Ca", "Cb"), (-1, "c", "Sa", "Sb")],
+    (1, 2): [(1, "a", "Sa", "Cb"), (1, "c", "Ca", "Sb")],
+    (1, 3): [(1, "d", "1", "Sb")],
+    (2, 0): [(-1, "b", "1", "Sb")],
+    (2, 1): [(-1, "a", "Ca", "Sb"), (-1, "c", "Sa", "Cb")],
+    (2, 2): [(-1, "a", "Sa", "Sb"), (1, "c", "Ca", "Cb")],
+    (2, 3): [(1, "d", "1", "Cb")],
+    (3, 1): [(1, "d", "Sa", "1")],
+    (3, 2): [(-1, "d", "Ca", "1")],
+    (3, 3): [(1, "c", "1", "1")],
+}
+_MONOMIALS = sorted({(p, q, r) for v in _ROTATED_ENTRIES.values() for _, p, q, r in v})
+_ROTATED_COEF = np.zeros((16, len(_MONOMIALS)))
+for (_i, _j), _terms in _ROTATED_ENTRIES.items():
+    for _c, _p, _q, _r in _terms:
+        _ROTATED_COEF[4 * _i + _j, _MONOMIALS.index((_p, _q, _r))] += _c
+
+
+def rotated_mueller_flat(params, scale=None, add_m00=None) -> Array:
+    """``scale * R(b) F R(a)`` (plus ``add_m00`` on the ``M00`` entry) as a ``(16, ...)``
+    array (row-major entries on a *leading* axis) from :func:`facet_rotated_params`.
+
+    Formed as a constant ``(16, 18)`` matrix times the 18 monomials ``p q r``: the product
+    is a dot, whose operand XLA CPU materializes once. Written as 16 expressions, XLA CPU
+    re-computed the shared Fresnel and frame arithmetic inside each output's fusion
+    (``optimization_barrier`` is stripped before fusion on CPU): measured 1.7-2x slower
+    (bench/bench_brdf.py).
+    """
+    a, b, c, d, Ca, Sa, Cb, Sb = params
+    if scale is not None:
+        a, b, c, d = (scale * v for v in (a, b, c, d))
+    v = {"a": a, "b": b, "c": c, "d": d, "Ca": Ca, "Sa": Sa, "Cb": Cb, "Sb": Sb}
+
+    def mono(p, q, r):
+        x = v[p]
+        if q != "1":
+            x = x * v[q]
+        if r != "1":
+            x = x * v[r]
+        return x
+
+    shape = jnp.broadcast_shapes(*(jnp.shape(x) for x in params))
+    cols = [mono(*t) for t in _MONOMIALS]
+    coef = _ROTATED_COEF
+    if add_m00 is not None:
+        # one more monomial with coefficient 1 on M00 (a separate add on the stacked
+        # result ran 2x slower: XLA CPU copied the whole (16, ...) array)
+        shape = jnp.broadcast_shapes(shape, jnp.shape(add_m00))
+        cols.append(add_m00)
+        coef = np.concatenate([coef, np.eye(16)[:, :1]], axis=1)
+    X = jnp.stack([jnp.broadcast_to(x, shape) for x in cols], axis=0)
+    coef = jnp.asarray(coef, X.dtype)
+    return jnp.tensordot(coef, X, axes=1, precision=jax.lax.Precision.HIGHEST)
+
+
+def facet_mueller_rows(n_re, n_im, k_in, k_out, h, x_in, x_out):
+    """Structure-of-arrays facet Mueller matrix: a tuple of 4 rows of 4 ``(...,)`` arrays.
+
+    Same arguments and meaning as :func:`facet_mueller_in_beam_frames`; vectors may be
+    ``(..., 3)`` arrays or tuples of three component arrays (no trailing-axis reductions).
+    Large batches that need the whole matrix are faster through
+    :func:`rotated_mueller_flat` (one dot instead of 16 fusions).
+    """
+    a, b, c, d, Ca, Sa, Cb, Sb = facet_rotated_params(n_re, n_im, k_in, k_out, h, x_in, x_out)
     z = jnp.zeros_like(a)
     return (
         (a, b * Ca, b * Sa, z),
@@ -328,9 +423,6 @@ def facet_mueller_in_beam_frames(
     :func:`facet_jones_in_beam_frames`): ``R(b) F R(a)``, ``a`` rotating ``x_in`` to ``s``
     about ``-k_in``, ``F`` from :func:`ppr._fresnel.fresnel_mueller_params`, ``b`` rotating
     ``s`` to ``x_out`` about ``+k_out``. Unitless (multiply by the BRDF's scalar factors).
-    For speed in large batches use :func:`facet_mueller_rows` (structure of arrays)."""
-    rows = facet_mueller_rows(n_re, n_im, k_in, k_out, h, x_in, x_out)
-    # barrier: without it XLA CPU fused the interleaving stack with the arithmetic and ran
-    # ~10x slower (measured, N = 2e5, float32)
-    flat = jax.lax.optimization_barrier([e for r in rows for e in r])
-    return jnp.stack(flat, axis=-1).reshape(flat[0].shape + (4, 4))
+    """
+    flat = rotated_mueller_flat(facet_rotated_params(n_re, n_im, k_in, k_out, h, x_in, x_out))
+    return jnp.moveaxis(flat, 0, -1).reshape(flat.shape[1:] + (4, 4))

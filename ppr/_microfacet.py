@@ -203,13 +203,8 @@ def _correction(m: Array, c: Array, order: int | None) -> Array:
     return _correction_jit(m, c, order)
 
 
-def _correction_impl(m: Array, c: Array, order: int, partials: bool):
-    """Value (and, if ``partials``, d/dm and d/dc) of the correction, one pass over the nodes.
-
-    The derivatives are those of the exact integral, differentiated under the integral sign
-    in ``y`` and evaluated by the same quadrature (the truncation point moves with ``c`` but
-    the integrand is negligible there).
-    """
+def _prelude(m: Array, c: Array):
+    """Per-element quantities of the correction shared by the test and the quadrature."""
     dt = c.dtype
     big_m = m + 2.0
     c1 = _c_small(dt) * jax.lax.rsqrt(big_m)
@@ -227,78 +222,168 @@ def _correction_impl(m: Array, c: Array, order: int, partials: bool):
     )
     log_s2 = jnp.where(s2_ok, log_s2, -1e4)
     log_sm = 0.5 * big_m * log_s2
-    inv_s2 = jnp.where(s2_ok, 1.0 / jnp.where(s2_ok, s2, 1.0), 0.0)
-    s2 = jnp.where(s2_ok, s2, 0.0)
-    # Fast path: correction <= s^M / 2 (I <= pi/2); drop it where that is below
-    # exp(_negligible_log) of c <h.n> (both branches are computed and safe).
+    return big_m, c_ok, cq, s2, s2_ok, log_s2, log_sm
+
+
+def _needed(m: Array, c: Array) -> Array:
+    """Where the correction is not negligible: it is <= s^M / 2 (I <= pi/2); it is dropped
+    where that is below exp(_negligible_log) of c <h.n>."""
+    dt = c.dtype
+    big_m, _, _, _, _, _, log_sm = _prelude(m, c)
     base = c * (m + 1.0) / big_m
     log_base = jnp.log(jnp.where(base > tiny(dt), base, tiny(dt)))
-    needed = log_sm - math.log(2.0) > log_base + _negligible_log(dt)
+    return log_sm - math.log(2.0) > log_base + _negligible_log(dt)
+
+
+def _quadrature(m: Array, c: Array, order: int, partials: bool):
+    """The correction (and, if ``partials``, d/dm and d/dc) by the quadrature, every element."""
+    dt = c.dtype
+    big_m, c_ok, cq, s2, s2_ok, log_s2, log_sm = _prelude(m, c)
+    inv_s2 = jnp.where(s2_ok, 1.0 / jnp.where(s2_ok, s2, 1.0), 0.0)
+    s2 = jnp.where(s2_ok, s2, 0.0)
     n_out = 3 if partials else 1
+    # truncation in x = c sinh y: (1 + X^2)^{-(M+1)/2} = exp(-T)
+    x_max = jnp.sqrt(jnp.expm1(2.0 * _log_tail(dt) / (big_m + 1.0)))
+    y_max = jnp.arcsinh(x_max / cq)
+    c2 = cq * cq
+    inv_m = 1.0 / big_m
+    half_m2 = 0.5 * (big_m + 2.0)
+    h = y_max / (order - 1)
 
-    def quadrature(_):
-        # truncation in x = c sinh y: (1 + X^2)^{-(M+1)/2} = exp(-T)
-        x_max = jnp.sqrt(jnp.expm1(2.0 * _log_tail(dt) / (big_m + 1.0)))
-        y_max = jnp.arcsinh(x_max / cq)
-        c2 = cq * cq
-        inv_m = 1.0 / big_m
-        half_m2 = 0.5 * (big_m + 2.0)
-        h = y_max / (order - 1)
-
-        def node(j, acc):
-            # trapezoid on the even integrand over [0, y_max]: half weight at both ends
-            e = jnp.exp(h * j.astype(dt))
-            ei = 1.0 / e
-            sh = 0.5 * (e - ei)
-            sh2 = sh * sh
-            q = c2 * sh2
-            log1p_q = jnp.log1p(q)
-            num = s2 * sh2 + (1.0 + q) * inv_m
-            wj = jnp.where((j == 0) | (j == order - 1), 0.5, 1.0).astype(dt)
-            ew = wj * (2.0 / (e + ei)) * jnp.exp(log_sm - half_m2 * log1p_q)
-            out = (acc[0] + ew * num,)
-            if partials:
-                # d/dM and d/dc of num * exp(L), L = (M/2) log s2 - ((M+2)/2) log1p(q)
-                d_num_m = -(1.0 + q) * inv_m * inv_m
-                d_l_m = 0.5 * (log_s2 - log1p_q)
-                d_num_c = -2.0 * cq * sh2 * (1.0 - inv_m)
-                d_l_c = -big_m * cq * inv_s2 - 2.0 * half_m2 * cq * sh2 / (1.0 + q)
-                out = out + (
-                    acc[1] + ew * (d_num_m + num * d_l_m),
-                    acc[2] + ew * (d_num_c + num * d_l_c),
-                )
-            return out
-
-        # A loop over the nodes keeps the compiled program small (an unrolled sum took
-        # minutes to compile under grad) and the intermediates at the batch shape.
-        acc = jax.lax.fori_loop(0, order, node, (jnp.zeros_like(cq),) * n_out)
-        scale = h / math.pi
-        # linear continuation below c1 (see _c_small); s^M(c) = s^M(c1) to 5e-11 there
-        dc_lin = cq - c
-        sm = jnp.exp(log_sm)
-        slope = 0.5 * (1.0 - inv_m)
-        corr = cq * acc[0] * scale + sm * slope * dc_lin
-        out = (jnp.where(needed, corr, 0.0),)
+    def node(j, acc):
+        # trapezoid on the even integrand over [0, y_max]: half weight at both ends
+        e = jnp.exp(h * j.astype(dt))
+        ei = 1.0 / e
+        sh = 0.5 * (e - ei)
+        sh2 = sh * sh
+        q = c2 * sh2
+        log1p_q = jnp.log1p(q)
+        num = s2 * sh2 + (1.0 + q) * inv_m
+        wj = jnp.where((j == 0) | (j == order - 1), 0.5, 1.0).astype(dt)
+        ew = wj * (2.0 / (e + ei)) * jnp.exp(log_sm - half_m2 * log1p_q)
+        out = (acc[0] + ew * num,)
         if partials:
-            d_m = cq * acc[1] * scale + sm * (0.5 * log_s2 * slope + 0.5 * inv_m * inv_m) * dc_lin
-            d_c = jnp.where(c_ok, (acc[0] + cq * acc[2]) * scale, -sm * slope)
-            out = out + (jnp.where(needed, d_m, 0.0), jnp.where(needed, d_c, 0.0))
+            # d/dM and d/dc of num * exp(L), L = (M/2) log s2 - ((M+2)/2) log1p(q)
+            d_num_m = -(1.0 + q) * inv_m * inv_m
+            d_l_m = 0.5 * (log_s2 - log1p_q)
+            d_num_c = -2.0 * cq * sh2 * (1.0 - inv_m)
+            d_l_c = -big_m * cq * inv_s2 - 2.0 * half_m2 * cq * sh2 / (1.0 + q)
+            out = out + (
+                acc[1] + ew * (d_num_m + num * d_l_m),
+                acc[2] + ew * (d_num_c + num * d_l_c),
+            )
         return out
 
-    # Skip the quadrature altogether when no element of the batch needs it.
-    return jax.lax.cond(jnp.any(needed), quadrature, lambda _: (jnp.zeros_like(cq),) * n_out, None)
+    # A loop over the nodes keeps the compiled program small (an unrolled sum took
+    # minutes to compile under grad) and the intermediates at the batch shape.
+    acc = jax.lax.fori_loop(0, order, node, (jnp.zeros_like(cq),) * n_out, unroll=_UNROLL)
+    scale = h / math.pi
+    # linear continuation below c1 (see _c_small); s^M(c) = s^M(c1) to 5e-11 there
+    dc_lin = cq - c
+    sm = jnp.exp(log_sm)
+    slope = 0.5 * (1.0 - inv_m)
+    out = (cq * acc[0] * scale + sm * slope * dc_lin,)
+    if partials:
+        d_m = cq * acc[1] * scale + sm * (0.5 * log_s2 * slope + 0.5 * inv_m * inv_m) * dc_lin
+        d_c = jnp.where(c_ok, (acc[0] + cq * acc[2]) * scale, -sm * slope)
+        out = out + (d_m, d_c)
+    return out
+
+
+_UNROLL = 1
+
+COMPACT_MIN = 4096
+"""Batches of at least this many elements evaluate the quadrature only on the elements that
+need it (:func:`_correction_impl`); smaller ones on all (a gather costs more than it saves
+there). Measured in bench/bench_brdf.py."""
+COMPACT_FRACTIONS = (1 / 16, 1 / 4, 1 / 2)
+"""Static capacities (fractions of the batch) of the compacted quadrature."""
+
+
+def _correction_impl(m: Array, c: Array, order: int, partials: bool):
+    """Value (and, if ``partials``, d/dm and d/dc) of the correction.
+
+    The derivatives are those of the exact integral, differentiated under the integral sign
+    in ``y`` and evaluated by the same quadrature (the truncation point moves with ``c`` but
+    the integrand is negligible there). Only the elements where the correction is not
+    negligible (:func:`_needed`) pay for the quadrature: a batch with none skips it; a batch
+    of at least :data:`COMPACT_MIN` elements gathers the needed ones into the smallest
+    static capacity of :data:`COMPACT_FRACTIONS` that holds them (``lax.switch``), runs the
+    quadrature there and scatters back. The others are exactly 0 with zero derivatives, as
+    with ``where``. (XLA CPU pays ~5 us per loop iteration, so the quadrature needs a large
+    batch to be efficient: one gather into a static size, not a loop over small blocks.)
+    """
+    n_out = 3 if partials else 1
+    needed = _needed(m, c)
+    zeros = (jnp.zeros_like(c),) * n_out
+
+    def full(_):
+        return tuple(jnp.where(needed, v, 0.0) for v in _quadrature(m, c, order, partials))
+
+    size = c.size
+    caps = sorted({int(math.ceil(f * size)) for f in COMPACT_FRACTIONS if f * size >= 256})
+    if size < COMPACT_MIN or not caps:
+        return jax.lax.cond(jnp.any(needed), full, lambda _: zeros, None)
+
+    mf, cf, nf = m.reshape(-1), c.reshape(-1), needed.reshape(-1)
+    pos = jnp.cumsum(nf.astype(jnp.int32)) - 1
+    count = pos[-1] + 1
+
+    def compact(cap):
+        def run(_):
+            # indices of the needed elements in order, padded with `size` (out of range)
+            idx = jnp.full((cap,), size, jnp.int32)
+            idx = idx.at[jnp.where(nf, pos, cap)].set(
+                jnp.arange(size, dtype=jnp.int32), mode="drop"
+            )
+            ok = idx < size
+            safe = jnp.where(ok, idx, 0)
+            vals = _quadrature(mf[safe], cf[safe], order, partials)
+            dest = jnp.where(ok, idx, size)
+            return tuple(
+                jnp.zeros_like(cf).at[dest].set(v, mode="drop").reshape(c.shape) for v in vals
+            )
+
+        return run
+
+    branches = [lambda _: zeros] + [compact(k) for k in caps] + [full]
+    # branch 0: none needed; then the smallest capacity >= count; last: all
+    which = jnp.where(count == 0, 0, 1 + jnp.searchsorted(jnp.asarray(caps), count))
+    return jax.lax.switch(which, branches, None)
+
+
+@functools.cache
+def _correction_batched(order: int, partials: bool):
+    """:func:`_correction_impl` with a ``vmap`` rule that folds the mapped axis into the
+    batch: the function is elementwise, and under plain ``vmap`` its ``lax.switch`` on the
+    number of needed elements would become a select that runs every branch."""
+
+    @jax.custom_batching.custom_vmap
+    def f(m, c):
+        return _correction_impl(m, c, order, partials)
+
+    @f.def_vmap
+    def _rule(axis_size, in_batched, m, c):
+        bm, bc = in_batched
+        m = m if bm else jnp.broadcast_to(m, (axis_size,) + jnp.shape(m))
+        c = c if bc else jnp.broadcast_to(c, (axis_size,) + jnp.shape(c))
+        m, c = jnp.broadcast_arrays(m, c)
+        out = f(m, c)
+        return out, tuple(True for _ in out)
+
+    return f
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
 def _correction_cjvp(m: Array, c: Array, order: int) -> Array:
-    return _correction_impl(m, c, order, partials=False)[0]
+    return _correction_batched(order, False)(m, c)[0]
 
 
 @_correction_cjvp.defjvp
 def _correction_jvp(order, primals, tangents):
     m, c = primals
     tm, tc = tangents
-    val, d_m, d_c = _correction_impl(m, c, order, partials=True)
+    val, d_m, d_c = _correction_batched(order, True)(m, c)
     return val, d_m * tm + d_c * tc
 
 
