@@ -185,14 +185,14 @@ def throughput(mesh, label):
         batched(qj, vj, fj).block_until_ready()
         t_compile = time.perf_counter() - t
         t_batch = median_time(
-            lambda qj=qj, vj=vj, fj=fj, b=batched: b(qj, vj, fj).block_until_ready(), 5
+            lambda qj=qj, vj=vj, fj=fj, b=batched: b(qj, vj, fj).block_until_ready(), repeats=5
         )
         t_single = (
             median_time(
                 lambda qj=qj, vj=vj, fj=fj, s1=single: [
                     s1(qj[i], vj[i], fj[i]).block_until_ready() for i in range(BATCH)
                 ],
-                3,
+                repeats=3,
             )
             / BATCH
         )

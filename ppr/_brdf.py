@@ -626,8 +626,15 @@ def _brdf_core(k_in, k_out, normal, material, frame_in, frame_out, wavelength, *
         flat = _single_flat(ki, ko, nr, m, n_re, n_im, fi, fo, material.white, f_ms)
     elif f_ms is not None:
         flat = jnp.zeros((16,) + batch, dt).at[0].set(f_ms)
+    if "double:backscatter" in names:
+        from ._double_table import double_backscatter_flat
+
+        d = double_backscatter_flat(
+            k_in, k_out, normal, material, fi, fo, wavelength=wavelength
+        ).astype(dt)
+        flat = d if flat is None else flat + d
     for name in names:
-        if name not in ("single", "multiple"):
+        if name not in ("single", "multiple", "double:backscatter"):
             fn = _double_auto_term if name == "double:auto" else TERMS[name]
             t = fn(k_in, k_out, normal, material, _stack3(fi), _stack3(fo), wavelength=wavelength)
             out = t if out is None else out + t

@@ -70,7 +70,15 @@ import numpy as np
 
 from . import _double as D
 from ._albedo import _cell, _cr_weights, _pad_quadratic
-from ._frames import perpendicular_unit, rotation_cos_sin_2a
+from ._frames import (
+    _cross3,
+    _default_frame3,
+    _dot3,
+    _neg3,
+    _perp3_any,
+    _split,
+    rotate_mueller_flat,
+)
 from ._fresnel import fresnel_amplitudes_re
 from ._microfacet import mean_cosine_plus
 from ._safe import tiny
@@ -373,6 +381,34 @@ def _interp(tab: _Table, x: Array, u: Array, dt) -> tuple[Array, Array, Array]:
     return out_e, out_t, slope
 
 
+def _interp_one_material(
+    tab: _Table, x: Array, u: Array, W: Array, dt
+) -> tuple[Array, Array, Array]:
+    """Fast path of :func:`_interp` followed by the contraction with ``W`` (``(k r, 16)``) for
+    one material (scalar ``u``): the Catmull-Rom step in ``u`` and the contraction are done
+    once on the table's rows (both linear, so they commute with the interpolation in ``x``),
+    leaving a 4-point interpolation in ``x`` of 17 values per element, instead of 16
+    gathered 97-vectors (measured ~10x faster, bench/bench_double_table.py).
+
+    Returns ``(log E, slope)`` as ``(...,)`` arrays and ``T/E @ W`` as ``(16, ...)``."""
+    j, tu = _cell(u, 0.0, tab.du, tab.nu)
+    wu = _cr_weights(tu)
+    vals = jnp.asarray(tab.vals, dt)  # (nx + 3, nu + 3, 1 + k r)
+    cols = jax.lax.dynamic_slice_in_dim(vals, j, 4, axis=1)  # (nx + 3, 4, 1 + k r)
+    row = jnp.einsum("b,xbv->xv", jnp.stack(wu), cols)  # (nx + 3, 1 + k r)
+    rows_e = row[:, 0]  # log E
+    rows_m = row[:, 1:] @ W  # (nx + 3, 16): the contracted T/E
+    sl = jnp.asarray(tab.slope_pad, dt)
+    slope = sum(wu[b] * jax.lax.dynamic_index_in_dim(sl, j + b, keepdims=False) for b in range(4))
+    i, tx = _cell(x, 0.0, tab.dx, tab.nx)
+    wx = _cr_weights(tx)
+    # log E and the 16 entries gathered separately (contiguous 16-value rows, one transpose):
+    # slicing one joint (17, ...) result made XLA CPU re-run the gathers per slice (7x slower)
+    log_e = sum(wx[a] * jnp.take(rows_e, i + a) for a in range(4))
+    out = sum(wx[a][..., None] * jnp.take(rows_m, i + a, axis=0) for a in range(4))
+    return log_e, jnp.broadcast_to(slope, x.shape), jnp.moveaxis(out, -1, 0)
+
+
 # --------------------------------------------------------------------------------------------
 # evaluation
 
@@ -382,20 +418,104 @@ def near_backscatter(
 ) -> Array:
     """``psi <= psi_max`` per element (``|k' - k| = 2 sin(psi / 2)``)."""
     dk = jnp.asarray(k_out) - jnp.asarray(k_in)
-    return jnp.sum(dk * dk, axis=-1) <= (2.0 * math.sin(0.5 * psi_max)) ** 2
+    # component arithmetic (a trailing-axis reduction ran ~5x slower on XLA CPU)
+    q2 = dk[..., 0] * dk[..., 0] + dk[..., 1] * dk[..., 1] + dk[..., 2] * dk[..., 2]
+    return q2 <= (2.0 * math.sin(0.5 * psi_max)) ** 2
 
 
-def _rotate(M16: Array, c_in: Array, s_in: Array, c_out: Array, s_out: Array) -> Array:
-    """``R(c_out, s_out) M R(c_in, s_in)`` (:func:`ppr._frames.mueller_rotator`) on row-major
-    ``(..., 16)`` Mueller matrices, element by element (batched 4x4 products are slow on CPU)."""
-    m = [[M16[..., 4 * i + j] for j in range(4)] for i in range(4)]
-    for i in range(4):  # columns 1, 2: M R_in
-        a, b = m[i][1], m[i][2]
-        m[i][1], m[i][2] = c_in * a - s_in * b, s_in * a + c_in * b
-    for j in range(4):  # rows 1, 2: R_out M
-        a, b = m[1][j], m[2][j]
-        m[1][j], m[2][j] = c_out * a + s_out * b, -s_out * a + c_out * b
-    return jnp.stack([m[i][j] for i in range(4) for j in range(4)], axis=-1)
+def _rot2a3(x_from, x_to, d):
+    """SoA :func:`ppr._frames.rotation_cos_sin_2a`: ``(cos 2a, sin 2a)`` of the rotation about
+    ``d`` taking frame vector ``x_from`` to ``x_to`` (identity where undefined)."""
+    c = _dot3(x_from, x_to)
+    s = _dot3(d, _cross3(x_from, x_to))
+    r2 = c * c + s * s
+    ok = r2 > tiny(r2.dtype)
+    inv = 1.0 / jnp.where(ok, r2, 1.0)
+    return jnp.where(ok, (c * c - s * s) * inv, 1.0), jnp.where(ok, 2.0 * c * s * inv, 0.0)
+
+
+def double_backscatter_flat(
+    k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9, coherent=True
+) -> Array:
+    """:func:`double_backscatter_term` as ``(16, ...)`` (row-major entries on a leading
+    axis; ``frame_in``/``frame_out`` may be SoA tuples of three arrays). ``mueller_brdf``
+    adds it to the other terms in this layout."""
+    tab = load_table()
+    f_in3, f_out3 = _split(frame_in), _split(frame_out)
+    k, kp, nrm, _, _, m, n_re, n_im, dt, batch = D._broadcast_inputs(
+        k_in, k_out, normal, material, k_in, k_out
+    )
+    k3, kp3, n3 = _split(k), _split(kp), _split(nrm)
+    f_in3 = tuple(jnp.broadcast_to(jnp.asarray(a, dt), batch) for a in f_in3)
+    f_out3 = tuple(jnp.broadcast_to(jnp.asarray(a, dt), batch) for a in f_out3)
+    g_min = tiny(dt) * 1e8
+    c = _dot3(k3, n3)
+    cp = _dot3(kp3, n3)
+    valid = (c > g_min) & (cp > g_min) & (m <= M_MAX)
+    c_safe = jnp.where(valid, jnp.clip(c, 0.0, 1.0), 1.0)
+    # x = asinh(TAU s / c); s by the double where (the term has a cusp |theta| at normal
+    # incidence: zero gradient there instead of 0 * inf)
+    s2 = jnp.clip((1.0 - c_safe) * (1.0 + c_safe), 0.0, 1.0)
+    s_ok = s2 > tiny(dt) * 1e8
+    sn = jnp.where(s_ok, jnp.sqrt(jnp.where(s_ok, s2, 1.0)), 0.0)
+    x = jnp.arcsinh(TAU * sn / c_safe)
+    m_safe = jnp.where(valid, m, 0.0)
+    u = jnp.sqrt(m_safe + M_SHIFT) - math.sqrt(M_SHIFT)
+    if coherent:
+        # D.coherence_factor, with |k' - k|^2 summed component by component
+        dk = [kp3[i] - k3[i] for i in range(3)]
+        q2 = dk[0] * dk[0] + dk[1] * dk[1] + dk[2] * dk[2]
+        psi_h = jnp.asarray(wavelength, dt) / (4.0 * jnp.asarray(material.corr_length, dt))
+        gamma = jnp.broadcast_to(jnp.exp(-math.log(2.0) * q2 / (psi_h * psi_h)), batch)
+    else:
+        gamma = jnp.zeros(batch, dt)
+    white = bool(getattr(material, "white", False))
+    n_re0 = jnp.real(jnp.asarray(material.n)).astype(dt)
+    n_im0 = jnp.imag(jnp.asarray(material.n)).astype(dt)
+    g = node_products(n_re0, n_im0, tab.k, white=white)  # (..., 4, k), material's own shape
+    V = jnp.asarray(tab.V, dt)  # (r, 4, 16)
+    if g.ndim == 2 and jnp.ndim(material.m) == 0:
+        # one material for the whole batch: fold it into the (k r, 16) map and interpolate
+        # the contracted rows
+        W = jnp.einsum("qj,rqe->jre", g, V).reshape(tab.k * tab.rank, 16)
+        u0 = jnp.sqrt(jnp.asarray(material.m, dt) + M_SHIFT) - math.sqrt(M_SHIFT)
+        log_e, slope, M16 = _interp_one_material(tab, x, u0, W, dt)
+        log_e = log_e + slope * jnp.maximum(x - X_MAX, 0.0)
+        env = jnp.where(valid, jnp.exp(jnp.minimum(log_e, 50.0)), 0.0)
+        M16 = M16 * (env * (1.0 + gamma))
+    else:
+        log_e, tn, slope = _interp(tab, x, u, dt)
+        log_e = log_e + slope * jnp.maximum(x - X_MAX, 0.0)
+        env = jnp.where(valid, jnp.exp(jnp.minimum(log_e, 50.0)), 0.0)
+        # the envelope and the coherent enhancement scale whole rows, before the contraction
+        tn = tn * (env * (1.0 + gamma))[..., None]
+        if g.ndim == 2:
+            W = jnp.einsum("qj,rqe->jre", g, V).reshape(tab.k * tab.rank, 16)
+            M16 = tn @ W
+        else:
+            # per-element material (e.g. a mesh's facets): 3.7e5 evals/s float32 against
+            # 1.6e6 for one material (measured)
+            T = tn.reshape(batch + (tab.k, tab.rank))
+            gb = jnp.broadcast_to(g, batch + (4, tab.k))
+            # beta_rq = sum_j T_jr g_qj, one reduction per q (measured 1.9x faster than one
+            # 4-D broadcast product and sum)
+            beta = jnp.stack([jnp.sum(T * gb[..., q, :, None], axis=-2) for q in range(4)], -1)
+            M16 = beta.reshape(batch + (4 * tab.rank,)) @ V.reshape(4 * tab.rank, 16)
+        M16 = jnp.moveaxis(M16, -1, 0)
+    # frames: e = normalize(n x k) (as in the table; ppr._double._common_frame at k' = k),
+    # its projection _|_ k' for the output; component arithmetic throughout
+    e = _default_frame3(k3, n3)
+    ek = _dot3(e, kp3)
+    e_out = tuple(a - ek * b for a, b in zip(e, kp3, strict=True))
+    sq = _dot3(e_out, e_out)
+    ok = sq > 0.25
+    inv = 1.0 / jnp.sqrt(jnp.where(ok, sq, 1.0))
+    fb = _perp3_any(kp3)
+    e_out = tuple(jnp.where(ok, a * inv, f) for a, f in zip(e_out, fb, strict=True))
+    c_in, s_in = _rot2a3(f_in3, e, _neg3(k3))
+    c_out, s_out = _rot2a3(e_out, f_out3, kp3)
+    flat = rotate_mueller_flat(M16, c_in, s_in, c_out, s_out)
+    return jnp.where(valid, flat, 0.0)
 
 
 def double_backscatter_term(
@@ -414,71 +534,15 @@ def double_backscatter_term(
     ``psi <= PSI_MAX`` (the incoherent part is taken at ``psi = 0``); same signature as
     :func:`ppr._double.double_bounce_term`. Differentiable in the directions, ``m`` and
     ``n``; exactly grazing rows give 0."""
-    tab = load_table()
-    k, kp, nrm, f_in, f_out, m, n_re, n_im, dt, batch = D._broadcast_inputs(
-        k_in, k_out, normal, material, frame_in, frame_out
+    dt = D.float_dtype(k_in, k_out, normal, frame_in, frame_out, material.m, material.n)
+    fi = jnp.broadcast_to(jnp.asarray(frame_in, dt), jnp.broadcast_shapes(
+        jnp.shape(k_in), jnp.shape(frame_in)))
+    fo = jnp.broadcast_to(jnp.asarray(frame_out, dt), jnp.broadcast_shapes(
+        jnp.shape(k_out), jnp.shape(frame_out)))
+    flat = double_backscatter_flat(
+        k_in, k_out, normal, material, fi, fo, wavelength=wavelength, coherent=coherent
     )
-    g_min = tiny(dt) * 1e8
-    c = jnp.sum(k * nrm, axis=-1)
-    cp = jnp.sum(kp * nrm, axis=-1)
-    valid = (c > g_min) & (cp > g_min) & (m <= M_MAX)
-    c_safe = jnp.where(valid, jnp.clip(c, 0.0, 1.0), 1.0)
-    # x = asinh(TAU s / c); s by the double where (the term has a cusp |theta| at normal
-    # incidence: zero gradient there instead of 0 * inf)
-    s2 = jnp.clip((1.0 - c_safe) * (1.0 + c_safe), 0.0, 1.0)
-    s_ok = s2 > tiny(dt) * 1e8
-    sn = jnp.where(s_ok, jnp.sqrt(jnp.where(s_ok, s2, 1.0)), 0.0)
-    x = jnp.arcsinh(TAU * sn / c_safe)
-    m_safe = jnp.where(valid, m, 0.0)
-    u = jnp.sqrt(m_safe + M_SHIFT) - math.sqrt(M_SHIFT)
-    # materialized once: without the barrier XLA fused the gathers into several consumers
-    # (recomputing them; 4.6x slower with the coherent factor, measured)
-    if coherent:
-        # D.coherence_factor, with |k' - k|^2 summed component by component (a last-axis
-        # jnp.sum here became a YNN reduction fusion that made the whole term 6x slower on
-        # XLA CPU, measured)
-        dk = [kp[..., i] - k[..., i] for i in range(3)]
-        q2 = dk[0] * dk[0] + dk[1] * dk[1] + dk[2] * dk[2]
-        psi_h = jnp.asarray(wavelength, dt) / (4.0 * jnp.asarray(material.corr_length, dt))
-        gamma = jnp.broadcast_to(jnp.exp(-math.log(2.0) * q2 / (psi_h * psi_h)), batch)
-    else:
-        gamma = jnp.zeros(batch, dt)
-    log_e, tn, slope, gamma = jax.lax.optimization_barrier((*_interp(tab, x, u, dt), gamma))
-    log_e = log_e + slope * jnp.maximum(x - X_MAX, 0.0)
-    env = jnp.where(valid, jnp.exp(jnp.minimum(log_e, 50.0)), 0.0)
-    white = bool(getattr(material, "white", False))
-    n_re0 = jnp.real(jnp.asarray(material.n)).astype(dt)
-    n_im0 = jnp.imag(jnp.asarray(material.n)).astype(dt)
-    g = node_products(n_re0, n_im0, tab.k, white=white)  # (..., 4, k), material's own shape
-    V = jnp.asarray(tab.V, dt)  # (r, 4, 16)
-    # the envelope and the coherent enhancement scale whole rows; applied before the
-    # contraction, behind barriers: XLA CPU's YNN dot fusion otherwise pulled the elementwise
-    # chain of gamma into the GEMM's epilogue (6x slower, measured)
-    tn = jax.lax.optimization_barrier(tn * (env * (1.0 + gamma))[..., None])
-    if g.ndim == 2:
-        # one material for the whole batch: fold it into the (k r, 16) map, then one GEMM
-        W = jnp.einsum("qj,rqe->jre", g, V).reshape(tab.k * tab.rank, 16)
-        M16 = tn @ W
-    else:
-        # per-element material (e.g. a mesh's facets): 3.7e5 evals/s float32 against 1.6e6
-        # for one material (measured)
-        T = tn.reshape(batch + (tab.k, tab.rank))
-        gb = jax.lax.optimization_barrier(jnp.broadcast_to(g, batch + (4, tab.k)))
-        # beta_rq = sum_j T_jr g_qj, one reduction per q (measured 1.9x faster than one
-        # 4-D broadcast product and sum)
-        beta = jnp.stack([jnp.sum(T * gb[..., q, :, None], axis=-2) for q in range(4)], -1)
-        M16 = beta.reshape(batch + (4 * tab.rank,)) @ V.reshape(4 * tab.rank, 16)
-    M16 = jax.lax.optimization_barrier(M16)
-    # frames: e = normalize(n x k) (as in the table), its projection _|_ k' for the output
-    e = D._common_frame(k, k, nrm, dt)
-    e_out = e - jnp.sum(e * kp, axis=-1, keepdims=True) * kp
-    sq = jnp.sum(e_out * e_out, axis=-1, keepdims=True)
-    ok = sq > 0.25
-    e_out = jnp.where(ok, e_out / jnp.sqrt(jnp.where(ok, sq, 1.0)), perpendicular_unit(kp))
-    c_in, s_in = rotation_cos_sin_2a(f_in, e, -k)
-    c_out, s_out = rotation_cos_sin_2a(e_out, f_out, kp)
-    M = _rotate(M16, c_in, s_in, c_out, s_out).reshape(batch + (4, 4))
-    return jnp.where(valid[..., None, None], M, 0.0)
+    return jnp.moveaxis(flat, 0, -1).reshape(flat.shape[1:] + (4, 4))
 
 
 def double_term_dispatch(
