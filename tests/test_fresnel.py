@@ -304,3 +304,28 @@ def test_real_and_complex_entry_points_agree():
     # jitted vs op-by-op evaluation may differ in the last bit
     assert complex(rs) == pytest.approx(complex(r[0], r[1]), rel=1e-15)
     assert complex(rp) == pytest.approx(complex(r[2], r[3]), rel=1e-15)
+
+
+def test_rotate_mueller_flat_and_materialize():
+    """The (16, 36) monomial map of ppr._frames.rotate_mueller_flat equals the explicit
+    product R(b) M R(a) of mueller_rotator matrices (any M, including non-physical), and
+    materialize (identity dot) returns its inputs bit for bit."""
+    from ppr._frames import materialize, rotate_mueller_flat
+
+    rng = np.random.default_rng(11)
+    n = 64
+    M = rng.normal(size=(n, 4, 4))
+    a, b = rng.uniform(-np.pi, np.pi, (2, n))
+    ref = np.asarray(mueller_rotator(np.cos(2 * b), np.sin(2 * b))) @ M @ np.asarray(
+        mueller_rotator(np.cos(2 * a), np.sin(2 * a))
+    )
+    flat = jax.jit(rotate_mueller_flat)(
+        jnp.asarray(M.reshape(n, 16).T), np.cos(2 * a), np.sin(2 * a), np.cos(2 * b), np.sin(2 * b)
+    )
+    np.testing.assert_allclose(np.asarray(flat).T.reshape(n, 4, 4), ref, rtol=0, atol=1e-14)
+    xs = [jnp.asarray(rng.normal(size=(3, 5)) * 10.0 ** rng.integers(-30, 30, (3, 5)))
+          for _ in range(4)]
+    for dt in (jnp.float32, jnp.float64):
+        xd = [x.astype(dt) for x in xs]
+        for got, want in zip(jax.jit(materialize)(*xd), xd, strict=True):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
