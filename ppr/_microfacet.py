@@ -276,7 +276,7 @@ def _quadrature(m: Array, c: Array, order: int, partials: bool):
 
     # A loop over the nodes keeps the compiled program small (an unrolled sum took
     # minutes to compile under grad) and the intermediates at the batch shape.
-    acc = jax.lax.fori_loop(0, order, node, (jnp.zeros_like(cq),) * n_out, unroll=_UNROLL)
+    acc = jax.lax.fori_loop(0, order, node, (jnp.zeros_like(cq),) * n_out)
     scale = h / math.pi
     # linear continuation below c1 (see _c_small); s^M(c) = s^M(c1) to 5e-11 there
     dc_lin = cq - c
@@ -289,8 +289,6 @@ def _quadrature(m: Array, c: Array, order: int, partials: bool):
         out = out + (d_m, d_c)
     return out
 
-
-_UNROLL = 1
 
 COMPACT_MIN = 4096
 """Batches of at least this many elements evaluate the quadrature only on the elements that
