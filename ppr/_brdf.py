@@ -75,7 +75,7 @@ from ._frames import (
 )
 from ._fresnel import fresnel_mueller_params
 from ._material import Material
-from ._microfacet import mean_cosine_n, visibility
+from ._microfacet import mean_cosine_n, visibility, visibility_one_material
 from ._safe import float_dtype, tiny
 from ._types import Array, Float
 
@@ -176,7 +176,7 @@ def _azimuth_factor3(ki: Vec, ko: Vec, nr: Vec, ci: Array, co: Array) -> Array:
     return jnp.clip(f, 0.0, 1.0)
 
 
-def _single_scalar3(ki, ko, nr, m):
+def _single_scalar3(ki, ko, nr, m, m0=None):
     """``p(h) P(k|k') / (4 <h.n> (k.n)(k'.n))`` (0 where invalid) and the safe geometry.
 
     The joint visibility divided by ``(k.n)(k'.n)`` is formed as
@@ -188,8 +188,14 @@ def _single_scalar3(ki, ko, nr, m):
     valid, ki_s, ko_s, ci, co, h = _geometry3(ki, ko, nr)
     # V = P(k)/(k.n): finite down to k.n -> 0 (ppr._microfacet continues <h.k>+ linearly
     # below its smallest resolved cosine)
-    vi = visibility(m, ci) / ci
-    vo = visibility(m, co) / co
+    if m0 is not None and jnp.ndim(m0) == 0 and np.finfo(dt).bits == 32:
+        # one material in float32: P(k) from a per-call table over the incidence (as
+        # accurate as the float32 quadrature, 3.4x faster; ppr._microfacet)
+        vi = visibility_one_material(m0, ci) / ci
+        vo = visibility_one_material(m0, co) / co
+    else:
+        vi = visibility(m, ci) / ci
+        vo = visibility(m, co) / co
     f = _azimuth_factor3(ki_s, ko_s, nr, ci, co)
     # min(P, P') / (ci co) = min(V / co, V' / ci) in log space: XLA's algebraic simplifier
     # rewrites a / b / c as a / (b * c), which underflows in float32 at ci, co ~ 1e-20
@@ -202,10 +208,12 @@ def _single_scalar3(ki, ko, nr, m):
     return jnp.where(valid, scal, 0.0), ki_s, ko_s, h
 
 
-def _single_flat(ki, ko, nr, m, n_re, n_im, x_in, x_out, white: bool, add_m00=None) -> Array:
+def _single_flat(
+    ki, ko, nr, m, n_re, n_im, x_in, x_out, white: bool, add_m00=None, m0=None
+) -> Array:
     """Single-bounce term (plus ``add_m00`` on M00) as ``(16, ...)`` (row-major entries on a
-    leading axis)."""
-    scal, ki_s, ko_s, h = _single_scalar3(ki, ko, nr, m)
+    leading axis); ``m0`` the material's own (unbroadcast) exponent."""
+    scal, ki_s, ko_s, h = _single_scalar3(ki, ko, nr, m, m0)
     # R(b) F R(a) of the facet; the ideal white reflector (perfect conductor,
     # diag(r_s, r_p) = diag(-1, 1)) has Fresnel parameters (a, b, c, d) = (1, 0, -1, 0)
     params = facet_rotated_params(n_re, n_im, ki_s, ko_s, h, x_in, x_out, white=white)
@@ -226,8 +234,17 @@ def _multiple_m00(ki, ko, nr, material: Material, m: Array) -> Array:
     d_avg_s = jnp.where(d_avg_ok, d_avg, 1.0)
     f_add = f_avg * f_avg * (1.0 - d_avg) / (1.0 - f_avg * d_avg)
     coef = jnp.where(d_avg_ok, f_add / (math.pi * d_avg_s), 0.0)
-    di = jnp.maximum(_albedo.deficit(table, m, jnp.where(valid, ci, 1.0)), 0.0)
-    do = jnp.maximum(_albedo.deficit(table, m, jnp.where(valid, co, 1.0)), 0.0)
+    if jnp.ndim(m_mat) == 0:
+        # one material: the table's m-interpolation done once (ppr._albedo)
+        def deficit(mu):
+            return _albedo.deficit_one_material(table, m_mat, mu)
+    else:
+
+        def deficit(mu):
+            return _albedo.deficit(table, m, mu)
+
+    di = jnp.maximum(deficit(jnp.where(valid, ci, 1.0)), 0.0)
+    do = jnp.maximum(deficit(jnp.where(valid, co, 1.0)), 0.0)
     return jnp.where(valid, jnp.broadcast_to(coef, m.shape) * di * do, 0.0)
 
 
@@ -291,6 +308,7 @@ def single_bounce_term(
         _split(frame_in),
         _split(frame_out),
         material.white,
+        m0=material.m.astype(dt),
     )
     return _unflatten(flat)
 
@@ -623,7 +641,9 @@ def _brdf_core(k_in, k_out, normal, material, frame_in, frame_out, wavelength, *
     m, n_re, n_im = _material_batch(material, batch, dt)
     f_ms = _multiple_m00(ki, ko, nr, material, m) if "multiple" in names else None
     if "single" in names:
-        flat = _single_flat(ki, ko, nr, m, n_re, n_im, fi, fo, material.white, f_ms)
+        flat = _single_flat(
+            ki, ko, nr, m, n_re, n_im, fi, fo, material.white, f_ms, material.m.astype(dt)
+        )
     elif f_ms is not None:
         flat = jnp.zeros((16,) + batch, dt).at[0].set(f_ms)
     if "double:backscatter" in names:
