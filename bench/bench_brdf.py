@@ -8,8 +8,9 @@ float32 and float64, terms "single" and "single"+"multiple". JAX: one jitted cal
 CHUNK pairs (STYLE.md s10), median of repeats after a warm-up, block_until_ready. NumPy: the
 same formulas (Blinn-Phong lobe via |h - n|^2, <h.k>+ by the same sinh-substituted
 trapezoid rule and order as ppr._microfacet, on the elements that need it (boolean indexing,
-as ppr._microfacet compacts them), Ashikhmin joint visibility, real-arithmetic
-Fresnel, frame rotations, Catmull-Rom albedo deficit), vectorized over the batch, on a
+as ppr._microfacet compacts them; in float32, with one material, from the same per-call
+table over asin(cos) with cubic Hermite interpolation as ppr.mueller_brdf), Ashikhmin joint
+visibility, real-arithmetic Fresnel, frame rotations, Catmull-Rom albedo deficit), vectorized over the batch, on a
 subset (timing scaled per evaluation), checked against the JAX result.
 Writes bench/results/brdf_throughput.md and .png.
 """
@@ -28,10 +29,10 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ppr import _albedo  # noqa: E402
+from ppr import _albedo, _microfacet  # noqa: E402
 from ppr._brdf import explicit_terms, mueller_brdf  # noqa: E402
-from ppr._microfacet import DEFAULT_ORDER, DEFAULT_ORDER_F32  # noqa: E402
 from ppr._material import Material  # noqa: E402
+from ppr._microfacet import DEFAULT_ORDER, DEFAULT_ORDER_F32  # noqa: E402
 
 OUT = os.path.join(os.path.dirname(__file__), "results")
 CHUNK = 250_000
@@ -76,6 +77,34 @@ def np_mean_cosine_correction(m, c, order, dt):
         acc += wj * (2.0 / (e + ei)) * np.exp(log_sm - 0.5 * (big_m + 2.0) * np.log1p(q)) * num
     out[needed] = cq * acc * h / math.pi + np.exp(log_sm) * 0.5 * (1.0 - 1.0 / big_m) * (cq - c)
     return out
+
+
+def np_visibility_table(m, c, order, dt, n_nodes):
+    """NumPy transcription of ppr._microfacet.visibility_one_material (one m, float32 BRDF
+    path): the correction at n_nodes points equispaced in asin(c) by the same quadrature,
+    its c-derivative there by central differences (the library uses the quadrature's
+    partials), cubic Hermite per element."""
+    c_hi = min(1.0, math.sqrt(2.0 * 54.0 / (m + 2.0)))
+    v_hi = math.asin(c_hi)
+    v = v_hi * np.linspace(0.0, 1.0, n_nodes)
+    cn = np.sin(v)
+    val = np_mean_cosine_correction(m, cn.astype(dt), order, dt)
+    dc = 1e-3 * max(cn[1] - cn[0], 1e-6)
+    lo, hi = np.clip(cn - dc, 0, 1), np.clip(cn + dc, 0, 1)
+    der = (np_mean_cosine_correction(m, hi.astype(dt), order, dt)
+           - np_mean_cosine_correction(m, lo.astype(dt), order, dt)) / (hi - lo)
+    der = der * np.cos(v)  # d/dv
+    step = v_hi / (n_nodes - 1)
+    x = np.arcsin(np.clip(c, 0, 1))
+    s = np.clip(x / step, 0, n_nodes - 1)
+    i = np.clip(np.floor(s), 0, n_nodes - 2).astype(int)
+    t = s - i
+    h00, h10 = 2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t
+    h01, h11 = -2 * t**3 + 3 * t**2, t**3 - t**2
+    corr = h00 * val[i] + h10 * der[i] * step + h01 * val[i + 1] + h11 * der[i + 1] * step
+    corr = np.where(x <= v_hi, corr, 0.0)
+    base = c * (m + 1.0) / (m + 2.0)
+    return np.clip(base / np.where(base + corr > 0, base + corr, 1.0), 0, 1).astype(dt)
 
 
 def np_visibility(m, c, order, dt):
@@ -139,8 +168,13 @@ def np_brdf(ki, ko, m, n_re, n_im, multiple, dt):
     one_minus = 0.5 * np.sum(d * d, -1)
     lp = m * np.log1p(-one_minus)
     order = DEFAULT_ORDER if dt == np.float64 else DEFAULT_ORDER_F32
-    vi = np_visibility(m, ci, order, dt) / ci
-    vo = np_visibility(m, co, order, dt) / co
+    if dt == np.float32:  # one material in float32: the tabulated correction, as ppr does
+        n_nodes = _microfacet.TABLE_NODES[32]
+        vi = np_visibility_table(float(m), ci, order, dt, n_nodes) / ci
+        vo = np_visibility_table(float(m), co, order, dt, n_nodes) / co
+    else:
+        vi = np_visibility(m, ci, order, dt) / ci
+        vo = np_visibility(m, co, order, dt) / co
     ti, to = ki[:, :2], ko[:, :2]
     ui = ti / np.linalg.norm(ti, axis=-1, keepdims=True)
     uo = to / np.linalg.norm(to, axis=-1, keepdims=True)
@@ -240,7 +274,9 @@ def main(argv=None):
             # (far off-specular at m = 300 in float32) count through the 1e-30 floor
             scale = np.maximum(np.max(np.abs(M_np[:1000]), axis=(-2, -1), keepdims=True), 1e-30)
             err = float(np.max(np.abs(M_np[:1000] - M_jax) / scale))
-            rows.append((np.dtype(dt).name, "+".join(terms), rate, rate_np, rate / rate_np, comp, err))
+            rows.append(
+                (np.dtype(dt).name, "+".join(terms), rate, rate_np, rate / rate_np, comp, err)
+            )
             print(f"{np.dtype(dt).name:8s} {'+'.join(terms):16s} JAX {rate / 1e6:8.3f} M/s  "
                   f"NumPy {rate_np / 1e6:8.3f} M/s  ratio {rate / rate_np:6.1f}  compile "
                   f"{comp:5.2f} s  max rel diff {err:.1e}", flush=True)
