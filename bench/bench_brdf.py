@@ -10,8 +10,9 @@ same formulas (Blinn-Phong lobe via |h - n|^2, <h.k>+ by the same sinh-substitut
 trapezoid rule and order as ppr._microfacet, on the elements that need it (boolean indexing,
 as ppr._microfacet compacts them; in float32, with one material, from the same per-call
 table over asin(cos) with cubic Hermite interpolation as ppr.mueller_brdf), Ashikhmin joint
-visibility, real-arithmetic Fresnel, frame rotations, Catmull-Rom albedo deficit), vectorized over the batch, on a
-subset (timing scaled per evaluation), checked against the JAX result.
+visibility, real-arithmetic Fresnel, frame rotations, Catmull-Rom albedo deficit),
+vectorized over the batch, on a subset (timing scaled per evaluation), checked against the
+JAX result.
 Writes bench/results/brdf_throughput.md and .png.
 """
 
