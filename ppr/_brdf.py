@@ -37,8 +37,9 @@ point away from the surface (:mod:`ppr._conventions`). It is the sum of named te
 Terms are components of *one* model: the remainder always completes the full set of
 explicit terms, whichever subset the caller asks for, so that the requested terms add up.
 
-Validation (concrete inputs raise ``ValueError`` naming the argument; traced inputs go through
-``eqx.error_if``): directions must have shape ``(..., 3)``, be finite, have
+Validation (concrete inputs raise ``ValueError`` naming the argument; traced inputs: one
+``eqx.branched_error_if`` on the result raises the first failing check's message, so no
+result is returned): directions must have shape ``(..., 3)``, be finite, have
 ``| |k| - 1 | <= UNIT_TOL = 1e-3`` (then they are renormalized), and lie in the upper
 hemisphere up to ``k.n >= -HORIZON_TOL = -1e-5`` (``k.n`` in ``[-1e-5, 0]`` is treated as
 grazing). Frames must be finite, unit within ``UNIT_TOL`` and perpendicular to their beam
@@ -451,15 +452,33 @@ def _as_vec(name: str, x, dt=None) -> Array:
     return x
 
 
-def _check(name: str, x: Array, bad: Array, msg: str) -> Array:
-    """Raise (concrete) or attach ``eqx.error_if`` (traced) when ``bad`` is anywhere true."""
+def _check(name: str, x: Array, bad: Array, msg: str, errors: list | None = None) -> Array:
+    """Raise (concrete) when ``bad`` is anywhere true; traced: append ``(any(bad), message)``
+    to ``errors`` (attached to the result by :func:`_attach_errors`), or attach
+    ``eqx.error_if`` to ``x`` when no list is given."""
     if _is_concrete(x) and _is_concrete(bad):
         b = np.asarray(bad)
         if np.any(b):
             idx = tuple(int(i) for i in np.argwhere(b)[0]) if b.ndim else ()
             raise ValueError(f"{name}: {msg} (first offending index {idx})")
         return x
+    if errors is not None:
+        errors.append((jnp.any(bad), f"{name}: {msg}"))
+        return x
     return eqx.error_if(x, jnp.any(bad), f"{name}: {msg}")
+
+
+def _attach_errors(out: Array, errors: list) -> Array:
+    """One ``eqx.branched_error_if`` on the result for the traced input checks: the first
+    failing check's message is raised and no result is returned. Gating the *inputs*
+    instead (an ``error_if`` on ``k_in`` depending on a reduction over the batch) made the
+    whole BRDF ~1.7x slower on XLA CPU (measured, 250k evaluations)."""
+    if not errors:
+        return out
+    preds = jnp.stack([b for b, _ in errors])
+    return eqx.branched_error_if(
+        out, jnp.any(preds), jnp.argmax(preds), [m for _, m in errors]
+    )
 
 
 def _norm3(k: Array) -> Array:
@@ -468,9 +487,11 @@ def _norm3(k: Array) -> Array:
     return jnp.sqrt(k[..., 0] * k[..., 0] + k[..., 1] * k[..., 1] + k[..., 2] * k[..., 2])
 
 
-def _validate_direction(name: str, k: Array, normal: Array | None) -> Array:
+def _validate_direction(
+    name: str, k: Array, normal: Array | None, errors: list | None = None
+) -> Array:
     finite = jnp.isfinite(k[..., 0]) & jnp.isfinite(k[..., 1]) & jnp.isfinite(k[..., 2])
-    k = _check(name, k, ~finite, "must be finite")
+    k = _check(name, k, ~finite, "must be finite", errors)
     norm = _norm3(k)
     k = _check(
         name,
@@ -478,6 +499,7 @@ def _validate_direction(name: str, k: Array, normal: Array | None) -> Array:
         jnp.abs(norm - 1.0) > UNIT_TOL,
         f"must be unit vectors (| |k| - 1 | <= {UNIT_TOL}), got |k| = "
         + (f"{np.asarray(norm).ravel()[:4]}" if _is_concrete(norm) else "(traced)"),
+        errors,
     )
     inv = 1.0 / jnp.where(norm > 0.5, norm, 1.0)
     k = _stack3(tuple(k[..., i] * inv for i in range(3)))
@@ -489,15 +511,18 @@ def _validate_direction(name: str, k: Array, normal: Array | None) -> Array:
             c < -HORIZON_TOL,
             f"points below the surface (k.normal < -{HORIZON_TOL}); directions point away "
             "from the surface (ppr._conventions)",
+            errors,
         )
     return k
 
 
-def _validate_frame(name: str, x: Array, d: Array) -> Array:
+def _validate_frame(name: str, x: Array, d: Array, errors: list | None = None) -> Array:
     finite = jnp.isfinite(x[..., 0]) & jnp.isfinite(x[..., 1]) & jnp.isfinite(x[..., 2])
-    x = _check(name, x, ~finite, "must be finite")
+    x = _check(name, x, ~finite, "must be finite", errors)
     norm = _norm3(x)
-    x = _check(name, x, jnp.abs(norm - 1.0) > UNIT_TOL, f"must be unit (tolerance {UNIT_TOL})")
+    x = _check(
+        name, x, jnp.abs(norm - 1.0) > UNIT_TOL, f"must be unit (tolerance {UNIT_TOL})", errors
+    )
     x3, d3 = _split(x), _split(d)
     xd = _d3(x3, d3)
     x = _check(
@@ -505,26 +530,28 @@ def _validate_frame(name: str, x: Array, d: Array) -> Array:
         x,
         jnp.abs(xd) > UNIT_TOL,
         f"must be perpendicular to its beam direction (|x.k| <= {UNIT_TOL})",
+        errors,
     )
     x3 = tuple(a - xd * b for a, b in zip(_split(x), d3, strict=True))
     inv = 1.0 / jnp.sqrt(_d3(x3, x3))
     return _stack3(tuple(a * inv for a in x3))
 
 
-def _validate_material(material: Material) -> Material:
+def _validate_material(material: Material, errors: list | None = None) -> Material:
     if not isinstance(material, Material):
         raise ValueError(f"material must be a ppr.Material, got {type(material).__name__}")
     m = material.m
     n = material.n
-    m = _check("material.m", m, ~jnp.isfinite(m), "must be finite")
-    m = _check("material.m", m, m < 0, "Blinn-Phong exponent must be >= 0")
+    m = _check("material.m", m, ~jnp.isfinite(m), "must be finite", errors)
+    m = _check("material.m", m, m < 0, "Blinn-Phong exponent must be >= 0", errors)
     if not material.white:
-        n = _check("material.n", n, ~jnp.isfinite(n), "must be finite")
+        n = _check("material.n", n, ~jnp.isfinite(n), "must be finite", errors)
         n = _check(
             "material.n",
             n,
             jnp.imag(n) < 0,
             "imaginary part must be >= 0 (absorbing medium, exp(i(kz - wt)) convention)",
+            errors,
         )
     return eqx.tree_at(lambda mt: (mt.m, mt.n), material, (m, n))
 
@@ -572,7 +599,8 @@ def mueller_brdf(
     matrices, plus the energy-conserving depolarizing remainder (Kulla & Conty 2017).
     """
     names = _resolve_terms(terms)
-    material = _validate_material(material)
+    errors: list = []  # traced checks, attached to the result (_attach_errors)
+    material = _validate_material(material, errors)
     dt = float_dtype(
         jnp.asarray(k_in), jnp.asarray(k_out), jnp.asarray(normal), material.m, material.n
     )
@@ -599,9 +627,9 @@ def mueller_brdf(
             f"material: field shapes m {jnp.shape(material.m)}, n {jnp.shape(material.n)} do "
             f"not broadcast with the directions' batch shape {batch}"
         ) from err
-    normal = _validate_direction("normal", normal, None)
-    k_in = _validate_direction("k_in", k_in, normal)
-    k_out = _validate_direction("k_out", k_out, normal)
+    normal = _validate_direction("normal", normal, None, errors)
+    k_in = _validate_direction("k_in", k_in, normal, errors)
+    k_out = _validate_direction("k_out", k_out, normal, errors)
     if "double:backscatter" in names:
         from ._double_table import PSI_MAX, near_backscatter
 
@@ -611,20 +639,26 @@ def mueller_brdf(
             ~near_backscatter(k_in, k_out),
             f'terms "double:backscatter" needs a bistatic angle <= PSI_MAX = {PSI_MAX} rad '
             '(use "double")',
+            errors,
         )
     k_in = jnp.broadcast_to(k_in, batch + (3,))
     k_out = jnp.broadcast_to(k_out, batch + (3,))
     normal = jnp.broadcast_to(normal, batch + (3,))
     if frame_in is not None:
-        frame_in = _validate_frame("frame_in", jnp.broadcast_to(frame_in, batch + (3,)), k_in)
+        frame_in = _validate_frame(
+            "frame_in", jnp.broadcast_to(frame_in, batch + (3,)), k_in, errors
+        )
     if frame_out is not None:
-        frame_out = _validate_frame("frame_out", jnp.broadcast_to(frame_out, batch + (3,)), k_out)
+        frame_out = _validate_frame(
+            "frame_out", jnp.broadcast_to(frame_out, batch + (3,)), k_out, errors
+        )
     material = eqx.tree_at(
         lambda mt: (mt.m, mt.n),
         material,
         (material.m.astype(dt), material.n.astype(jnp.result_type(dt, jnp.complex64))),
     )
-    return _brdf_core(k_in, k_out, normal, material, frame_in, frame_out, wavelength, names=names)
+    out = _brdf_core(k_in, k_out, normal, material, frame_in, frame_out, wavelength, names=names)
+    return _attach_errors(out, errors)
 
 
 @functools.partial(jax.jit, static_argnames=("names",))
