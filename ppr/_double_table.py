@@ -462,11 +462,8 @@ def double_backscatter_flat(
     m_safe = jnp.where(valid, m, 0.0)
     u = jnp.sqrt(m_safe + M_SHIFT) - math.sqrt(M_SHIFT)
     if coherent:
-        # D.coherence_factor, with |k' - k|^2 summed component by component
-        dk = [kp3[i] - k3[i] for i in range(3)]
-        q2 = dk[0] * dk[0] + dk[1] * dk[1] + dk[2] * dk[2]
-        psi_h = jnp.asarray(wavelength, dt) / (4.0 * jnp.asarray(material.corr_length, dt))
-        gamma = jnp.broadcast_to(jnp.exp(-math.log(2.0) * q2 / (psi_h * psi_h)), batch)
+        gamma = D.coherence_factor(k, kp, wavelength, material.corr_length).astype(dt)
+        gamma = jnp.broadcast_to(gamma, batch)
     else:
         gamma = jnp.zeros(batch, dt)
     white = bool(getattr(material, "white", False))
