@@ -77,7 +77,9 @@ class PprSignatures:
         self.pulse_fwhm_s, self.wavelength = float(pulse_fwhm_s), float(wavelength)
         self.dtype = dtype
         cap = max(ppr._mesh.capacity_for(m.n_faces) for m in meshes)
-        arrays = [ppr.mesh_arrays(m, cap, dtype) for m in meshes]
+        # one group capacity for all shapes (their arrays are stacked)
+        g_cap = min(cap, max(ppr._mesh.capacity_for(ppr._mesh.n_normal_groups(m)) for m in meshes))
+        arrays = [ppr.mesh_arrays(m, cap, dtype, group_capacity=g_cap) for m in meshes]
         self.arrays = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *arrays)
         self.capacity = cap
         self.n_parts = max(len(m.parts) for m in meshes)

@@ -295,13 +295,23 @@ def load_mesh(
 
 class MeshArrays(eqx.Module):
     """Kernel-side structure-of-arrays of a mesh padded to a fixed capacity (a pytree of arrays
-    only, so a new mesh of the same capacity does not recompile).
+    only, so a new mesh of the same capacities does not recompile).
 
     - `tri`: ``(F, 3, 3)`` body-frame vertex positions per face (padding: zeros).
     - `normals`: ``(F, 3)`` unit outward normals (padding and zero-area faces: +z).
     - `areas`: ``(F,)`` face areas in m^2 (padding: 0).
     - `material_ids`: ``(F,)`` part index (padding: 0).
     - `valid`: ``(F,)`` True for real faces.
+    - `normal_group`: ``(F,)`` index of the face's (normal, part) group (padding: 0).
+    - `group_normals`: ``(G, 3)`` normal of each group, bit-identical to its faces' normals
+      (padding: +z).
+    - `group_material_ids`: ``(G,)`` part index of each group (padding: 0).
+
+    Faces with the same normal and part have the same Mueller BRDF at any pose, so the pulse
+    kernel evaluates the BRDF once per group when there are fewer groups than facets to
+    render (:func:`ppr._pulse.facet_weights`): a subdivided flat-panelled satellite of 13600
+    faces has 12 groups. Grouping is by exact equality of the float64 normals' bits, so it
+    changes no result (tests/test_pulse.py).
     """
 
     tri: Float[Array, "F 3 3"]
@@ -309,6 +319,22 @@ class MeshArrays(eqx.Module):
     areas: Float[Array, " F"]
     material_ids: Int[Array, " F"]
     valid: Bool[Array, " F"]
+    normal_group: Int[Array, " F"]
+    group_normals: Float[Array, "G 3"]
+    group_material_ids: Int[Array, " G"]
+
+    def take_faces(self, faces: Int[Array, " Fc"]) -> MeshArrays:
+        """The per-face fields at ``faces`` (the group tables are kept whole)."""
+        return MeshArrays(
+            tri=self.tri[faces],
+            normals=self.normals[faces],
+            areas=self.areas[faces],
+            material_ids=self.material_ids[faces],
+            valid=self.valid[faces],
+            normal_group=self.normal_group[faces],
+            group_normals=self.group_normals,
+            group_material_ids=self.group_material_ids,
+        )
 
 
 def capacity_for(n_faces: int) -> int:
@@ -324,26 +350,77 @@ def capacity_for(n_faces: int) -> int:
     return 2 ** (k + 1)
 
 
-def mesh_arrays(mesh: Mesh, capacity: int | None = None, dtype=None) -> MeshArrays:
-    """Pad ``mesh`` to ``capacity`` faces (default :func:`capacity_for`) for the kernel."""
+def normal_groups(normals: np.ndarray, material_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Host helper: ``(first, inverse)`` of the distinct (normal, part) pairs, compared by the
+    exact bits of the float64 normals: ``first[g]`` is a face of group ``g`` and
+    ``inverse[f]`` the group of face ``f``."""
+    nrm = np.ascontiguousarray(np.asarray(normals, np.float64))
+    key = np.concatenate(
+        [nrm.view(np.uint64).reshape(-1, 3), np.asarray(material_ids, np.uint64)[:, None]], axis=1
+    )
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    return first, inverse.reshape(-1)
+
+
+def n_normal_groups(mesh: Mesh) -> int:
+    """Number of distinct (normal, part) groups of ``mesh`` (:func:`normal_groups`)."""
+    _, nrm = face_areas_normals(mesh.triangles())
+    return len(normal_groups(nrm + 0.0, np.asarray(mesh.material_ids))[0])
+
+
+def mesh_arrays(
+    mesh: Mesh,
+    capacity: int | None = None,
+    dtype=None,
+    *,
+    group_capacity: int | None = None,
+    group: bool = True,
+) -> MeshArrays:
+    """Pad ``mesh`` to ``capacity`` faces (default :func:`capacity_for`) for the kernel.
+
+    ``group_capacity``: padded number of (normal, part) groups (default
+    :func:`capacity_for` of the count; meshes stacked together need one common value).
+    ``group=False`` makes every face its own group (``G = capacity``), which turns the
+    per-group BRDF evaluation off; the results are the same.
+    """
     tri = mesh.triangles()
     f = tri.shape[0]
     cap = capacity_for(f) if capacity is None else int(capacity)
     if cap < f:
         raise ValueError(f"capacity {cap} is smaller than the mesh's {f} faces (overflow)")
     area, nrm = face_areas_normals(tri)
+    nrm = nrm + 0.0  # -0.0 -> +0.0: signed zeros would split groups of equal normals
+    mid = np.asarray(mesh.material_ids, np.int32)
     if dtype is None:
         dtype = jnp.result_type(float)
     pad = cap - f
     tri_p = np.concatenate([tri, np.zeros((pad, 3, 3))])
     nrm_p = np.concatenate([nrm, np.tile([0.0, 0.0, 1.0], (pad, 1))])
     area_p = np.concatenate([area, np.zeros(pad)])
-    mid_p = np.concatenate([np.asarray(mesh.material_ids), np.zeros(pad, np.int32)])
+    mid_p = np.concatenate([mid, np.zeros(pad, np.int32)])
     valid = np.concatenate([np.ones(f, bool), np.zeros(pad, bool)])
+    if group:
+        first, inverse = normal_groups(nrm, mid)
+        n_groups = len(first)
+        g_cap = min(capacity_for(n_groups), cap) if group_capacity is None else int(group_capacity)
+        if g_cap < n_groups:
+            raise ValueError(
+                f"group_capacity {g_cap} is smaller than the mesh's {n_groups} (normal, part) "
+                "groups (overflow)"
+            )
+        g_pad = g_cap - n_groups
+        gn = np.concatenate([nrm[first], np.tile([0.0, 0.0, 1.0], (g_pad, 1))])
+        gm = np.concatenate([mid[first], np.zeros(g_pad, np.int32)])
+        grp = np.concatenate([inverse, np.zeros(pad, np.int64)])
+    else:
+        gn, gm, grp = nrm_p, mid_p, np.arange(cap)
     return MeshArrays(
         tri=jnp.asarray(tri_p, dtype),
         normals=jnp.asarray(nrm_p, dtype),
         areas=jnp.asarray(area_p, dtype),
         material_ids=jnp.asarray(mid_p, jnp.int32),
         valid=jnp.asarray(valid),
+        normal_group=jnp.asarray(grp, jnp.int32),
+        group_normals=jnp.asarray(gn, dtype),
+        group_material_ids=jnp.asarray(gm, jnp.int32),
     )

@@ -302,19 +302,28 @@ def facet_weights(
     cos_in = nrm @ u_in
     cos_out = nrm @ u_out
     front = (cos_in > COS_MIN) & (cos_out > COS_MIN) & arrays.valid & (vis > 0)
-    # double where: masked facets see a harmless normal (the bisector) before the BRDF
     w = 0.5 * (u_in + u_out)
     w_unit = w / jnp.linalg.norm(w)
-    safe_n = jnp.where(front[:, None], nrm, w_unit[None, :])
+    f_count = nrm.shape[0]
+    grouped = arrays.group_normals.shape[0] < f_count
+    if grouped:
+        # one BRDF per (normal, part) group (MeshArrays): faces of a group share the normal
+        # bit for bit, so their Mueller matrices are identical
+        g_nrm, g_mid = arrays.group_normals, arrays.group_material_ids
+        g_front = (g_nrm @ u_in > COS_MIN) & (g_nrm @ u_out > COS_MIN)
+    else:
+        g_nrm, g_mid, g_front = nrm, arrays.material_ids, front
+    # double where: masked normals become the bisector before the BRDF
+    safe_n = jnp.where(g_front[:, None], g_nrm, w_unit[None, :])
     if jnp.shape(materials.m)[:1] == (1,):
         # one material for every facet: unbatched, so that the BRDF's per-material work
-        # (the double term's node Fresnel products) is done once, not per facet
+        # (tables of the visibility and of the double term) is done once, not per facet
         mat = jax.tree_util.tree_map(lambda a: a[0], materials)
     else:
-        mat = jax.tree_util.tree_map(lambda a: a[arrays.material_ids], materials)
-    f_count = nrm.shape[0]
-    k_in = jnp.broadcast_to(u_in, (f_count, 3))
-    k_out = jnp.broadcast_to(u_out, (f_count, 3))
+        mat = jax.tree_util.tree_map(lambda a: a[g_mid], materials)
+    count = g_nrm.shape[0]
+    k_in = jnp.broadcast_to(u_in, (count, 3))
+    k_out = jnp.broadcast_to(u_out, (count, 3))
 
     def call(t):
         return brdf(
@@ -322,8 +331,8 @@ def facet_weights(
             k_out,
             safe_n,
             mat,
-            frame_in=jnp.broadcast_to(x_tx, (f_count, 3)),
-            frame_out=jnp.broadcast_to(x_rx, (f_count, 3)),
+            frame_in=jnp.broadcast_to(x_tx, (count, 3)),
+            frame_out=jnp.broadcast_to(x_rx, (count, 3)),
             wavelength=sensor.wavelength,
             terms=t,
         )
@@ -336,11 +345,13 @@ def facet_weights(
         # directions): the exact-backscatter table of the double term, or its quadrature
         near = near_backscatter(sensor.laser_dir, sensor.receiver_dir)
         m = jax.lax.cond(near, lambda _: call(bs), lambda _: call(terms), None)
-    m = m.reshape(f_count, 16)
-    g = jnp.where(front, cos_in * cos_out * arrays.areas * vis, 0.0)
-    m = jnp.where(front[:, None], m, 0.0)
+    m = m.reshape(count, 16)
+    m = jnp.where(g_front[:, None], m, 0.0)
     wch = m if projection is None else m @ projection.astype(m.dtype)
-    return wch * g[:, None], w
+    if grouped:
+        wch = wch[arrays.normal_group]
+    g = jnp.where(front, cos_in * cos_out * arrays.areas * vis, 0.0)
+    return jnp.where(front[:, None], wch, 0.0) * g[:, None], w
 
 
 def backscatter_terms(brdf: Callable, terms) -> tuple[str, ...] | None:
@@ -452,7 +463,7 @@ def render(
 
 
 def _take_faces(arrays, vis, faces):
-    return jax.tree_util.tree_map(lambda a: a[faces], arrays), vis[faces]
+    return arrays.take_faces(faces), vis[faces]
 
 
 def visible_faces(vis: np.ndarray, capacity: int | None = None) -> np.ndarray:

@@ -655,6 +655,71 @@ def test_real_brdf_wiring_energy_and_frames():
     assert np.all(np.abs(d) <= d[0, 0][None, None, :] * (1 + 1e-3) + 1e-6 * d[0, 0].max())
 
 
+def test_normal_groups_change_nothing_values_and_gradients():
+    """The BRDF evaluated once per (normal, part) group (MeshArrays.normal_group) gives the same
+    profile as one BRDF per facet (real mueller_brdf, default terms at backscatter: single +
+    tabulated double + multiple; three materials; pruned facets; float64) and the same
+    gradients in attitude, roughness and index (polarizing stand-in BRDF)."""
+    from ppr._brdf import mueller_brdf
+
+    mesh = shapes.cubesat_with_panels(3, max_edge=0.1)
+    grouped = ppr.mesh_arrays(mesh)
+    flat = ppr.mesh_arrays(mesh, group=False)
+    # ~500 faces, 12 distinct (normal, part) pairs; each face's group normal is its own, bitwise
+    cap = flat.normals.shape[0]
+    assert mesh.n_faces > 400 and ppr._mesh.n_normal_groups(mesh) == 12
+    assert grouped.group_normals.shape == (64, 3) and flat.group_normals.shape == (cap, 3)
+    g_of = np.asarray(grouped.normal_group)[: mesh.n_faces]
+    np.testing.assert_array_equal(
+        np.asarray(grouped.group_normals)[g_of], np.asarray(grouped.normals)[: mesh.n_faces]
+    )
+    np.testing.assert_array_equal(
+        np.asarray(grouped.group_material_ids)[g_of], np.asarray(mesh.material_ids)
+    )
+    q = _random_rotation(5)
+    sensor = ppr.Sensor.make((0.1, 0.0, -1.0), (1.0, 0.2, 0.0))
+    rot = np.asarray(ppr.quat_to_matrix(q))
+    vis = ppr.VisibilityCaster(mesh, 4).fractions(rot.T @ np.asarray(sensor.laser_dir))
+    vis = jnp.asarray(np.concatenate([vis, np.zeros(cap - mesh.n_faces)]))
+    faces = jnp.asarray(visible_faces(np.asarray(vis)))
+    assert faces.shape[0] > 64  # the grouped path is taken (G = 64 < pruned facet count)
+    mats = stack_materials(
+        [ppr.Material(0.94 + 6.42j, 200.0), ppr.Material(1.46, 2000.0), ppr.Material(2.67, 5.0)]
+    )
+
+    def profile(arrays, q, mats, brdf=mueller_brdf):
+        return render(
+            arrays,
+            vis,
+            ppr.Pose(q),
+            mats,
+            sensor,
+            SIGMA_R,
+            -0.5 * 0.005 * 256,
+            0.005,
+            n_bins=256,
+            window=window_size(mesh.max_edge(), SIGMA_R, 0.005, 256),
+            brdf=brdf,
+            faces=faces,
+        )
+
+    wts = jnp.asarray(np.random.default_rng(0).normal(size=(16, 256)))
+
+    def loss(q, m, n, arrays):  # the polarizing stand-in: new here is the gather's adjoint
+        mt = eqx.tree_at(lambda t: (t.m, t.n), mats, (m, n))
+        return jnp.sum(wts * profile(arrays, q, mt, glossy_fresnel_mueller))
+
+    qj = jnp.asarray(q)
+    a, b = (np.asarray(profile(x, qj, mats)) for x in (grouped, flat))
+    assert np.abs(a[1:]).max() > 1e-3 * np.abs(a[0]).max()  # polarizing
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-13 * np.abs(b).max())
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))
+    ga, gb = (grad(qj, mats.m, mats.n, x) for x in (grouped, flat))
+    for x, y in zip(ga, gb, strict=True):
+        assert np.all(np.isfinite(np.asarray(x)))
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-10, atol=1e-14)
+
+
 def _perpendicular_squares_form_factor():
     """View factor between two perpendicular unit squares sharing an edge (Hottel), 0.20004."""
     w = h = 1.0
