@@ -510,6 +510,33 @@ def test_gradients_finite_edge_on_and_equal_depths():
             np.testing.assert_allclose(float(g @ v), float(fd), rtol=1e-5, atol=1e-9)
 
 
+def test_sort3_equals_jnp_sort_values_and_tangents_at_ties():
+    """The select network that orders facet depths is a permutation: values and tangents as
+    jnp.sort, including two and three equal depths (where min/max would split tangents)."""
+    from ppr._pulse import _sort3
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(200, 3))
+    x[:50, 1] = x[:50, 0]  # pairs
+    x[50:100] = x[50:100, :1]  # triples
+    x[100:120, 2] = x[100:120, 1]
+    t = rng.normal(size=x.shape)
+
+    def net(v):
+        return jnp.concatenate(_sort3(v[:, 0:1], v[:, 1:2], v[:, 2:3]), axis=1)
+
+    (v1, t1), (v2, t2) = (
+        jax.jvp(f, (jnp.asarray(x),), (jnp.asarray(t),))
+        for f in (net, lambda v: jnp.sort(v, axis=-1))
+    )
+    np.testing.assert_array_equal(np.asarray(v1), np.asarray(v2))
+    # tangents: a permutation of the inputs' (ties may be ordered differently), same sum
+    np.testing.assert_allclose(np.asarray(t1).sum(1), t.sum(1), rtol=1e-14)
+    np.testing.assert_array_equal(np.sort(np.asarray(t1), 1), np.sort(np.asarray(t2), 1))
+    untied = slice(120, 200)
+    np.testing.assert_array_equal(np.asarray(t1)[untied], np.asarray(t2)[untied])
+
+
 def test_zero_area_and_duplicate_faces_stay_finite():
     mesh = shapes.plate(0.5, subdivisions=2)
     sensor = ppr.Sensor.make((0, 0, -1.0))
