@@ -290,10 +290,13 @@ def facet_weights(
     projection: Float[Array, "16 C"] | None,
     brdf: Callable,
     terms=None,
+    part: int | None = None,
 ) -> tuple[Float[Array, "F C"], Array]:
     """Per-facet weights ``M_f (n.u_in)(n.u_out) A_f v_f`` projected to the output channels,
     and the body-frame bisector. Everything is evaluated in the body frame (the BRDF is
-    rotation covariant), so only four 3-vectors are rotated per pose."""
+    rotation covariant), so only four 3-vectors are rotated per pose. ``part`` (static): the
+    one part every real facet belongs to, if known (:func:`single_part`); its material is then
+    passed unbatched, which lets the BRDF take its one-material paths."""
     rt = rot.T
     u_in = rt @ sensor.laser_dir
     u_out = rt @ sensor.receiver_dir
@@ -316,10 +319,10 @@ def facet_weights(
         g_nrm, g_mid, g_front = nrm, arrays.material_ids, front
     # double where: masked normals become the bisector before the BRDF
     safe_n = jnp.where(g_front[:, None], g_nrm, w_unit[None, :])
-    if jnp.shape(materials.m)[:1] == (1,):
+    if part is not None or jnp.shape(materials.m)[:1] == (1,):
         # one material for every facet: unbatched, so that the BRDF's per-material work
         # (tables of the visibility and of the double term) is done once, not per facet
-        mat = jax.tree_util.tree_map(lambda a: a[0], materials)
+        mat = jax.tree_util.tree_map(lambda a: a[part or 0], materials)
     else:
         mat = jax.tree_util.tree_map(lambda a: a[g_mid], materials)
     count = g_nrm.shape[0]
@@ -441,6 +444,7 @@ def render(
     arrays here, so new values never recompile.
     """
     dt = arrays.tri.dtype
+    part = single_part(arrays)
     if faces is not None:
         arrays, vis = _take_faces(arrays, vis, faces)
     # decided here for a concrete sensor, so that the compiled program holds the table only
@@ -460,7 +464,20 @@ def render(
         projection=projection,
         brdf=brdf,
         terms=terms,
+        part=part,
     )
+
+
+def single_part(arrays: MeshArrays) -> int | None:
+    """The part index shared by every real face of ``arrays`` when the arrays are concrete
+    (host check), else None. A one-part mesh then renders with its material unbatched (the
+    BRDF's one-material fast paths) even when the scene lists materials for more parts."""
+    if isinstance(arrays.material_ids, jax.core.Tracer) or isinstance(
+        arrays.valid, jax.core.Tracer
+    ):
+        return None
+    ids = np.unique(np.asarray(arrays.material_ids)[np.asarray(arrays.valid)])
+    return int(ids[0]) if len(ids) == 1 else None
 
 
 def _take_faces(arrays, vis, faces):
@@ -516,11 +533,20 @@ def _render_jit(
     projection,
     brdf,
     terms,
+    part=None,
 ):
     dt = arrays.tri.dtype
     rot = quat_to_matrix(pose.quaternion.astype(dt))
     wch, w_body = facet_weights(
-        arrays, vis, rot, materials, sensor, projection=projection, brdf=brdf, terms=terms
+        arrays,
+        vis,
+        rot,
+        materials,
+        sensor,
+        projection=projection,
+        brdf=brdf,
+        terms=terms,
+        part=part,
     )
     w_world = rot @ w_body
     sigma = jnp.asarray(sigma_r, dt)

@@ -510,6 +510,39 @@ def test_gradients_finite_edge_on_and_equal_depths():
             np.testing.assert_allclose(float(g @ v), float(fd), rtol=1e-5, atol=1e-9)
 
 
+def test_one_part_mesh_takes_the_one_material_path():
+    """A one-part mesh rendered with materials listed for three parts uses its part's material
+    unbatched (the BRDF's one-material fast paths: tabulated visibility, folded double table)
+    and agrees with the per-element path; float32, full BRDF at backscatter."""
+    from ppr._brdf import mueller_brdf
+    from ppr._pulse import _render_jit, single_part
+
+    mesh = shapes.sphere(0.3, subdivisions=2)
+    arrays = ppr.mesh_arrays(mesh, dtype=jnp.float32)
+    assert single_part(arrays) == 0
+    assert single_part(ppr.mesh_arrays(shapes.cubesat_with_panels(3))) is None
+    mats = stack_materials(
+        [ppr.Material(0.94 + 6.42j, 30.0), ppr.Material(1.46, 2000.0), ppr.Material(2.67, 5.0)]
+    )
+    mats = jax.tree_util.tree_map(
+        lambda a: a.astype(jnp.complex64 if jnp.iscomplexobj(a) else jnp.float32), mats
+    )
+    sensor = jax.tree_util.tree_map(
+        lambda a: jnp.asarray(a, jnp.float32), ppr.Sensor.make((0.1, 0.0, -1.0))
+    )
+    vis = arrays.valid.astype(jnp.float32)
+    q = jnp.asarray(_random_rotation(2), jnp.float32)
+    args = (arrays, vis, ppr.Pose(q), mats, sensor)
+    kw = dict(n_bins=256, window=32, projection=None, brdf=mueller_brdf)
+    rng = (jnp.float32(SIGMA_R), jnp.float32(-0.64), jnp.float32(0.005))
+    fast = render(*args, *rng, **kw)
+    terms = ppr._pulse.sensor_terms(mueller_brdf, None, sensor)
+    per_element = _render_jit(*args, *rng, **kw, terms=terms, part=None)
+    scale = float(jnp.abs(per_element[0]).max())
+    np.testing.assert_allclose(np.asarray(fast), np.asarray(per_element), atol=2e-5 * scale)
+    assert float(jnp.abs(fast[1:]).max()) > 1e-3 * scale  # polarizing
+
+
 def test_sort3_equals_jnp_sort_values_and_tangents_at_ties():
     """The select network that orders facet depths is a permutation: values and tangents as
     jnp.sort, including two and three equal depths (where min/max would split tangents)."""
