@@ -403,16 +403,15 @@ def rotated_mueller_flat(params, scale=None, add_m00=None) -> Array:
 def materialize(*xs: Array) -> tuple[Array, ...]:
     """The arrays ``xs`` (one shape and dtype) computed once and stored, for consumers that
     XLA CPU would otherwise each re-compute them in (it fuses elementwise producers into
-    every consumer, and strips ``lax.optimization_barrier`` before fusion). Each is formed
-    as its own dot ``x[..., None] @ [[1]]``, whose operand XLA materializes: exact (``x * 1``).
-    Stacking the arrays into one ``(..., n)`` operand instead made XLA CPU build it in a
-    concatenate fusion that runs as a scalar loop re-computing every producer per column:
-    the double-bounce table term's frame angles took 320 of its 510 ns per evaluation
-    (profiled, 250k evaluations, float32)."""
-    one = jnp.ones((1, 1), xs[0].dtype)
-    return tuple(
-        jnp.matmul(x[..., None], one, precision=jax.lax.Precision.HIGHEST)[..., 0] for x in xs
-    )
+    every consumer, and strips ``lax.optimization_barrier`` before fusion). Formed as a dot
+    with the identity, whose operand XLA materializes: exact for finite values (``x * 1``
+    plus exact zeros; a non-finite entry would spread NaN to its row, so callers pass
+    guarded values). Costly for expensive producers: XLA CPU builds the stacked operand in a
+    concatenate fusion that runs as a scalar loop evaluating each column's producers per
+    element (see :func:`rotate_mueller_flat`)."""
+    x = jnp.stack(xs, axis=-1)
+    y = jnp.matmul(x, jnp.eye(len(xs), dtype=x.dtype), precision=jax.lax.Precision.HIGHEST)
+    return tuple(y[..., i] for i in range(len(xs)))
 
 
 def _rotation_monomials():
@@ -443,7 +442,7 @@ def rotate_mueller_flat(M16: Array, c_in: Array, s_in: Array, c_out: Array, s_ou
     ``s = sin 2a``) of row-major Mueller matrices given and returned as ``(16, ...)``.
 
     A constant ``(16, 36)`` map of the monomials ``M_kl p q`` applied by one dot, with
-    ``M`` and the angles materialized first (:func:`materialize`): written entry by entry,
+    ``M`` materialized first (an identity dot): written entry by entry,
     XLA CPU re-computed the producers of ``M`` (table gathers, envelopes) inside each of the
     16 outputs (measured 3.5x slower for the double-bounce table term)."""
     dt = M16.dtype
@@ -452,9 +451,12 @@ def rotate_mueller_flat(M16: Array, c_in: Array, s_in: Array, c_out: Array, s_ou
     Mt = jnp.moveaxis(M16, 0, -1)
     Mt = jnp.matmul(Mt, jnp.eye(16, dtype=dt), precision=jax.lax.Precision.HIGHEST)
     M = jnp.moveaxis(Mt, -1, 0)
-    c_in, s_in, c_out, s_out = materialize(
-        *jnp.broadcast_arrays(c_in, s_in, c_out, s_out)
-    )
+    # the angles are not materialized: XLA CPU fuses them into each monomial (re-computed,
+    # but vectorized). Stacking them into one (..., 4) operand of an identity dot made XLA
+    # build it in a concatenate fusion that ran as a scalar loop: 320 of the double table
+    # term's 510 ns per evaluation (profiled, 250k evaluations, float32). A per-array
+    # (..., 1) @ [[1]] dot is simplified away by XLA
+    c_in, s_in, c_out, s_out = jnp.broadcast_arrays(c_in, s_in, c_out, s_out)
     f_in = (None, c_in, s_in)
     f_out = (None, c_out, s_out)
     shape = M[0].shape
