@@ -237,40 +237,20 @@ def test_energy_independent_of_bins_and_pulse():
     vis_p = jnp.asarray(np.concatenate([vis, np.zeros(arrays.valid.shape[0] - mesh.n_faces)]))
     totals = []
     n = 512  # dense window (= n_bins): one compilation for every bin and pulse width
+    mats, sensor = stack_materials([MAT] * 3), ppr.Sensor.make((0, 0, -1.0))
+
+    def kw(width, sig):
+        return dict(brdf=lambertian_mueller, n_bins=n, width=width, window=n, sigma_r=sig)
+
     for width, fwhm in ((0.004, 30e-12), (0.005, 100e-12), (0.011, 300e-12), (0.05, 100e-12)):
         sig = 0.5 * C_LIGHT * fwhm / 2.3548200450309493
-        out = render(
-            arrays,
-            vis_p,
-            ppr.Pose(jnp.asarray(q)),
-            stack_materials([MAT] * 3),
-            ppr.Sensor.make((0, 0, -1.0)),
-            sig,
-            -0.5 * n * width,
-            width,
-            n_bins=n,
-            window=n,
-            brdf=lambertian_mueller,
-        )
+        out = _profile(jnp.asarray(q), mats, arrays, vis_p, sensor, **kw(width, sig))
         totals.append(float(out[0].sum()))
     # pruning back-facing/invisible facets (render(faces=...)) changes nothing
     n_vis = int((np.asarray(vis_p) > 0).sum())
     faces = jnp.asarray(visible_faces(np.asarray(vis_p), capacity=n_vis + 1))
     assert n_vis + 1 < vis_p.shape[0] // 2  # more than half of the slots pruned
-    pruned = render(
-        arrays,
-        vis_p,
-        ppr.Pose(jnp.asarray(q)),
-        stack_materials([MAT] * 3),
-        ppr.Sensor.make((0, 0, -1.0)),
-        sig,
-        -0.5 * n * width,
-        width,
-        n_bins=n,
-        window=n,
-        brdf=lambertian_mueller,
-        faces=faces,
-    )
+    pruned = _profile(jnp.asarray(q), mats, arrays, vis_p, sensor, faces=faces, **kw(width, sig))
     np.testing.assert_allclose(np.asarray(pruned), np.asarray(out), atol=1e-15)
     tri = mesh.triangles()
     cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -431,19 +411,35 @@ def _render_setup(mesh, q, materials, sensor):
     return arrays, vis, stack_materials(mats)
 
 
-def _profile(q, mats, arrays, vis, sensor):
+def _profile(
+    q,
+    mats,
+    arrays,
+    vis,
+    sensor,
+    *,
+    brdf=glossy_fresnel_mueller,
+    n_bins=N_BINS,
+    width=WIDTH,
+    window=WINDOW,
+    faces=None,
+    sigma_r=SIGMA_R,
+):
+    """``render`` at attitude ``q`` on bins centred on the body origin (defaults: the shared
+    gradient-test settings and the polarizing stand-in BRDF)."""
     return render(
         arrays,
         vis,
         ppr.Pose(q),
         mats,
         sensor,
-        SIGMA_R,
-        -0.5 * WIDTH * N_BINS,
-        WIDTH,
-        n_bins=N_BINS,
-        window=WINDOW,
-        brdf=glossy_fresnel_mueller,
+        sigma_r,
+        -0.5 * width * n_bins,
+        width,
+        n_bins=n_bins,
+        window=window,
+        brdf=brdf,
+        faces=faces,
     )
 
 
@@ -747,21 +743,10 @@ def test_normal_groups_change_nothing_values_and_gradients():
         [ppr.Material(0.94 + 6.42j, 200.0), ppr.Material(1.46, 2000.0), ppr.Material(2.67, 5.0)]
     )
 
+    kw = dict(n_bins=256, width=0.005, window=window_size(mesh.max_edge(), SIGMA_R, 0.005, 256))
+
     def profile(arrays, q, mats, brdf=mueller_brdf):
-        return render(
-            arrays,
-            vis,
-            ppr.Pose(q),
-            mats,
-            sensor,
-            SIGMA_R,
-            -0.5 * 0.005 * 256,
-            0.005,
-            n_bins=256,
-            window=window_size(mesh.max_edge(), SIGMA_R, 0.005, 256),
-            brdf=brdf,
-            faces=faces,
-        )
+        return _profile(q, mats, arrays, vis, sensor, brdf=brdf, faces=faces, **kw)
 
     wts = jnp.asarray(np.random.default_rng(0).normal(size=(16, 256)))
 
