@@ -30,9 +30,11 @@ from ._database import (
 )
 from ._grid import (
     AttitudeGrid,
+    body_mirror_normal,
     covering_radius,
     fibonacci_grid,
     hopf_grid,
+    mirror_attitude,
     symmetry_group,
 )
 
@@ -57,12 +59,14 @@ from ._params import Parametrisation, PhysicalParams
 from ._refine import (
     CramerRao,
     GaussianNoise,
+    MirrorCheck,
     PhysicalBounds,
     PoissonCounts,
     PoissonNoise,
     RefineResult,
     SimulatorModel,
     cramer_rao,
+    mirror_check,
     refine,
     refine_bounded,
 )
@@ -98,6 +102,8 @@ __all__ = [
     "fibonacci_grid",
     "hopf_grid",
     "symmetry_group",
+    "body_mirror_normal",
+    "mirror_attitude",
     "MeasurementModel",
     "NoiseModel",
     "Observation",
@@ -119,9 +125,11 @@ __all__ = [
     "PhysicalBounds",
     "PoissonCounts",
     "PoissonNoise",
+    "MirrorCheck",
     "RefineResult",
     "cramer_rao",
     "SimulatorModel",
+    "mirror_check",
     "refine",
     "refine_bounded",
 ]

@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._database import TemplateBank
-from ._grid import geodesic_deg, quat_mul, symmetry_group
+from ._grid import body_mirror_normal, geodesic_deg, mirror_attitude, quat_mul, symmetry_group
 from ._noise import Observation, canonical_sensor
 
 WEIGHT_KINDS = ("uniform", "channel", "range", "fisher")
@@ -500,25 +500,51 @@ def score_pair(x: np.ndarray, y: np.ndarray, w: np.ndarray, shift: int) -> float
     return float(num / den) if den > 0 else 0.0
 
 
-def attitude_error_deg(q_true, q_est, symmetry: str | np.ndarray = "none") -> np.ndarray:
-    """Geodesic angle (deg) between attitudes modulo the shape's symmetry group."""
+def _equivalents(q_est, symmetry, mirror: bool) -> np.ndarray:
+    """``(N, G', 4)``: the attitudes equivalent to each estimate, ``q g`` for the rotations
+    ``g`` of the symmetry and, with ``mirror``, also the mirror image's ``P q sigma g``."""
     g = symmetry_group(symmetry) if isinstance(symmetry, str) else np.asarray(symmetry)
-    q_true, q_est = np.atleast_2d(q_true), np.atleast_2d(q_est)
+    q_est = np.atleast_2d(q_est)
     cand = quat_mul(q_est[:, None, :], g[None, :, :])
+    if not mirror:
+        return cand
+    normal = body_mirror_normal(symmetry) if isinstance(symmetry, str) else None
+    if normal is None:
+        raise ValueError(
+            f"mirror=True needs a named symmetry with a mirror plane (dihedral:n, octahedral), "
+            f"got {symmetry!r}"
+        )
+    return np.concatenate([cand, quat_mul(mirror_attitude(q_est, normal)[:, None, :], g)], 1)
+
+
+def attitude_error_deg(
+    q_true, q_est, symmetry: str | np.ndarray = "none", *, mirror: bool = False
+) -> np.ndarray:
+    """Geodesic angle (deg) between attitudes modulo the shape's symmetry group; with
+    ``mirror=True`` also modulo the mirror image (:func:`inversion.mirror_attitude`, world
+    mirror through the sensor's x-z plane)."""
+    q_true = np.atleast_2d(q_true)
+    cand = _equivalents(q_est, symmetry, mirror)
     return geodesic_deg(q_true[:, None, :], cand).min(axis=1)
 
 
-def line_of_sight_error_deg(q_true, q_est, symmetry: str | np.ndarray = "none") -> np.ndarray:
+def line_of_sight_error_deg(
+    q_true, q_est, symmetry: str | np.ndarray = "none", *, mirror: bool = False
+) -> np.ndarray:
     """Angle (deg) between the true and estimated line of sight *in the body frame*
     (``R^T k`` with ``k`` the world direction to the sensor, ``+z``), modulo the symmetry.
 
     A monostatic range profile depends on the attitude only through this direction; the roll
     about the line of sight enters through the polarization alone, so this error is the
     well-conditioned part of the attitude error.
+
+    ``mirror=True`` also counts the mirrored line of sight ``sigma v`` as equal (a body with a
+    mirror plane ``sigma``, :func:`inversion.body_mirror_normal`): the mirror image of the
+    scene gives the same range profiles and differs only in the off-block Mueller elements
+    (:func:`inversion.mirror_attitude`), which glossy targets do not show at all.
     """
-    g = symmetry_group(symmetry) if isinstance(symmetry, str) else np.asarray(symmetry)
-    q_true, q_est = np.atleast_2d(q_true), np.atleast_2d(q_est)
-    cand = quat_mul(q_est[:, None, :], g[None, :, :])  # (N, G, 4)
+    q_true = np.atleast_2d(q_true)
+    cand = _equivalents(q_est, symmetry, mirror)  # (N, G, 4)
     los_t = _body_los(q_true)[:, None, :]
     los_e = _body_los(cand)
     cos = np.clip(np.sum(los_t * los_e, axis=-1), -1.0, 1.0)

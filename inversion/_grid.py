@@ -162,6 +162,49 @@ def geodesic_deg(p, q) -> np.ndarray | float:
     return np.degrees(2 * np.arccos(np.clip(d, 0, 1)))
 
 
+def body_mirror_normal(symmetry: str) -> np.ndarray | None:
+    """Unit normal of a mirror plane the named shape class has, or ``None`` if it implies none.
+
+    The classes of :func:`symmetry_group` are those of ``ppr.shapes``: ``dihedral:n`` stands
+    for an n-sided prism or a square box (point group D_nh) and ``octahedral`` for the cube
+    (O_h); both have the mirror ``z -> -z`` (normal ``(0, 0, 1)``). ``cyclic:n`` and ``none``
+    imply no mirror. A body's mirror symmetry gives the measurement a second, improper
+    ambiguity besides its rotations: see :func:`mirror_attitude`.
+    """
+    symmetry_group(symmetry)  # validates the name
+    if symmetry.split(":")[0] in ("dihedral", "octahedral"):
+        return np.array([0.0, 0.0, 1.0])
+    return None
+
+
+def mirror_attitude(q, body_normal=(0.0, 0.0, 1.0), world_normal=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """Attitude of the mirror image of the scene: ``R' = P R sigma`` (batched over ``q``).
+
+    ``sigma = I - 2 s s^T`` is a mirror symmetry of the body (normal ``s`` in body axes, e.g.
+    :func:`body_mirror_normal`), ``P = I - 2 w w^T`` the world mirror through the plane that
+    holds the line of sight and the sensor's x polarization reference (normal ``w``; world
+    ``+y`` for the canonical sensor looking along ``-z`` with x reference ``+x``). ``R'`` is a
+    proper rotation, and the scene at ``R'`` is the mirror image of the scene at ``R``: the
+    same range profile of every facet, and Mueller profiles ``M' = D M D`` with
+    ``D = diag(1, 1, -1, -1)`` (U and V change sign; ``tests/test_pulse.py`` checks this on
+    the full forward model to 1e-12). Only the off-block elements ``M02, M03, M12, M13`` and
+    their transposes tell ``R`` and ``R'`` apart, and they vanish when every return is a
+    normal-incidence reflection (glossy targets), so the two attitudes are then exactly
+    indistinguishable. In body axes the line of sight of ``R'`` is ``sigma v``.
+
+    With ``P = -C2(w)`` and ``sigma = -C2(s)`` (``C2`` the half turn) ``R' = C2(w) R C2(s)``,
+    i.e. the quaternion ``(0, w) q (0, s)``.
+    """
+    s = np.asarray(body_normal, np.float64)
+    w = np.asarray(world_normal, np.float64)
+    for name, v in (("body_normal", s), ("world_normal", w)):
+        if v.shape != (3,) or not np.all(np.isfinite(v)) or abs(np.linalg.norm(v) - 1) > 1e-6:
+            raise ValueError(f"mirror_attitude: {name} must be a unit 3-vector, got {v.tolist()}")
+    q = np.asarray(q, np.float64)
+    out = quat_mul(quat_mul(np.concatenate([[0.0], w]), q), np.concatenate([[0.0], s]))
+    return canonical_sign(out)
+
+
 def symmetry_group(name: str) -> np.ndarray:
     """Rotation group of a shape as ``(|G|, 4)`` quaternions (identity first).
 

@@ -705,6 +705,118 @@ def predicted(model, phys: PhysicalParams) -> Float[Array, "C B"]:
 
 # --------------------------------------------------------------------------- bounded (jaxopt)
 @dataclasses.dataclass(frozen=True)
+class MirrorCheck:
+    """The mirror ambiguity of a fit (:func:`mirror_check`).
+
+    - `fit`: the fit checked; `mirror`: the refiner's optimum started at its mirror image
+      (:func:`inversion.mirror_attitude`).
+    - `delta_deviance`: ``mirror.cost - fit.cost`` (``-2 log`` of the likelihood ratio for
+      :class:`PoissonCounts`); negative when the mirror image fits better.
+    - `separation_deg`: angle between the two optima's body-frame lines of sight, modulo the
+      shape's rotations. Near 0 the mirror start fell back into the fit's own mode (or the
+      line of sight lies in the mirror plane): there is no second mode.
+    - `mirror_probability`: posterior probability of the mirror mode against the fit's,
+      ``1 / (1 + exp(delta / 2))``, for equal prior mass and equal posterior volume of the two
+      modes (exact when the parity symmetry is, i.e. the off-block Mueller elements vanish).
+    """
+
+    fit: RefineResult
+    mirror: RefineResult
+    delta_deviance: float
+    separation_deg: float
+
+    @property
+    def mirror_probability(self) -> float:
+        d = self.delta_deviance
+        if not np.isfinite(d):
+            return 0.0 if d > 0 else 1.0
+        return float(1.0 / (1.0 + math.exp(min(0.5 * d, 700.0))))
+
+    def ambiguous(self, level: float = 0.05, min_separation_deg: float = 0.5) -> bool:
+        """Two distinct modes (lines of sight more than `min_separation_deg` apart) that both
+        keep posterior probability above `level`."""
+        p = self.mirror_probability
+        return bool(level < p < 1.0 - level and self.separation_deg > min_separation_deg)
+
+    @property
+    def best(self) -> RefineResult:
+        """The fit with the lower cost (the mirror's when it fits better)."""
+        return self.mirror if self.delta_deviance < 0 else self.fit
+
+    def summary(self) -> str:
+        note = " (ambiguous: the data hardly tell the mirror image apart)"
+        return (
+            f"mirror check: delta deviance {self.delta_deviance:+.4g}, mirror mode probability "
+            f"{self.mirror_probability:.3g}, lines of sight {self.separation_deg:.3g} deg apart"
+            + (note if self.ambiguous() else "")
+        )
+
+
+def mirror_check(
+    model,
+    data,
+    fit: RefineResult,
+    symmetry: str,
+    *,
+    noise=None,
+    world_normal=(0.0, 1.0, 0.0),
+    max_steps: int = 100,
+    rounds: int = 2,
+    solver: str | Any = "lm",
+) -> MirrorCheck:
+    """Refine from the mirror image of ``fit`` and compare the two optima.
+
+    A body with a mirror plane (the named `symmetry` class's, e.g. ``"dihedral:4"`` for a 3U
+    CubeSat: :func:`inversion.body_mirror_normal`) at attitude ``P R sigma`` is the mirror
+    image of the scene at ``R``: identical range profiles, and Mueller profiles that differ
+    only by the sign of the off-block elements (:func:`inversion.mirror_attitude`). Glossy
+    returns have no off-block elements, so a local fit cannot tell the two attitudes apart,
+    and its Cramer-Rao bound (local curvature) does not show the ambiguity either. This
+    refines a start at the mirror image (same material, offset and gain; the free groups of
+    ``fit``) and reports the deviance difference.
+
+    `noise`: the noise model `fit` was refined with (default as :func:`refine`).
+    `world_normal`: normal of the world mirror plane, which must hold the line of sight and the
+    sensor's x polarization reference (``+y`` for the canonical sensor; for a bistatic
+    sensor the receiver direction too). `max_steps`, `rounds`, `solver`: as in :func:`refine`.
+    """
+    from ._classifier import line_of_sight_error_deg
+    from ._grid import body_mirror_normal, mirror_attitude
+
+    normal = body_mirror_normal(symmetry)
+    if normal is None:
+        raise ValueError(
+            f"mirror_check: symmetry {symmetry!r} implies no mirror plane "
+            "(use dihedral:n or octahedral for bodies that have one)"
+        )
+    p = fit.params
+    q_m = mirror_attitude(np.asarray(p.quaternion), normal, world_normal)
+    start = PhysicalParams(
+        jnp.asarray(q_m, p.m.dtype), p.m, p.n, p.corr_length, p.range_offset, p.gain
+    )
+    mirror = refine(
+        model,
+        data,
+        [start],
+        noise=noise,
+        free=fit.parametrisation.free,
+        solver=solver,
+        max_steps=max_steps,
+        rounds=rounds,
+        range_scale=fit.parametrisation.range_scale,
+    )
+    sep = line_of_sight_error_deg(
+        np.asarray(p.quaternion), np.asarray(mirror.params.quaternion), symmetry
+    )[0]
+    return MirrorCheck(
+        fit=fit,
+        mirror=mirror,
+        delta_deviance=float(mirror.cost - fit.cost),
+        separation_deg=float(sep),
+    )
+
+
+@dataclasses.dataclass(frozen=True)
 class PhysicalBounds:
     """Box bounds in physical units for :func:`refine_bounded` (``(low, high)`` pairs).
 

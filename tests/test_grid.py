@@ -7,10 +7,12 @@ import pytest
 from inversion._grid import (
     AttitudeGrid,
     _healpix_centres,
+    body_mirror_normal,
     covering_radius,
     fibonacci_grid,
     geodesic_deg,
     hopf_grid,
+    mirror_attitude,
     quat_mul,
     stated_resolution_deg,
     symmetry_group,
@@ -99,3 +101,56 @@ def test_bad_grid_input():
         AttitudeGrid("random", 3)
     with pytest.raises(ValueError, match="empty grid"):
         covering_radius(np.zeros((0, 4)))
+
+
+def _matrix(q):
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def test_mirror_attitude_is_world_mirror_times_body_mirror():
+    """R' = P R sigma (two reflections: proper), batched; its body line of sight is sigma v;
+    applying it twice gives R back; arbitrary mirror normals."""
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(20, 4))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    for s, w in (([0, 0, 1.0], [0, 1.0, 0]), (rng.normal(size=3), rng.normal(size=3))):
+        s, w = np.asarray(s) / np.linalg.norm(s), np.asarray(w) / np.linalg.norm(w)
+        qm = mirror_attitude(q, s, w)
+        sigma, world = np.eye(3) - 2 * np.outer(s, s), np.eye(3) - 2 * np.outer(w, w)
+        for a, b in zip(q, qm, strict=True):
+            np.testing.assert_allclose(_matrix(b), world @ _matrix(a) @ sigma, atol=1e-14)
+        back = mirror_attitude(qm, s, w)
+        assert np.all(geodesic_deg(back, q) < 1e-5)
+    # body line of sight (world +z seen from the body) is mirrored by sigma_h: z -> -z
+    v, vm = _matrix(q[0])[2], _matrix(mirror_attitude(q[0]))[2]
+    np.testing.assert_allclose(vm, v * [1, 1, -1], atol=1e-14)
+
+
+def test_mirror_errors_and_normals():
+    from inversion._classifier import attitude_error_deg, line_of_sight_error_deg
+
+    assert np.array_equal(body_mirror_normal("dihedral:4"), [0, 0, 1])
+    assert np.array_equal(body_mirror_normal("octahedral"), [0, 0, 1])
+    assert body_mirror_normal("cyclic:3") is None and body_mirror_normal("none") is None
+    q = np.array([0.9, 0.2, -0.3, 0.25])
+    q /= np.linalg.norm(q)
+    qm = mirror_attitude(q)
+    # the mirror image's line of sight is a different direction modulo the rotations ...
+    assert line_of_sight_error_deg(q, qm, "dihedral:4")[0] > 5.0
+    assert attitude_error_deg(q, qm, "dihedral:4")[0] > 5.0
+    # ... and the same one modulo the mirror too
+    assert line_of_sight_error_deg(q, qm, "dihedral:4", mirror=True)[0] < 1e-5
+    assert attitude_error_deg(q, qm, "dihedral:4", mirror=True)[0] < 1e-5
+    with pytest.raises(ValueError, match="mirror=True needs"):
+        line_of_sight_error_deg(q, qm, "cyclic:3", mirror=True)
+    with pytest.raises(ValueError, match="body_normal"):
+        mirror_attitude(q, [0, 0, 2.0])
+    with pytest.raises(ValueError, match="symmetry group"):
+        body_mirror_normal("icosahedral")

@@ -633,3 +633,65 @@ def test_simulator_jacobian_finite_with_edge_on_faces():
         assert np.all(np.isfinite(J)) and np.isfinite(float(chi2)), deg
         if deg > 1.0:
             assert np.any(J[:, :3] != 0)
+
+
+def test_mirror_check_finds_the_parity_ambiguity_and_its_breaking():
+    """A 3U CubeSat (mirror plane z -> -z) of rough aluminium, monostatic, noise-free counts
+    (1e7), with the double-bounce term alone (it carries the off-block Mueller elements; one
+    term keeps the compilation short). Its mirror image P R sigma is an exact parity image: the same
+    range profiles and Mueller profiles D M D, D = diag(1, 1, -1, -1)
+    (tests/test_pulse.py). (1) A polarimeter that measures only the block-diagonal Mueller
+    elements cannot tell the two apart: delta deviance 0, probability 1/2, and a second mode
+    degrees away modulo the rotations, nowhere modulo the mirror. (2) The 16 PSG/PSA channels
+    see the off-block elements the rough surface's double bounces give, and reject the
+    image."""
+    import ppr
+    from inversion._classifier import line_of_sight_error_deg
+    from inversion._noise import MeasurementModel
+    from inversion._refine import PoissonCounts, SimulatorModel, mirror_check
+
+    scene = ppr.Scene(
+        ppr.shapes.cubesat(3),
+        (ppr.Material(1.5, 10.0),),
+        ppr.Pose([1.0, 0.0, 0.0, 0.0]),
+        ppr.Sensor.make(),
+        ppr.Pulse.gaussian(100e-12),
+        ppr.RangeBins.centred(0.012, 32),
+    )
+    full = MeasurementModel.preset("full").channel_matrix()
+    block = np.array(full)
+    block[:, :2, 2:] = 0.0  # the same channels, blind to the off-block elements
+    block[:, 2:, :2] = 0.0
+    q = np.array([0.86, 0.31, -0.22, 0.35])
+    q /= np.linalg.norm(q)
+    noise = PoissonCounts(background=1e-3)
+    checks = {}
+    for name, chm in (("block", block), ("full", full)):
+        model = SimulatorModel(scene, chm, dense=True, terms=("double",))
+        truth = PhysicalParams(q, [4.0], [0.94 + 6.42j], range_offset=0.003, gain=1.0)
+        x = np.asarray(model.expected(truth, model.prepare(truth)))
+        truth = PhysicalParams(q, [4.0], [0.94 + 6.42j], range_offset=0.003, gain=1e7 / x.sum())
+        data = np.maximum(np.asarray(model.expected(truth, model.prepare(truth))), 0.0)
+        fit = refine(model, data, [truth], noise=noise, max_steps=20, rounds=1)
+        assert fit.cost < 1.0
+        assert line_of_sight_error_deg(q, np.asarray(fit.params.quaternion), "dihedral:4")[0] < 0.1
+        # a few steps only: with 16 channels the solver would walk from the image back to the
+        # fit's own mode (the check then reports separation 0: no second mode either)
+        checks[name] = mirror_check(
+            model, data, fit, "dihedral:4", noise=noise, max_steps=5, rounds=1
+        )
+
+    exact = checks["block"]
+    q_fit, q_mir = (np.asarray(r.params.quaternion) for r in (exact.fit, exact.mirror))
+    assert exact.separation_deg > 5.0  # a distinct mode, not the fit again
+    assert line_of_sight_error_deg(q_fit, q_mir, "dihedral:4", mirror=True)[0] < 0.05
+    assert abs(exact.delta_deviance) < 1e-6
+    assert abs(exact.mirror_probability - 0.5) < 1e-6 and exact.ambiguous()
+    assert "ambiguous" in exact.summary()
+
+    broken = checks["full"]
+    assert broken.delta_deviance > 50.0
+    assert broken.mirror_probability < 1e-10 and not broken.ambiguous()
+    assert broken.best is broken.fit
+    with pytest.raises(ValueError, match="implies no mirror plane"):
+        mirror_check(model, data, broken.fit, "cyclic:4", noise=noise)
