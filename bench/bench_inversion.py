@@ -50,7 +50,13 @@ from inversion._classifier import (  # noqa: E402
     prepare,
 )
 from inversion._database import TemplateBank  # noqa: E402
-from inversion._grid import AttitudeGrid, random_quaternions, symmetry_group  # noqa: E402
+from inversion._grid import (  # noqa: E402
+    AttitudeGrid,
+    body_mirror_normal,
+    mirror_attitude,
+    random_quaternions,
+    symmetry_group,
+)
 from inversion._mcmc import ChainTooShortWarning, mcmc_config_from_dict, sample_posterior  # noqa: E402
 from inversion._noise import MeasurementModel, NoiseModel, observe  # noqa: E402
 from inversion._params import PhysicalParams, quat_multiply  # noqa: E402
@@ -60,6 +66,7 @@ from inversion._refine import (  # noqa: E402
     SimulatorModel,
     _pure,
     cramer_rao,
+    mirror_check,
     refine,
     refine_bounded,
 )
@@ -220,9 +227,22 @@ def nearest_material(n) -> int:
 
 
 def truth_in_symmetry(q_true, q_est, sym):
-    """The symmetry-equivalent of ``q_true`` closest to ``q_est`` (body-frame symmetry)."""
+    """The equivalent of ``q_true`` closest to ``q_est``: its body-symmetry images ``q g`` and
+    those of its mirror image (``inversion.mirror_attitude``; same range profiles, Mueller
+    ``D M D``), when the shape has a mirror plane. A chain that sampled the mirror mode is
+    scored against the truth's mirror image (the two modes are the data's ambiguity, recorded
+    per observation by ``inversion.mirror_check``)."""
     g = symmetry_group(sym)
-    cands = np.asarray(quat_multiply(jnp.asarray(np.broadcast_to(q_true, g.shape)), jnp.asarray(g)))
+    heads = [np.asarray(q_true, float)]
+    normal = body_mirror_normal(sym)
+    if normal is not None:
+        heads.append(mirror_attitude(q_true, normal))
+    cands = np.concatenate(
+        [
+            np.asarray(quat_multiply(jnp.asarray(np.broadcast_to(h, g.shape)), jnp.asarray(g)))
+            for h in heads
+        ]
+    )
     d = np.abs(cands @ np.asarray(q_est, float))
     return cands[int(np.argmax(d))]
 
@@ -283,10 +303,22 @@ def candidate_start(bank, row, shift_bins, data, model):
 def _att_errors(truth, q_est, sym, shape_ok):
     """Attitude and line-of-sight errors (deg, modulo the symmetry); NaN for a wrong shape."""
     if not shape_ok:
-        return dict(att_deg=float("nan"), los_deg=float("nan"))
+        return dict(att_deg=float("nan"), los_deg=float("nan"), los_mirror_deg=float("nan"))
     return dict(
         att_deg=float(attitude_error_deg(truth.quaternion, q_est, sym)[0]),
         los_deg=float(line_of_sight_error_deg(truth.quaternion, q_est, sym)[0]),
+        # modulo the mirror image too: the part of the error the data can tell at all when the
+        # off-block Mueller elements are below the noise (inversion.mirror_check)
+        los_mirror_deg=float(line_of_sight_error_deg(truth.quaternion, q_est, sym, mirror=True)[0]),
+    )
+
+
+def _mirror_record(chk):
+    return dict(
+        mirror_delta=chk.delta_deviance,
+        mirror_sep_deg=chk.separation_deg,
+        mirror_prob=chk.mirror_probability,
+        mirror_ambiguous=chk.ambiguous(),
     )
 
 
@@ -377,6 +409,18 @@ def run_one(o, models, bank, prep, k, mcmc_cfg, do_mcmc):
     # monotonically from its start, and preferring converged fits picked worse shapes.
     s_best = min(fits, key=lambda s: fits[s].cost if np.isfinite(fits[s].cost) else np.inf)
     fit = fits[s_best]
+    # the mirror image of the chosen fit: a second mode the local search and the CRB cannot
+    # see (same range profiles, only the off-block Mueller elements differ); keep the better
+    chk = mirror_check(
+        models[names[s_best]],
+        data,
+        fit,
+        sym_of[names[s_best]],
+        noise=NOISE,
+        max_steps=100,
+        rounds=2,
+    )
+    fit = chk.best
     t_ref = time.perf_counter() - t0
     shape_ok = names[s_best] == o["shape"]
     res["ref"] = dict(
@@ -385,14 +429,21 @@ def run_one(o, models, bank, prep, k, mcmc_cfg, do_mcmc):
         att_sigma_deg=fit.attitude_sigma_deg,
         reduced_chi2=fit.reduced_chi2,
         n_shapes_refined=len(fits),
+        mirror_swapped=bool(chk.delta_deviance < 0),
+        **_mirror_record(chk),
     )
     # diagnostic: the same refiner started at the truth. Its error is what the likelihood and
     # the local solver give without any search; the gap to "ref" is the search's failure
     # (grid resolution, local optima), the gap to "crb" the estimator's inefficiency.
     t0 = time.perf_counter()
     fo = refine(models[o["shape"]], data, [truth], noise=NOISE, max_steps=100, rounds=3)
+    t_or = time.perf_counter() - t0
+    # does the data itself tell the truth from its mirror image? (no search involved)
+    chk_o = mirror_check(
+        models[o["shape"]], data, fo, sym_of[o["shape"]], noise=NOISE, max_steps=100, rounds=2
+    )
     res["oracle"] = dict(
-        time=time.perf_counter() - t0, **_fit_errors(fo, truth, o, sym_of[o["shape"]], True)
+        time=t_or, **_fit_errors(fo, truth, o, sym_of[o["shape"]], True), **_mirror_record(chk_o)
     )
     if not do_mcmc:
         return res
@@ -473,6 +524,8 @@ def summarize(results, stages):
                 att_le1=float(np.mean(att_b <= 1.0)),
                 los_median=float(np.median(los_b)),
                 los_le1=float(np.mean(los_b <= 1.0)),
+                los_mirror_median=float("nan"),
+                mirror_ambiguous=float("nan"),
                 roll_median=float(np.median([c["roll_deg"] for c in crb])),
                 m_rel_median=float(np.median([c["m_rel"] for c in crb])),
                 n_err_median=float(np.median([c["n_re"] for c in crb])),
@@ -488,6 +541,8 @@ def summarize(results, stages):
                 continue
             att = np.array([x["att_deg"] for x in rs])
             los = np.array([x["los_deg"] for x in rs])
+            los_m = np.array([x["los_mirror_deg"] for x in rs])
+            amb = [x["mirror_ambiguous"] for x in rs if "mirror_ambiguous" in x]
             rows.append(
                 dict(
                     snr=snr,
@@ -501,6 +556,10 @@ def summarize(results, stages):
                     if np.any(np.isfinite(los))
                     else float("nan"),
                     los_le1=float(np.mean(np.nan_to_num(los, nan=1e9) <= 1.0)),
+                    los_mirror_median=float(np.nanmedian(los_m))
+                    if np.any(np.isfinite(los_m))
+                    else float("nan"),
+                    mirror_ambiguous=float(np.mean(amb)) if amb else float("nan"),
                     roll_median=float("nan"),
                     m_rel_median=float(np.median([x["m_rel"] for x in rs])),
                     n_err_median=float(np.median([x["n_err"] for x in rs])),
@@ -560,6 +619,16 @@ def plot(rows, path):
                 ax.scatter(r["time_median"], r[key], marker=markers[r["stage"]], color=col, s=45)
             if crb:
                 ax.axhline(crb[0][key], ls="--", color=col, lw=1)
+        # hollow: the LOS error counting the mirror image as right (inversion.mirror_check)
+        for r in sub:
+            axes[1].scatter(
+                r["time_median"],
+                r["los_mirror_median"],
+                marker=markers[r["stage"]],
+                facecolors="none" if r["stage"] != "oracle" else col,
+                edgecolors=col,
+                s=70,
+            )
         axes[2].plot(t, [r["both_acc"] for r in chain], "-", color=col, alpha=0.5)
         for r in sub:
             axes[2].scatter(
@@ -580,6 +649,7 @@ def plot(rows, path):
         ax.set_xlabel("wall time per observation (s, median, after compile)")
         ax.set_ylabel(lab)
     axes[0].set_title("dashed: median Cramer-Rao bound at the truth", fontsize=9)
+    axes[1].set_title("hollow: modulo the mirror image too", fontsize=9)
     axes[2].set_xscale("log")
     axes[2].axhline(0.95, ls=":", color="k")
     axes[2].set_xlabel("wall time per observation (s)")
@@ -712,11 +782,18 @@ def main(argv=None):
         "Stages: `cls` classifier only, `ref` + refiner, `mcmc` + MCMC (posterior median), "
         "`oracle` the refiner started at the truth (diagnostic: no search; its gap to `ref` is "
         "the search's failure, its gap to `crb` the estimator's), `crb` the bound (below).",
+        "The refiner ends with `inversion.mirror_check`: it refines from the mirror image of "
+        "the chosen fit (R' = P R sigma: the same range profiles, Mueller D M D) and keeps the "
+        "better. `LOS err mod mirror` counts the mirror image's line of sight as right; "
+        "`mirror ambiguous` is the fraction of observations whose two modes both keep "
+        "posterior probability above 5% (for `oracle`: the check run from the truth-started "
+        "fit, i.e. what the data themselves cannot tell, search aside).",
         "",
         "| SNR | stage | n | attitude err median (deg) | att <= 1 deg | LOS err median (deg) | "
-        "LOS <= 1 deg | m rel err median | abs(n err) median | shape acc | material acc | "
+        "LOS <= 1 deg | LOS err mod mirror median (deg) | mirror ambiguous | "
+        "m rel err median | abs(n err) median | shape acc | material acc | "
         "shape+material | time median (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
 
     def f(x, fmt):
@@ -726,6 +803,7 @@ def main(argv=None):
         lines.append(
             f"| {r['snr']:g} | {r['stage']} | {r['n']} | {f(r['att_median'], '.3g')} | "
             f"{r['att_le1']:.2f} | {f(r['los_median'], '.3g')} | {r['los_le1']:.2f} | "
+            f"{f(r['los_mirror_median'], '.3g')} | {f(r['mirror_ambiguous'], '.2f')} | "
             f"{f(r['m_rel_median'], '.3g')} | {f(r['n_err_median'], '.3g')} | "
             f"{f(r['shape_acc'], '.2f')} | {f(r['material_acc'], '.2f')} | "
             f"{f(r['both_acc'], '.2f')} | {f(r['time_median'], '.3g')} |"

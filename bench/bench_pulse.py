@@ -383,7 +383,8 @@ def main():
         gcap = ppr._mesh.capacity_for(n_grp)
         lines.append(
             f"- {label} ({nf} faces, {n_grp} distinct (normal, part) groups, so "
-            f"{gcap if gcap < fcap else fcap} BRDF evaluations per pose; pruned per pose to {fcap} facet "
+            f"{gcap if gcap < fcap else fcap} BRDF evaluations per pose; pruned per pose to "
+            f"{fcap} facet "
             f"slots, window {window} "
             f"bins): JAX/NumPy speed ratio "
             f"{ratio:.1f}x (same algorithm, Lambertian stand-in; max rel. difference "

@@ -34,6 +34,7 @@ from ._grid import (
     covering_radius,
     fibonacci_grid,
     hopf_grid,
+    mesh_has_mirror,
     mirror_attitude,
     symmetry_group,
 )
@@ -103,6 +104,7 @@ __all__ = [
     "hopf_grid",
     "symmetry_group",
     "body_mirror_normal",
+    "mesh_has_mirror",
     "mirror_attitude",
     "MeasurementModel",
     "NoiseModel",

@@ -177,6 +177,23 @@ def body_mirror_normal(symmetry: str) -> np.ndarray | None:
     return None
 
 
+def mesh_has_mirror(vertices, normal, rtol: float = 1e-9) -> bool:
+    """Whether the plane through the body origin with unit ``normal`` is a mirror plane of a
+    mesh's vertex set (every reflected vertex lands on a vertex, within ``rtol`` of the
+    mesh's size). A check to run before trusting :func:`mirror_attitude` for a mesh."""
+    from scipy.spatial import cKDTree
+
+    v = np.asarray(vertices, np.float64)
+    n = np.asarray(normal, np.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+        raise ValueError(f"mesh_has_mirror: vertices must be (V, 3), got {v.shape}")
+    n = n / np.linalg.norm(n)
+    reflected = v - 2.0 * (v @ n)[:, None] * n
+    size = max(float(np.ptp(v, axis=0).max()), 1e-300)
+    dist, _ = cKDTree(v).query(reflected)
+    return bool(np.max(dist) <= rtol * size)
+
+
 def mirror_attitude(q, body_normal=(0.0, 0.0, 1.0), world_normal=(0.0, 1.0, 0.0)) -> np.ndarray:
     """Attitude of the mirror image of the scene: ``R' = P R sigma`` (batched over ``q``).
 

@@ -760,7 +760,7 @@ def mirror_check(
     *,
     noise=None,
     world_normal=(0.0, 1.0, 0.0),
-    max_steps: int = 100,
+    max_steps: int = 200,
     rounds: int = 2,
     solver: str | Any = "lm",
 ) -> MirrorCheck:
@@ -778,7 +778,8 @@ def mirror_check(
     `noise`: the noise model `fit` was refined with (default as :func:`refine`).
     `world_normal`: normal of the world mirror plane, which must hold the line of sight and the
     sensor's x polarization reference (``+y`` for the canonical sensor; for a bistatic
-    sensor the receiver direction too). `max_steps`, `rounds`, `solver`: as in :func:`refine`.
+    sensor the receiver direction too). `max_steps`, `rounds`, `solver`: as in :func:`refine`
+    (the same `max_steps` as the fit's reuses its compilation).
     """
     from ._classifier import line_of_sight_error_deg
     from ._grid import body_mirror_normal, mirror_attitude

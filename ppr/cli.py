@@ -1066,6 +1066,9 @@ class InvertConfig(StrictModel):
     mcmc_steps: int | None = pydantic.Field(None, ge=10)
     mcmc_burn_in: int | None = pydantic.Field(None, ge=0)
     mcmc_set: dict[str, Any] = {}
+    # the shape's symmetry class (dihedral:n, octahedral) to check the mirror ambiguity with
+    # (inversion.mirror_check; the mesh must have the z -> -z mirror plane); None: no check
+    mirror_symmetry: str | None = None
     observation: InvertObservation = InvertObservation()
 
 
@@ -1149,6 +1152,21 @@ def cmd_invert(args) -> int:
             )
         )
     noise = inversion.PoissonCounts() if cfg.likelihood == "poisson" else inversion.PoissonNoise()
+    if cfg.mirror_symmetry is not None:
+        try:
+            normal = inversion.body_mirror_normal(cfg.mirror_symmetry)
+        except ValueError as err:
+            raise ConfigError(f"{cfg_path}: mirror_symmetry: {err}") from None
+        if normal is None:
+            raise ConfigError(
+                f"{cfg_path}: mirror_symmetry = {cfg.mirror_symmetry!r} implies no mirror plane "
+                "(use dihedral:n or octahedral, or leave it out)"
+            )
+        if not inversion.mesh_has_mirror(scene.mesh.vertices, normal):
+            raise ConfigError(
+                f"{cfg_path}: mirror_symmetry = {cfg.mirror_symmetry!r}: the scene's mesh has "
+                f"no mirror plane with normal {normal.tolist()} through the body origin"
+            )
     with outputs(args.out, INVERT_OUTPUTS, args.overwrite) as out:
         t0 = time.perf_counter()
         try:
@@ -1157,6 +1175,23 @@ def cmd_invert(args) -> int:
             )
         except ValueError as err:
             raise ConfigError(f"{cfg_path}: {err}") from None
+        mirror = None
+        if cfg.mirror_symmetry is not None:
+            # the second mode no local fit or bound sees: refit from the mirror image, keep
+            # the better, report both
+            chk = inversion.mirror_check(
+                model, data, fit, cfg.mirror_symmetry, noise=noise, solver=cfg.solver
+            )
+            mirror = {
+                "delta_deviance": chk.delta_deviance,
+                "separation_deg": chk.separation_deg,
+                "mirror_probability": chk.mirror_probability,
+                "ambiguous": chk.ambiguous(),
+                "swapped": bool(chk.delta_deviance < 0),
+                "mirror_quaternion": np.asarray(chk.mirror.params.unit_quaternion()),
+                "summary": chk.summary(),
+            }
+            fit = chk.best
         t_fit = time.perf_counter() - t0
         summary = {
             "command": "invert",
@@ -1184,6 +1219,8 @@ def cmd_invert(args) -> int:
                 else len(fit.starts),
             },
         }
+        if mirror is not None:
+            summary["mirror_check"] = mirror
         if truth is not None:
             summary["truth"] = {
                 "quaternion": np.asarray(truth.quaternion),
@@ -1512,6 +1549,9 @@ Config fields (configs/cli/invert.toml):
   mcmc           priors + sampler config (configs/inversion/*.toml); mcmc_walkers,
                  mcmc_steps, mcmc_burn_in override its sampler; mcmc_set = {"dotted.key" =
                  value} overrides any of its fields (e.g. "priors.gain.high")
+  mirror_symmetry  the shape's symmetry class (dihedral:n, octahedral) to check the mirror
+                 ambiguity: refit from the fit's mirror image (inversion.mirror_check), keep
+                 the better, report both in invert.json "mirror_check"
   [observation]  source ("simulate" or an .npz with data (channels, bins)), photons
                  (expected total counts), range_offset_m (metres), seed
 Outputs: invert.json (fit, result codes, attitude error, credible intervals, diagnostics),

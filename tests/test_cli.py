@@ -422,7 +422,7 @@ samples_per_face = 1
 """
 
 
-def test_invert_end_to_end(tmp_path):
+def test_invert_end_to_end(tmp_path, capsys):
     _write(tmp_path / "sensor.toml", INV_SENSOR)
     _write(tmp_path / "scene.toml", INV_SCENE)
     mcmc = ROOT / "configs" / "inversion" / "default.toml"
@@ -430,7 +430,7 @@ def test_invert_end_to_end(tmp_path):
         tmp_path / "inv.toml",
         f'scene = "scene.toml"\nbrdf = "glossy"\nn_starts = 1\nmcmc = "{mcmc}"\n'
         "mcmc_walkers = 16\nmcmc_steps = 20\nmcmc_burn_in = 5\n"
-        'mcmc_set = { "priors.gain.high" = 1e15 }\n',
+        'mcmc_set = { "priors.gain.high" = 1e15 }\nmirror_symmetry = "octahedral"\n',
     )
     out = tmp_path / "inv"
     assert run("invert", "-q", "-c", cfg, "-o", out) == 0
@@ -442,3 +442,18 @@ def test_invert_end_to_end(tmp_path):
     assert len(crb["sigma"]) == len(crb["labels"]) == len(summary["refine"]["labels"])
     assert len(summary["mcmc"]["interval95"]) == len(summary["mcmc"]["labels"])
     assert summary["mcmc"]["warnings"]  # a 20-step chain is flagged as too short
+    # the glossy stand-in's returns are normal-incidence reflections: the mirror image of the
+    # cube fits exactly as well (a second mode, probability 1/2)
+    mc = summary["mirror_check"]
+    assert abs(mc["delta_deviance"]) < 1e-6 * summary["refine"]["cost"] + 1e-6
+    assert mc["ambiguous"] and abs(mc["mirror_probability"] - 0.5) < 1e-3
+    # a symmetry without a mirror, and a mesh without the plane, are refused by name
+    for extra, msg in (
+        ('mirror_symmetry = "cyclic:4"', "implies no mirror plane"),
+        ('mirror_symmetry = "dihedral"', "mirror_symmetry"),
+    ):
+        text = cfg.read_text().replace('mirror_symmetry = "octahedral"', extra)
+        bad = _write(tmp_path / "bad.toml", text)
+        capsys.readouterr()
+        assert run("invert", "-q", "-c", bad, "-o", tmp_path / "bad") == 2
+        assert msg in error_line(capsys)
