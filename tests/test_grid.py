@@ -154,3 +154,17 @@ def test_mirror_errors_and_normals():
         mirror_attitude(q, [0, 0, 2.0])
     with pytest.raises(ValueError, match="symmetry group"):
         body_mirror_normal("icosahedral")
+
+
+def test_mesh_has_mirror_on_the_shapes_the_named_classes_stand_for():
+    """The z -> -z plane is a mirror of the box, CubeSat and prism meshes the dihedral and
+    octahedral classes stand for; a tilted plane is not, nor is z -> -z of a cone."""
+    import ppr
+    from inversion._grid import mesh_has_mirror
+
+    for mesh in (ppr.shapes.cubesat(1), ppr.shapes.cubesat(3), ppr.shapes.cylinder(0.06, 0.25)):
+        assert mesh_has_mirror(mesh.vertices, body_mirror_normal("dihedral:4"))
+        assert not mesh_has_mirror(mesh.vertices, [0.0, 0.6, 0.8])
+    assert not mesh_has_mirror(ppr.shapes.cone(0.1, 0.2).vertices, [0.0, 0.0, 1.0])
+    with pytest.raises(ValueError, match="vertices"):
+        mesh_has_mirror(np.zeros((0, 3)), [0.0, 0.0, 1.0])
