@@ -176,3 +176,22 @@ def test_autocorr_of_a_parameter_that_never_moved():
     assert not converged
     assert np.isinf(tau[1]) and np.all(np.isfinite(tau[[0, 2]]))
     assert 0.5 < tau[0] < 2.0
+
+
+def test_starting_ball_spreads_where_the_data_do_not_constrain():
+    """The refined covariance is a pseudo-inverse: 0 in an exactly unconstrained direction.
+    The starting ball keeps the data's covariance where they constrain (within the
+    regularization's relative 4e-4 here) and gets the prior scale, not zero, in the null
+    direction (a walker ensemble collapsed there mixes in it only by slow expansion)."""
+    from inversion._mcmc import BALL_PRIOR_SCALE, _ball_root
+
+    rot = np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))[0]
+    cov = rot @ np.diag([1e-4, 0.0, 4e-6]) @ rot.T
+    root = _ball_root(cov, 3)
+    ball = root @ root.T
+    null = rot[:, 1]
+    assert np.isclose(null @ ball @ null, BALL_PRIOR_SCALE**2, rtol=1e-9)
+    for i, var in ((0, 1e-4), (2, 4e-6)):
+        d = rot[:, i]
+        assert np.isclose(d @ ball @ d, var / (1 + var / BALL_PRIOR_SCALE**2), rtol=1e-9)
+    assert np.allclose(_ball_root(None, 3), 1e-2 * np.eye(3))
