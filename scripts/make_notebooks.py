@@ -398,12 +398,55 @@ for k in range(1 if SMALL else 6):
     starts.append(PhysicalParams(q, [20.0 * f[0]], [1.4 * f[1] + 0.05j * f[2]],
                                  range_offset=0.0, gain=2e3 * f[3]))
 t0 = time.perf_counter()
-fit = inversion.refine(model, data, starts)
+noise = inversion.PoissonCounts()   # exact Poisson likelihood of the photo-counts
+fit = inversion.refine(model, data, starts, noise=noise)
 print(f"refine: {time.perf_counter() - t0:.1f} s, result: {fit.result if hasattr(fit, 'result') else ''}")
 p = fit.params
 print("attitude error [deg]:", float(quat_angle_deg(p.unit_quaternion(), q_true)))
 print("m:", np.asarray(p.m), "(true 20)   n:", np.asarray(p.n), "(true 1.4+0.05j)")
 print("range offset [mm]:", 1e3 * float(p.range_offset), "(true 3)   gain:", float(p.gain), "(true 2000)")""",
+    """md:## What the data can tell: the Cramer-Rao bound
+The Poisson likelihood (`inversion.PoissonCounts`) makes the least-squares optimum the
+maximum-likelihood estimate. `inversion.cramer_rao` gives the bound no unbiased estimator
+can beat at the truth (inverse expected Fisher information); it scales as 1/sqrt(counts). An
+infinite entry is an exact symmetry of the measurement: e.g. the roll about the line of sight
+when every return is a normal-incidence reflection (Mueller `R diag(1, 1, -1, -1)`), which
+no polarization channel can see.""",
+    """crb = inversion.cramer_rao(model, truth, noise)
+print(f"attitude bound: {crb.attitude_sigma_deg:.3g} deg (refined error above)")
+for lab, s_fit, s_crb in zip(crb.labels, fit.sigma, crb.sigma):
+    print(f"{lab:>18s}: fit sigma {s_fit:.3g}   Cramer-Rao bound {s_crb:.3g}")
+""",
+    """md:## The mirror image: a second mode no local bound sees
+The cube has a mirror plane (`z -> -z`). At the attitude `P R sigma` (`inversion.mirror_attitude`:
+`P` the world mirror through the line of sight and the x polarization reference) the scene is the
+exact mirror image of the one at `R`: the same range profiles, and Mueller profiles `D M D` with
+`D = diag(1, 1, -1, -1)`. Only the off-block Mueller elements tell the two apart. These
+co-polarized channels measure none of them, so the mirror image fits exactly as well, whatever
+the BRDF. The Cramer-Rao bound above, a local curvature, cannot show it.
+`inversion.mirror_check` refits from the mirror image and reports the deviance difference,
+the mirror mode's probability and how far apart the two lines of sight are. A fit whose line
+of sight lies in a mirror plane (e.g. along the cube's body diagonal) is its own mirror image:
+the check then reports 0 deg apart and no second mode.""",
+    """from inversion._classifier import line_of_sight_error_deg
+# the truth's mirror image: same expected counts in every co-polarized channel and bin
+q_m = inversion.mirror_attitude(q_true, inversion.body_mirror_normal("octahedral"))
+mirror_truth = PhysicalParams(q_m, truth.m, truth.n, truth.corr_length, truth.range_offset,
+                              truth.gain)
+mu_t = np.asarray(model.expected(truth, model.prepare(truth)))
+mu_m = np.asarray(model.expected(mirror_truth, model.prepare(mirror_truth)))
+print(f"mirror image of the truth: line of sight "
+      f"{line_of_sight_error_deg(q_true, q_m, 'octahedral')[0]:.3g} deg away (modulo the cube's "
+      f"rotations), expected counts equal to {np.abs(mu_t - mu_m).max() / mu_t.max():.1e} of the peak")
+# the check on the fit: refit from its mirror image
+chk = inversion.mirror_check(model, data, fit, "octahedral", noise=noise)
+print(chk.summary())
+q_fit, q_mir = np.asarray(fit.params.quaternion), np.asarray(chk.mirror.params.quaternion)
+for name, q in (("fit", q_fit), ("mirror fit", q_mir)):
+    plain = line_of_sight_error_deg(q_true, q, "octahedral")[0]
+    both = line_of_sight_error_deg(q_true, q, "octahedral", mirror=True)[0]
+    print(f"{name:>10s}: line-of-sight error {plain:.3g} deg modulo the cube's rotations, "
+          f"{both:.3g} deg modulo its mirror image too")""",
     """md:## Posterior sampling
 Priors and sampler settings come from `configs/inversion/default.toml` (the same file
 `ppr invert` reads); here the chain is shortened in small mode.""",
@@ -417,7 +460,7 @@ with warnings.catch_warnings():
     t0 = time.perf_counter()
     # start the walkers in a small isotropic ball about the optimum (fit.params); passing `fit`
     # itself would shape the ball by the Gauss-Newton covariance
-    post = inversion.sample_posterior(model, data, fit.params, config=cfg)
+    post = inversion.sample_posterior(model, data, fit.params, config=cfg, noise=noise)
 print(f"MCMC: {time.perf_counter() - t0:.1f} s")
 print(post)""",
     """print(post.summary())
