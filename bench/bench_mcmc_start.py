@@ -1,4 +1,5 @@
-"""MCMC starting ball: the pseudo-inverse Laplace ball against the prior-regularized one.
+"""MCMC starting ball and sampler coordinates: the pseudo-inverse Laplace ball against the
+prior-regularized one, and the reflectance shear of the gain (``sample_posterior(shear=)``).
 
 Two held-out observations of ``bench_inversion`` at SNR 1000 (a matte 3U silica CubeSat and a
 glossy gold cylinder, the refiner started at the truth), emcee 24 walkers, 300 and 1500
@@ -9,7 +10,9 @@ of sight) and of ``n'``, and the truth's offset from the posterior median in uni
 
 - ``pinv``: the ball before: ``init_scale * N(0, cov_theta)`` with ``cov_theta`` the
   pseudo-inverse of ``J^T J`` (0 in unconstrained directions, sd floored at 1e-5);
-- ``regularized``: ``inversion._mcmc._ball_root`` now, ``(pinv(cov) + I / 0.5^2)^-1``.
+- ``regularized``: ``inversion._mcmc._ball_root`` now, ``(pinv(cov) + I / 0.5^2)^-1``;
+- ``regularized + shear``: and the walkers move in coordinates whose log gain is shifted by
+  the log normal-incidence reflectance (``inversion._mcmc._ReflectanceShear``).
 
 Writes ``bench/results/mcmc_start_ball.md``. Run: ``.venv/bin/python bench/bench_mcmc_start.py``
 (x64; ~6 min on 2 cores, most of it compilation).
@@ -58,7 +61,11 @@ def main():
         t_eq = PhysicalParams(
             tq, truth.m, truth.n, truth.corr_length, truth.range_offset, truth.gain
         )
-        for name, root in (("pinv", pinv_ball_root), ("regularized", regularized)):
+        for name, root, shear in (
+            ("pinv", pinv_ball_root, False),
+            ("regularized", regularized, False),
+            ("regularized + shear", regularized, True),
+        ):
             MC._ball_root = root
             for steps in (300, 1500):
                 cfg = mcmc_config_from_dict(
@@ -76,7 +83,9 @@ def main():
                 t0 = time.perf_counter()
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", ChainTooShortWarning)
-                    post = sample_posterior(model, o["data"], fit, config=cfg, noise=B.NOISE)
+                    post = sample_posterior(
+                        model, o["data"], fit, config=cfg, noise=B.NOISE, shear=shear
+                    )
                 dt = time.perf_counter() - t0
                 lo, hi = post.interval(0.68).T
                 z = (post.truth_vector(t_eq) - post.median()) / np.maximum(0.5 * (hi - lo), 1e-300)
@@ -98,7 +107,7 @@ def main():
                 print(rows[-1], flush=True)
         MC._ball_root = regularized
     lines = [
-        "# MCMC starting ball: pseudo-inverse against prior-regularized",
+        "# MCMC starting ball (pseudo-inverse against prior-regularized) and reflectance shear",
         "",
         "Command: `.venv/bin/python bench/bench_mcmc_start.py` (x64). BRDF: " + brdf_name + ".",
         "Observations of bench_inversion (seed 7) at SNR 1000, refiner started at the truth; "

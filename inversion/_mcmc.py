@@ -427,6 +427,7 @@ def sample_posterior(
     free=None,
     path: str | Path | None = None,
     range_scale: float = 0.01,
+    shear: bool = True,
 ) -> MCMCResult:
     """Sample the posterior with emcee, started in a small ball around ``start``.
 
@@ -439,7 +440,12 @@ def sample_posterior(
     - `config`: :class:`MCMCConfig` (priors and sampler settings), e.g. from
       :func:`load_mcmc_config`.
     - `free`: parameter groups (default: those of the RefineResult, else the default set).
-    - `path`: HDF5 file to store the chain in (emcee ``HDFBackend``; overwritten).
+    - `path`: HDF5 file to store the chain in (emcee ``HDFBackend``; overwritten), in the
+      solver coordinates ``theta`` like :attr:`MCMCResult.chain`.
+    - `shear`: when the index and the gain are both free, the walkers move in coordinates
+      whose log gain is shifted by the log normal-incidence reflectance
+      (:class:`_ReflectanceShear`: unit Jacobian, same posterior), which straightens the
+      index-gain ridge.
 
     Raises ``ValueError`` when the data do not match the model, contain NaN, or a prior has
     no support at the start. Warns :class:`ChainTooShortWarning` when the chain is too short
@@ -491,11 +497,27 @@ def sample_posterior(
         path.parent.mkdir(parents=True, exist_ok=True)
         backend = emcee.backends.HDFBackend(str(path))
         backend.reset(sc.n_walkers, ndim)
-    sampler = emcee.EnsembleSampler(sc.n_walkers, ndim, log_prob, vectorize=True, backend=backend)
+    sh = _ReflectanceShear(param) if shear and _ReflectanceShear.applies(param) else None
+    if sh is not None:
+
+        def target(thetas_s):
+            return log_prob(sh.inverse(thetas_s))
+
+        p_start = sh.forward(p0)
+    else:
+        target, p_start = log_prob, p0
+    sampler = emcee.EnsembleSampler(sc.n_walkers, ndim, target, vectorize=True, backend=backend)
     sampler.random_state = np.random.RandomState(sc.seed).get_state()
-    sampler.run_mcmc(p0, sc.n_steps, progress=sc.progress)
+    sampler.run_mcmc(p_start, sc.n_steps, progress=sc.progress)
 
     chain = sampler.get_chain()
+    if sh is not None:
+        chain = sh.inverse(chain)
+        if backend is not None:  # the file holds theta too, like the returned chain
+            import h5py
+
+            with h5py.File(path, "r+") as f:
+                f[backend.name]["chain"][...] = chain
     lps = sampler.get_log_prob()
     kept = chain[sc.burn_in :: sc.thin]
     tau, converged = _autocorr(kept, sc.autocorr_tol)
@@ -518,6 +540,43 @@ def sample_posterior(
         elapsed_s=time.perf_counter() - t0,
         path=path,
     )
+
+
+class _ReflectanceShear:
+    """Sampler coordinates ``theta'``: ``theta`` with the log gain shifted by the log
+    normal-incidence reflectance of the index, ``log_gain' = log_gain + log(mean_k R0(n_k) +
+    1e-4)``, ``R0 = |(n - 1)/(n + 1)|^2``. At normal incidence the data fix mostly
+    reflectance x gain, so in ``theta`` the posterior is a curved ridge in (n', n'', gain)
+    that the stretch move crosses slowly; in ``theta'`` the ridge is nearly parallel to the
+    index axes. The shift depends only on the index coordinates, so the map is a bijection
+    with unit Jacobian: the log-posterior needs no correction."""
+
+    def __init__(self, param: Parametrisation):
+        labels = param.theta_labels
+        self.k = param.reference.n_materials
+        self.i_gain = labels.index("log_gain")
+        self.i_nre = [labels.index(f"log_n_re[{i}]") for i in range(self.k)]
+        self.i_nim = [labels.index(f"softplus_inv_n_im[{i}]") for i in range(self.k)]
+
+    @staticmethod
+    def applies(param: Parametrisation) -> bool:
+        return "n" in param.free and "gain" in param.free
+
+    def shift(self, theta: np.ndarray) -> np.ndarray | float:
+        n_re = np.exp(theta[..., self.i_nre])
+        n_im = np.logaddexp(np.maximum(theta[..., self.i_nim], U_N_IMAG_MIN), 0.0)
+        r0 = ((n_re - 1) ** 2 + n_im**2) / ((n_re + 1) ** 2 + n_im**2)
+        return np.log(np.mean(r0, axis=-1) + 1e-4)
+
+    def forward(self, theta: np.ndarray) -> np.ndarray:
+        out = np.array(theta, np.float64, copy=True)
+        out[..., self.i_gain] += self.shift(theta)
+        return out
+
+    def inverse(self, theta_s: np.ndarray) -> np.ndarray:
+        out = np.array(theta_s, np.float64, copy=True)
+        out[..., self.i_gain] -= self.shift(theta_s)  # the index entries are unchanged
+        return out
 
 
 @eqx.filter_jit
