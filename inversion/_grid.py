@@ -177,21 +177,72 @@ def body_mirror_normal(symmetry: str) -> np.ndarray | None:
     return None
 
 
-def mesh_has_mirror(vertices, normal, rtol: float = 1e-9) -> bool:
+def mesh_has_mirror(mesh, normal, rtol: float = 1e-9) -> bool:
     """Whether the plane through the body origin with unit ``normal`` is a mirror plane of a
-    mesh's vertex set (every reflected vertex lands on a vertex, within ``rtol`` of the
-    mesh's size). A check to run before trusting :func:`mirror_attitude` for a mesh."""
+    mesh, within ``rtol`` of the mesh's size. A check to run before trusting
+    :func:`mirror_attitude` for a mesh.
+
+    ``mesh``: a ``ppr.Mesh``, compared as a surface (the triangulation need not be
+    symmetric): faces are grouped by part, outward normal and plane offset, and every group's
+    area and first and second area moments must equal those of the reflected group, so a
+    panel with different materials on its two sides is not mirror-symmetric through its own
+    plane. Or ``(V, 3)`` vertices: the vertex set alone.
+    """
     from scipy.spatial import cKDTree
 
-    v = np.asarray(vertices, np.float64)
     n = np.asarray(normal, np.float64)
+    n = n / np.linalg.norm(n)
+    has_faces = hasattr(mesh, "faces") and hasattr(mesh, "vertices")
+    v = np.asarray(mesh.vertices if has_faces else mesh, np.float64)
     if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
         raise ValueError(f"mesh_has_mirror: vertices must be (V, 3), got {v.shape}")
-    n = n / np.linalg.norm(n)
-    reflected = v - 2.0 * (v @ n)[:, None] * n
     size = max(float(np.ptp(v, axis=0).max()), 1e-300)
-    dist, _ = cKDTree(v).query(reflected)
-    return bool(np.max(dist) <= rtol * size)
+    refl = np.eye(3) - 2.0 * np.outer(n, n)
+    if not has_faces:
+        dist, _ = cKDTree(v).query(v @ refl)
+        return bool(np.max(dist) <= rtol * size)
+    return _surface_moments(v, mesh, refl, rtol, size)
+
+
+def _surface_moments(v, mesh, refl, rtol, size) -> bool:
+    """Compare the (part, normal, plane)-grouped area moments of a mesh and its reflection."""
+    tri = v[np.asarray(mesh.faces)]
+    parts = np.asarray(mesh.material_ids)
+
+    def groups(t):
+        cr = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        area = 0.5 * np.linalg.norm(cr, axis=-1)
+        nrm = cr / np.maximum(2.0 * area, 1e-300)[:, None]
+        offset = np.einsum("fi,fi->f", nrm, t[:, 0]) / size
+        ssum = t.sum(axis=1)
+        # int x dA = A c; int x x^T dA = A/12 (sum_i v_i v_i^T + s s^T), s = v0 + v1 + v2
+        m1 = area[:, None] * ssum / 3.0
+        m2 = (area / 12.0)[:, None, None] * (
+            np.einsum("fki,fkj->fij", t, t) + np.einsum("fi,fj->fij", ssum, ssum)
+        )
+        out = {}
+        for f in range(len(t)):
+            if area[f] <= 0:
+                continue
+            key = (int(parts[f]), *np.round(nrm[f], 6), round(float(offset[f]), 6))
+            a, b, c = out.get(key, (0.0, 0.0, 0.0))
+            out[key] = (a + area[f], b + m1[f], c + m2[f])
+        return out
+
+    mine = groups(tri)
+    theirs = groups((tri @ refl)[:, ::-1])  # a reflection reverses the winding: flip it back
+    if set(mine) != set(theirs):
+        return False
+    tol = rtol * 10
+    for key, (a, m1, m2) in mine.items():
+        a2, m1b, m2b = theirs[key]
+        if (
+            abs(a - a2) > tol * size**2
+            or np.abs(m1 - m1b).max() > tol * size**3
+            or np.abs(m2 - m2b).max() > tol * size**4
+        ):
+            return False
+    return True
 
 
 def mirror_attitude(q, body_normal=(0.0, 0.0, 1.0), world_normal=(0.0, 1.0, 0.0)) -> np.ndarray:

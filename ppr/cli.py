@@ -1162,7 +1162,7 @@ def cmd_invert(args) -> int:
                 f"{cfg_path}: mirror_symmetry = {cfg.mirror_symmetry!r} implies no mirror plane "
                 "(use dihedral:n or octahedral, or leave it out)"
             )
-        if not inversion.mesh_has_mirror(scene.mesh.vertices, normal):
+        if not inversion.mesh_has_mirror(scene.mesh, normal):
             raise ConfigError(
                 f"{cfg_path}: mirror_symmetry = {cfg.mirror_symmetry!r}: the scene's mesh has "
                 f"no mirror plane with normal {normal.tolist()} through the body origin"

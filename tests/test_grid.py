@@ -158,13 +158,21 @@ def test_mirror_errors_and_normals():
 
 def test_mesh_has_mirror_on_the_shapes_the_named_classes_stand_for():
     """The z -> -z plane is a mirror of the box, CubeSat and prism meshes the dihedral and
-    octahedral classes stand for; a tilted plane is not, nor is z -> -z of a cone."""
+    octahedral classes stand for, as a surface (their triangulations are not symmetric) and
+    as a vertex set; a tilted plane is not, nor is z -> -z of a cone."""
     import ppr
     from inversion._grid import mesh_has_mirror
 
     for mesh in (ppr.shapes.cubesat(1), ppr.shapes.cubesat(3), ppr.shapes.cylinder(0.06, 0.25)):
-        assert mesh_has_mirror(mesh.vertices, body_mirror_normal("dihedral:4"))
-        assert not mesh_has_mirror(mesh.vertices, [0.0, 0.6, 0.8])
-    assert not mesh_has_mirror(ppr.shapes.cone(0.1, 0.2).vertices, [0.0, 0.0, 1.0])
+        for m in (mesh, mesh.vertices):
+            assert mesh_has_mirror(m, body_mirror_normal("dihedral:4"))
+            assert not mesh_has_mirror(m, [0.0, 0.6, 0.8])
+    assert not mesh_has_mirror(ppr.shapes.cone(0.1, 0.2), [0.0, 0.0, 1.0])
+    # panels (in the body's y-z plane) with solar cells on one side and paint on the other:
+    # the vertex set is symmetric through the panels' plane, the parts are not
+    panels = ppr.shapes.cubesat_with_panels(3)
+    assert mesh_has_mirror(panels.vertices, [1.0, 0.0, 0.0])
+    assert not mesh_has_mirror(panels, [1.0, 0.0, 0.0])
+    assert mesh_has_mirror(panels, [0.0, 0.0, 1.0]) and mesh_has_mirror(panels, [0.0, 1.0, 0.0])
     with pytest.raises(ValueError, match="vertices"):
         mesh_has_mirror(np.zeros((0, 3)), [0.0, 0.0, 1.0])
