@@ -316,8 +316,12 @@ def test_joint_rotation_of_object_and_sensor_leaves_profile_unchanged():
     [
         (lambda: shapes.cubesat(3), ppr.Material(0.94 + 6.42j, 5.0)),  # rough aluminium
         (lambda: shapes.cylinder(0.06, 0.25, sections=12), ppr.Material(1.46, 3.0)),  # silica
+        # non-convex, self-shadowing, three parts; subdivided so that partly shadowed faces
+        # are small (on the 36-face mesh the per-face visibility weighting alone breaks the
+        # parity by ~14% of the peak: README, known limits)
+        (lambda: shapes.cubesat_with_panels(3, max_edge=0.05), None),
     ],
-    ids=["cubesat3u-aluminium", "cylinder-silica"],
+    ids=["cubesat3u-aluminium", "cylinder-silica", "panels-subdivided"],
 )
 def test_mirror_image_scene_gives_mirrored_mueller_profile(mesh_fn, mat):
     """Parity of the whole forward model (full BRDF: single, double, multiple). A body with a
@@ -329,18 +333,27 @@ def test_mirror_image_scene_gives_mirrored_mueller_profile(mesh_fn, mat):
     inversion (inversion.mirror_attitude)."""
     mesh = mesh_fn()
     sigma, world = np.diag([1.0, 1.0, -1.0]), np.diag([1.0, -1.0, 1.0])
-    v = np.asarray(mesh.vertices, np.float64)
-    assert np.array_equal(np.unique((v @ sigma).round(12), axis=0), np.unique(v.round(12), axis=0))
+    from inversion import mesh_has_mirror
+
+    assert mesh_has_mirror(mesh, sigma[2])  # as a surface, parts included
     q = _random_rotation(11)
     q_mirror = ppr._pose.matrix_to_quat(world @ np.asarray(ppr.quat_to_matrix(q)) @ sigma)
-    scenes = [_scene(mesh, qq, materials=[mat], width=0.01, n_bins=64) for qq in (q, q_mirror)]
+    mats = (
+        [mat]
+        if mat is not None
+        else [ppr.Material(0.94 + 6.42j, 40.0), ppr.Material(1.5, 300.0), ppr.Material(2.6, 3.0)]
+    )
+    scenes = [_scene(mesh, qq, materials=mats, width=0.01, n_bins=64) for qq in (q, q_mirror)]
     m0, m1 = (np.asarray(ppr.simulate(s).data) for s in scenes)
     d = np.diag([1.0, 1.0, -1.0, -1.0])
     scale = np.abs(m0).max()
+    # convex: exact. Self-shadowing: a partly lit face is weighted by its ray-sampled lit
+    # fraction, and the mirror image's faces are sampled at mirrored points only where the
+    # triangulation is mirror-symmetric: ~1e-4 of the peak here (README, known limits)
+    tol = 1e-12 if mat is not None else 3e-4
     np.testing.assert_allclose(
-        m1, np.einsum("ij,jkb,kl->ilb", d, m0, d), rtol=0, atol=1e-12 * scale
-    )
-    # not a trivial identity: the attitudes differ and the off-block elements do not vanish
+        m1, np.einsum("ij,jkb,kl->ilb", d, m0, d), rtol=0, atol=tol * scale
+    )  # not a trivial identity: the attitudes differ and the off-block elements do not vanish
     r0, r1 = (np.asarray(ppr.quat_to_matrix(qq)) for qq in (q, q_mirror))
     assert np.abs(r1[2] - r0[2]).max() > 0.1  # the body-frame lines of sight differ
     assert np.abs(m0[:2, 2:]).max() > 1e-4 * scale
