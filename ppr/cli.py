@@ -1233,6 +1233,20 @@ def cmd_invert(args) -> int:
             summary["refine"]["attitude_error_deg"] = float(
                 quat_angle_deg(fit.params.unit_quaternion(), truth.quaternion)
             )
+            if cfg.mirror_symmetry is not None:
+                # modulo the shape's rotations, and the line of sight also modulo its mirror
+                q_fit = np.asarray(fit.params.unit_quaternion())
+                q_true = np.asarray(truth.quaternion)
+                sym = cfg.mirror_symmetry
+                summary["refine"]["attitude_error_mod_symmetry_deg"] = float(
+                    inversion.attitude_error_deg(q_true, q_fit, sym)[0]
+                )
+                summary["refine"]["los_error_deg"] = float(
+                    inversion.line_of_sight_error_deg(q_true, q_fit, sym)[0]
+                )
+                summary["refine"]["los_error_mod_mirror_deg"] = float(
+                    inversion.line_of_sight_error_deg(q_true, q_fit, sym, mirror=True)[0]
+                )
             # what no unbiased estimator can beat on these data (infinite: an exact symmetry)
             crb = inversion.cramer_rao(model, truth, noise, free=tuple(cfg.free))
             summary["cramer_rao"] = {

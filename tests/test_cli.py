@@ -447,6 +447,9 @@ def test_invert_end_to_end(tmp_path, capsys):
     mc = summary["mirror_check"]
     assert abs(mc["delta_deviance"]) < 1e-6 * summary["refine"]["cost"] + 1e-6
     assert mc["ambiguous"] and abs(mc["mirror_probability"] - 0.5) < 1e-3
+    ref = summary["refine"]  # errors modulo the cube's rotations (and mirror) are no larger
+    assert ref["attitude_error_mod_symmetry_deg"] <= ref["attitude_error_deg"] + 1e-9
+    assert ref["los_error_mod_mirror_deg"] <= ref["los_error_deg"] + 1e-9
     # a symmetry without a mirror, and a mesh without the plane, are refused by name
     for extra, msg in (
         ('mirror_symmetry = "cyclic:4"', "implies no mirror plane"),
