@@ -185,7 +185,8 @@ def main() -> None:
         "",
         "## One material per batch: tabulated correction (`visibility_one_material`)",
         "",
-        "The correction tabulated per call at `nodes` points equispaced in asin(cos) by the "
+        "The correction tabulated per call at `nodes` points equispaced in tan(asin(cos) / 2) "
+        "by the "
         "quadrature (with its partials), cubic Hermite per element. Error: max relative error "
         "of P(k) over the mpmath grid; speed: N random cosines, m = 30, against the quadrature "
         "`visibility` on the same input. `ppr.mueller_brdf` uses it in float32 with "
