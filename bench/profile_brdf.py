@@ -59,6 +59,12 @@ def main(argv=None):
     ap.add_argument("--float64", action="store_true")
     ap.add_argument("--top", type=int, default=15)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument(
+        "--same-k",
+        action="store_true",
+        help="pass one array as k_in and k_out (as monostatic callers do: XLA then shares "
+        "their work, which changes its fusion decisions)",
+    )
     args = ap.parse_args(argv)
     if args.float64:
         jax.config.update("jax_enable_x64", True)
@@ -66,6 +72,8 @@ def main(argv=None):
 
     dt = jnp.float64 if args.float64 else jnp.float32
     k_in, k_out, nrm = inputs(args.n, dt)
+    if args.same_k:
+        k_out = k_in
     mat = ppr.Material(
         np.asarray(1.46 + 0.0j, np.complex128 if args.float64 else np.complex64),
         np.asarray(3.0, dt),

@@ -69,7 +69,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _double as D
-from ._albedo import _cell, _cr_weights, _pad_quadratic
+from ._albedo import _cell, _cr_cubics, _cr_eval, _cr_weights, _pad_quadratic
 from ._frames import (
     _cross3,
     _default_frame3,
@@ -77,7 +77,8 @@ from ._frames import (
     _neg3,
     _perp3_any,
     _split,
-    rotate_mueller_flat,
+    rotate_mueller_44,
+    store,
 )
 from ._fresnel import fresnel_amplitudes_re
 from ._microfacet import mean_cosine_plus
@@ -390,7 +391,7 @@ def _interp_one_material(
     leaving a 4-point interpolation in ``x`` of 17 values per element, instead of 16
     gathered 97-vectors (measured ~10x faster, bench/bench_double_table.py).
 
-    Returns ``(log E, slope)`` as ``(...,)`` arrays and ``T/E @ W`` as ``(16, ...)``."""
+    Returns ``(log E, slope)`` as ``(...,)`` arrays and ``T/E @ W`` as ``(..., 16)``."""
     j, tu = _cell(u, 0.0, tab.du, tab.nu)
     wu = _cr_weights(tu)
     vals = jnp.asarray(tab.vals, dt)  # (nx + 3, nu + 3, 1 + k r)
@@ -401,12 +402,11 @@ def _interp_one_material(
     sl = jnp.asarray(tab.slope_pad, dt)
     slope = sum(wu[b] * jax.lax.dynamic_index_in_dim(sl, j + b, keepdims=False) for b in range(4))
     i, tx = _cell(x, 0.0, tab.dx, tab.nx)
-    wx = _cr_weights(tx)
-    # log E and the 16 entries gathered separately (contiguous 16-value rows, one transpose):
-    # slicing one joint (17, ...) result made XLA CPU re-run the gathers per slice (7x slower)
-    log_e = sum(wx[a] * jnp.take(rows_e, i + a) for a in range(4))
-    out = sum(wx[a][..., None] * jnp.take(rows_m, i + a, axis=0) for a in range(4))
-    return log_e, jnp.broadcast_to(slope, x.shape), jnp.moveaxis(out, -1, 0)
+    # log E and the 16 entries gathered separately (contiguous 16-value rows): slicing one
+    # joint (17, ...) result made XLA CPU re-run the gathers per slice (7x slower)
+    log_e = _cr_eval(_cr_cubics(rows_e, tab.nx), i, tx)
+    out = _cr_eval(_cr_cubics(rows_m, tab.nx), i, tx)
+    return log_e, jnp.broadcast_to(slope, x.shape), out
 
 
 # --------------------------------------------------------------------------------------------
@@ -434,12 +434,13 @@ def _rot2a3(x_from, x_to, d):
     return jnp.where(ok, (c * c - s * s) * inv, 1.0), jnp.where(ok, 2.0 * c * s * inv, 0.0)
 
 
-def double_backscatter_flat(
+def double_backscatter_44(
     k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9, coherent=True
 ) -> Array:
-    """:func:`double_backscatter_term` as ``(16, ...)`` (row-major entries on a leading
-    axis; ``frame_in``/``frame_out`` may be SoA tuples of three arrays). ``mueller_brdf``
-    adds it to the other terms in this layout."""
+    """:func:`double_backscatter_term` (``frame_in``/``frame_out`` may be SoA tuples of three
+    arrays). The entries stay on a trailing axis throughout, and the frame rotations are
+    :func:`ppr._frames.rotate_mueller_44`: built ``(16, ...)`` and transposed at the end, the
+    term ran 1.8x slower (bench/profile_brdf.py)."""
     tab = load_table()
     f_in3, f_out3 = _split(frame_in), _split(frame_out)
     k, kp, nrm, _, _, m, n_re, n_im, dt, batch = D._broadcast_inputs(
@@ -479,7 +480,7 @@ def double_backscatter_flat(
         log_e, slope, M16 = _interp_one_material(tab, x, u0, W, dt)
         log_e = log_e + slope * jnp.maximum(x - X_MAX, 0.0)
         env = jnp.where(valid, jnp.exp(jnp.minimum(log_e, 50.0)), 0.0)
-        M16 = M16 * (env * (1.0 + gamma))
+        M16 = M16 * (env * (1.0 + gamma))[..., None]
     else:
         log_e, tn, slope = _interp(tab, x, u, dt)
         log_e = log_e + slope * jnp.maximum(x - X_MAX, 0.0)
@@ -498,7 +499,6 @@ def double_backscatter_flat(
             # 4-D broadcast product and sum)
             beta = jnp.stack([jnp.sum(T * gb[..., q, :, None], axis=-2) for q in range(4)], -1)
             M16 = beta.reshape(batch + (4 * tab.rank,)) @ V.reshape(4 * tab.rank, 16)
-        M16 = jnp.moveaxis(M16, -1, 0)
     # frames: e = normalize(n x k) (as in the table; ppr._double._common_frame at k' = k),
     # its projection _|_ k' for the output; component arithmetic throughout
     e = _default_frame3(k3, n3)
@@ -511,8 +511,13 @@ def double_backscatter_flat(
     e_out = tuple(jnp.where(ok, a * inv, f) for a, f in zip(e_out, fb, strict=True))
     c_in, s_in = _rot2a3(f_in3, e, _neg3(k3))
     c_out, s_out = _rot2a3(e_out, f_out3, kp3)
-    flat = rotate_mueller_flat(M16, c_in, s_in, c_out, s_out)
-    return jnp.where(valid, flat, 0.0)
+    # M and the angles stored first: XLA CPU otherwise re-computes the gathers, the envelope
+    # and the frame arithmetic inside the rotation, once per entry (full BRDF at backscatter
+    # 2.6 -> 4.5-4.9 M evals/s float32 with the store in mueller_brdf, bench/profile_brdf.py)
+    M16 = store(M16)
+    c_in, s_in, c_out, s_out = (store(x) for x in (c_in, s_in, c_out, s_out))
+    out = rotate_mueller_44(M16.reshape(batch + (4, 4)), c_in, s_in, c_out, s_out)
+    return jnp.where(valid[..., None, None], out, 0.0)
 
 
 def double_backscatter_term(
@@ -536,10 +541,9 @@ def double_backscatter_term(
         jnp.shape(k_in), jnp.shape(frame_in)))
     fo = jnp.broadcast_to(jnp.asarray(frame_out, dt), jnp.broadcast_shapes(
         jnp.shape(k_out), jnp.shape(frame_out)))
-    flat = double_backscatter_flat(
+    return double_backscatter_44(
         k_in, k_out, normal, material, fi, fo, wavelength=wavelength, coherent=coherent
     )
-    return jnp.moveaxis(flat, 0, -1).reshape(flat.shape[1:] + (4, 4))
 
 
 def double_term_dispatch(
@@ -547,8 +551,8 @@ def double_term_dispatch(
     k_out: Float[ArrayLike, "*#batch 3"],
     normal: Float[ArrayLike, "*#batch 3"],
     material,
-    frame_in: Float[ArrayLike, "*#batch 3"],
-    frame_out: Float[ArrayLike, "*#batch 3"],
+    frame_in: Float[ArrayLike, "*#batch 3"] | tuple[Array, Array, Array],
+    frame_out: Float[ArrayLike, "*#batch 3"] | tuple[Array, Array, Array],
     *,
     wavelength: float | Float[ArrayLike, "..."] = 532e-9,
 ) -> Float[Array, "*batch 4 4"]:
@@ -557,16 +561,26 @@ def double_term_dispatch(
 
     One ``lax.cond`` on the whole batch (under ``vmap`` with a batched predicate it becomes a
     select that evaluates both; ``ppr.render`` therefore decides once per sensor, see
-    ``ppr._pulse.facet_weights``)."""
+    ``ppr._pulse.facet_weights``). The frames may be SoA tuples of three arrays (as
+    ``mueller_brdf`` passes them: stacking them into ``(..., 3)`` arrays runs as a scalar
+    concatenate loop on XLA CPU, so only the quadrature branch does it)."""
     n = jnp.asarray(material.n)
     dt = D.float_dtype(k_in, k_out, normal, material.m, n)
     near = jnp.all(near_backscatter(k_in, k_out))
-    args = (k_in, k_out, normal, material, frame_in, frame_out)
+    batch = jnp.broadcast_shapes(jnp.shape(k_in)[:-1], jnp.shape(k_out)[:-1])
+
+    def arr(f):
+        if isinstance(f, tuple | list):
+            f = jnp.stack(jnp.broadcast_arrays(*f), axis=-1)
+        return jnp.broadcast_to(f, batch + (3,))
 
     def table(_):
-        return double_backscatter_term(*args, wavelength=wavelength).astype(dt)
+        return double_backscatter_44(
+            k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength
+        ).astype(dt)
 
     def quadrature(_):
+        args = (k_in, k_out, normal, material, arr(frame_in), arr(frame_out))
         return D.double_bounce_term(*args, wavelength=wavelength).astype(dt)
 
     return jax.lax.cond(near, table, quadrature, None)

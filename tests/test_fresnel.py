@@ -329,3 +329,35 @@ def test_rotate_mueller_flat_and_materialize():
         xd = [x.astype(dt) for x in xs]
         for got, want in zip(jax.jit(materialize)(*xd), xd, strict=True):
             np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+
+
+def test_rotate_mueller_44_and_store():
+    """ppr._frames.rotate_mueller_44 (column and row reversals against constant patterns) equals
+    the explicit product R(b) M R(a) of mueller_rotator matrices for any M, batched and
+    broadcast; store (identity dot on rows of gcd(size, 8)) returns its input bit for bit,
+    sizes without a factor 2 included, and keeps gradients."""
+    from ppr._frames import rotate_mueller_44, store
+
+    rng = np.random.default_rng(12)
+    n = 64
+    M = rng.normal(size=(n, 4, 4))
+    a, b = rng.uniform(-np.pi, np.pi, (2, n))
+    ref = np.asarray(mueller_rotator(np.cos(2 * b), np.sin(2 * b))) @ M @ np.asarray(
+        mueller_rotator(np.cos(2 * a), np.sin(2 * a))
+    )
+    got = jax.jit(rotate_mueller_44)(M, np.cos(2 * a), np.sin(2 * a), np.cos(2 * b), np.sin(2 * b))
+    np.testing.assert_allclose(np.asarray(got), ref, rtol=0, atol=1e-14)
+    # one M for the batch, angles batched
+    cs = [jnp.asarray(f(2 * t)) for t in (a, b) for f in (np.cos, np.sin)]
+    got1 = rotate_mueller_44(jnp.asarray(M[0]), *cs)
+    ref1 = np.asarray(mueller_rotator(np.cos(2 * b), np.sin(2 * b))) @ M[0] @ np.asarray(
+        mueller_rotator(np.cos(2 * a), np.sin(2 * a))
+    )
+    np.testing.assert_allclose(np.asarray(got1), ref1, rtol=0, atol=1e-14)
+    for shape in [(5, 3), (8,), (250, 4, 4), (7,)]:
+        x = rng.normal(size=shape) * 10.0 ** rng.integers(-30, 30, shape)
+        for dt in (jnp.float32, jnp.float64):
+            xd = jnp.asarray(x, dt)
+            np.testing.assert_array_equal(np.asarray(jax.jit(store)(xd)), np.asarray(xd))
+    g = jax.grad(lambda x: jnp.sum(jnp.sin(store(x))))(jnp.arange(16.0))
+    np.testing.assert_allclose(np.asarray(g), np.cos(np.arange(16.0)), rtol=1e-14)
