@@ -306,23 +306,32 @@ def test_real_and_complex_entry_points_agree():
     assert complex(rp) == pytest.approx(complex(r[2], r[3]), rel=1e-15)
 
 
+def _rotation_case(seed: int, n: int = 64):
+    """Random (non-physical) Mueller matrices, rotation cos/sin pairs and the explicit
+    product ``R(b) M R(a)`` of mueller_rotator matrices for any ``M`` of the batch."""
+    rng = np.random.default_rng(seed)
+    M = rng.normal(size=(n, 4, 4))
+    a, b = rng.uniform(-np.pi, np.pi, (2, n))
+    cs = [jnp.asarray(f(2 * t)) for t in (a, b) for f in (np.cos, np.sin)]
+
+    def ref(m):
+        return np.asarray(mueller_rotator(cs[2], cs[3])) @ m @ np.asarray(
+            mueller_rotator(cs[0], cs[1])
+        )
+
+    return rng, M, cs, ref
+
+
 def test_rotate_mueller_flat_and_materialize():
     """The (16, 36) monomial map of ppr._frames.rotate_mueller_flat equals the explicit
     product R(b) M R(a) of mueller_rotator matrices (any M, including non-physical), and
     materialize (identity dot) returns its inputs bit for bit."""
     from ppr._frames import materialize, rotate_mueller_flat
 
-    rng = np.random.default_rng(11)
-    n = 64
-    M = rng.normal(size=(n, 4, 4))
-    a, b = rng.uniform(-np.pi, np.pi, (2, n))
-    ref = np.asarray(mueller_rotator(np.cos(2 * b), np.sin(2 * b))) @ M @ np.asarray(
-        mueller_rotator(np.cos(2 * a), np.sin(2 * a))
-    )
-    flat = jax.jit(rotate_mueller_flat)(
-        jnp.asarray(M.reshape(n, 16).T), np.cos(2 * a), np.sin(2 * a), np.cos(2 * b), np.sin(2 * b)
-    )
-    np.testing.assert_allclose(np.asarray(flat).T.reshape(n, 4, 4), ref, rtol=0, atol=1e-14)
+    rng, M, cs, ref = _rotation_case(11)
+    n = M.shape[0]
+    flat = jax.jit(rotate_mueller_flat)(jnp.asarray(M.reshape(n, 16).T), *cs)
+    np.testing.assert_allclose(np.asarray(flat).T.reshape(n, 4, 4), ref(M), rtol=0, atol=1e-14)
     xs = [jnp.asarray(rng.normal(size=(3, 5)) * 10.0 ** rng.integers(-30, 30, (3, 5)))
           for _ in range(4)]
     for dt in (jnp.float32, jnp.float64):
@@ -338,22 +347,12 @@ def test_rotate_mueller_44_and_store():
     sizes without a factor 2 included, and keeps gradients."""
     from ppr._frames import rotate_mueller_44, store
 
-    rng = np.random.default_rng(12)
-    n = 64
-    M = rng.normal(size=(n, 4, 4))
-    a, b = rng.uniform(-np.pi, np.pi, (2, n))
-    ref = np.asarray(mueller_rotator(np.cos(2 * b), np.sin(2 * b))) @ M @ np.asarray(
-        mueller_rotator(np.cos(2 * a), np.sin(2 * a))
-    )
-    got = jax.jit(rotate_mueller_44)(M, np.cos(2 * a), np.sin(2 * a), np.cos(2 * b), np.sin(2 * b))
-    np.testing.assert_allclose(np.asarray(got), ref, rtol=0, atol=1e-14)
+    rng, M, cs, ref = _rotation_case(12)
+    got = jax.jit(rotate_mueller_44)(jnp.asarray(M), *cs)
+    np.testing.assert_allclose(np.asarray(got), ref(M), rtol=0, atol=1e-14)
     # one M for the batch, angles batched
-    cs = [jnp.asarray(f(2 * t)) for t in (a, b) for f in (np.cos, np.sin)]
     got1 = rotate_mueller_44(jnp.asarray(M[0]), *cs)
-    ref1 = np.asarray(mueller_rotator(np.cos(2 * b), np.sin(2 * b))) @ M[0] @ np.asarray(
-        mueller_rotator(np.cos(2 * a), np.sin(2 * a))
-    )
-    np.testing.assert_allclose(np.asarray(got1), ref1, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(got1), ref(M[0]), rtol=0, atol=1e-14)
     for shape in [(5, 3), (8,), (250, 4, 4), (7,)]:
         x = rng.normal(size=shape) * 10.0 ** rng.integers(-30, 30, shape)
         for dt in (jnp.float32, jnp.float64):
