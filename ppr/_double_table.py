@@ -567,12 +567,11 @@ def double_term_dispatch(
     n = jnp.asarray(material.n)
     dt = D.float_dtype(k_in, k_out, normal, material.m, n)
     near = jnp.all(near_backscatter(k_in, k_out))
-    batch = jnp.broadcast_shapes(jnp.shape(k_in)[:-1], jnp.shape(k_out)[:-1])
 
     def arr(f):
         if isinstance(f, tuple | list):
-            f = jnp.stack(jnp.broadcast_arrays(*f), axis=-1)
-        return jnp.broadcast_to(f, batch + (3,))
+            return jnp.stack(jnp.broadcast_arrays(*f), axis=-1)
+        return f
 
     def table(_):
         return double_backscatter_44(
