@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import pathlib
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
@@ -36,19 +35,16 @@ sys.path.insert(0, str(ROOT))
 from ppr._albedo import _cr_cubics, _cr_eval, _cr_weights  # noqa: E402
 from ppr._frames import rotate_mueller_44, rotate_mueller_flat  # noqa: E402
 
+sys.path.insert(0, str(ROOT / "bench"))
+from _timing import median_time  # noqa: E402
+
 N = 250_000
 REPEATS = 25
 
 
-def median_ns(fn, *args, repeats=REPEATS) -> float:
-    """Median wall time per element (ns) of ``fn(*args)`` after one warm-up call."""
-    jax.block_until_ready(fn(*args))
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts)) / N * 1e9
+def median_ns(fn, *args) -> float:
+    """Median wall time per element (ns) of ``fn(*args)`` (:func:`_timing.median_time`)."""
+    return median_time(fn, *args, repeats=REPEATS) / N * 1e9
 
 
 def elementwise_rows(x, y):
