@@ -290,10 +290,12 @@ def main(argv=None):
                  f"{args.repeats}; {os.cpu_count()} cores, load average at the end "
                  f"{os.getloadavg()[0]:.2f} (absolute rates depend on load; the ratio is "
                  "measured in the same process). Both skip the <h.k>+ quadrature where it is "
-                 "negligible, per element (NumPy by boolean indexing). The ratio is bounded "
-                 "by transcendental throughput: XLA CPU's exp/log run at NumPy's speed per "
-                 "element (~1 ns), and JAX gains only the fusion of ~300 operations per "
-                 "evaluation.\n\n")
+                 "negligible, per element (NumPy by boolean indexing). XLA CPU's exp and "
+                 "log run at NumPy's SIMD speed per element, its inverse trigonometric "
+                 "functions ~15x slower (bench/bench_xla_ops.py; none is left in this kernel), "
+                 "and it splits the kernel into ~300 fusions whose intermediates go through "
+                 "memory (bench/profile_brdf.py): that granularity, not arithmetic, bounds the "
+                 "ratio.\n\n")
         fh.write("| dtype | terms | JAX M evals/s | NumPy M evals/s | ratio | compile s | "
                  "max rel diff vs NumPy |\n|---|---|---|---|---|---|---|\n")
         for r in rows:
