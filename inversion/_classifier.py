@@ -312,6 +312,38 @@ class Classification:
             "shift": self.shift[:, 0],
         }
 
+    def candidates(
+        self, bank: TemplateBank, k: int = 3, per_shape: int = 1, obs: int = 0
+    ) -> np.ndarray:
+        """Columns of ``index[obs]`` to refine: the top ``k``, plus the best ``per_shape``
+        candidates of every shape of ``bank`` (in rank order, without repeats).
+
+        The classifier's rank is not a likelihood: a shape whose signature changes fast with
+        attitude (a cube) can rank below hundreds of templates of other shapes at the grid
+        resolution and still fit far better once refined. Refining each shape's best
+        candidates lets the likelihood choose the shape. Classify with ``k = len(bank)``
+        (ranks every template; cheap) so that every shape has its candidates; a
+        classification cut shorter that misses a shape raises ``ValueError``.
+        """
+        if k < 0 or per_shape < 0:
+            raise ValueError(f"candidates: k={k} and per_shape={per_shape} must be >= 0")
+        if not 0 <= obs < len(self.index):
+            raise ValueError(f"candidates: obs={obs} outside [0, {len(self.index)})")
+        sid = np.asarray(bank.shape_id)[self.index[obs]]
+        cols = list(range(min(k, len(sid))))
+        for s in np.unique(bank.shape_id):
+            found = np.flatnonzero(sid == s)
+            if len(found) < min(per_shape, int(np.sum(bank.shape_id == s))):
+                name = bank.names.get("shapes", [])
+                name = name[s] if s < len(name) else str(s)
+                raise ValueError(
+                    f"candidates: shape {name!r} has {len(found)} of per_shape={per_shape} "
+                    f"candidates among the classification's {len(sid)} columns; classify "
+                    f"with a larger k (k=len(bank) ranks every template)"
+                )
+            cols += [int(c) for c in found[:per_shape] if c not in cols]
+        return np.asarray(sorted(cols), dtype=int)
+
 
 def _sensor_diff(a: str, b: str) -> str:
     da, db = json.loads(a), json.loads(b)

@@ -34,6 +34,7 @@ rotation vector in degrees, ``m``, ``n'``, ``n''``, metres, gain) with the delta
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Sequence
@@ -555,6 +556,8 @@ def refine(
     max_steps: int = 200,
     rounds: int = 4,
     range_scale: float = 0.01,
+    keep: int | None = None,
+    screen_tol: float = 1e-3,
 ) -> RefineResult:
     """Multi-start weighted least-squares refinement (see the module docstring).
 
@@ -569,6 +572,13 @@ def refine(
     - `solver`: ``"lm"`` (Levenberg-Marquardt, default), ``"dogleg"``, ``"gauss_newton"`` or
       an optimistix least-squares solver instance; `rtol`/`atol` its tolerances.
     - `max_steps`: solver steps per round; `rounds`: max visibility/weight rounds per start.
+    - `keep`: screening. With more starts than `keep`, every start first runs one round with
+      the loose tolerances ``rtol = atol = screen_tol`` (same compiled solver: tolerances are
+      traced), and only the `keep` lowest-cost ones are refined on, from where their
+      screening ended, with the full tolerances and rounds. The others are reported in
+      ``starts`` with ``result = "screened_out"`` and their screening cost. ``None`` (default)
+      refines every start fully. A solver given as an instance screens with its own
+      tolerances.
 
     **Returns:** :class:`RefineResult` for the lowest-cost start (successful starts preferred),
     with every start summarised in ``starts``.
@@ -580,6 +590,10 @@ def refine(
     free = tuple(free)
     if rounds < 1 or max_steps < 1:
         raise ValueError(f"refine: rounds={rounds} and max_steps={max_steps} must be >= 1")
+    if keep is not None and int(keep) < 1:
+        raise ValueError(f"refine: keep={keep} must be >= 1 (or None: no screening)")
+    if not screen_tol > 0:
+        raise ValueError(f"refine: screen_tol={screen_tol} must be > 0")
 
     aux0 = model.prepare(starts[0])
     shape = _model_shape(model, starts[0], aux0)
@@ -588,51 +602,43 @@ def refine(
         noise.check_data(data_np)
     dt = starts[0].m.dtype
     data_j = jnp.asarray(data_np, dt)
+    run = functools.partial(
+        _refine_start, model, noise, data_j, free, range_scale, max_steps=max_steps
+    )
+
+    screened = {}
+    if keep is not None and len(starts) > int(keep):
+        loose = _make_solver(solver, screen_tol, screen_tol) if isinstance(solver, str) else solv
+        for idx, start in enumerate(starts):
+            screened[idx] = run(idx, start, lift_start(start), loose, 1, aux0 if idx == 0 else None)
+        ranked = sorted(screened, key=lambda i: screened[i].cost)
+        go_on = set(ranked[: int(keep)])
+    else:
+        go_on = set(range(len(starts)))
 
     summaries = []
     for idx, start in enumerate(starts):
-        phys = lift_start(start)
-        param = Parametrisation(phys, free, range_scale)
-        total_steps, used_rounds = 0, 0
-        prev_cost = np.inf
-        res_code, cost = 0, np.inf
-        aux = aux0 if idx == 0 else model.prepare(phys)
-        for rnd in range(rounds):
-            if rnd > 0:
-                aux = model.prepare(phys)
-            inv_sigma, _ = _weights(_pure(model), noise, phys, aux)
-            theta0 = _from_physical(param, phys)
-            theta, result, nsteps, cost_j = _solve_round(
-                _pure(model), param, aux, inv_sigma, data_j, theta0, solv, max_steps, noise
+        if idx not in go_on:
+            sc = screened[idx]
+            summaries.append(
+                dataclasses.replace(
+                    sc,
+                    success=False,
+                    result="screened_out",
+                    message=f"screened out (one round at tolerance {screen_tol:g}, cost "
+                    f"{sc.cost:.6g}; not among the keep={keep} lowest)",
+                )
             )
-            used_rounds += 1
-            total_steps += int(nsteps)
-            res_code = int(result._value)
-            cost = float(cost_j)
-            if not np.all(np.isfinite(np.asarray(theta))):
-                res_code = RESULT_NAMES_INV["nonfinite"]
-                cost = np.inf
-                break
-            phys = _to_physical(param, theta)
-            param = param.recentred(phys)
-            if abs(prev_cost - cost) <= 1e-9 * max(cost, 1.0) and rnd > 0:
-                break
-            prev_cost = cost
-        name = RESULT_NAMES.get(res_code, str(res_code))
-        ok = name == "successful" and np.isfinite(cost)
-        summaries.append(
-            StartSummary(
-                index=idx,
-                start=start,
-                params=phys,
-                cost=cost,
-                success=bool(ok),
-                result=name,
-                message=_message(res_code),
-                n_steps=total_steps,
-                n_rounds=used_rounds,
+            continue
+        first = screened[idx] if idx in screened else None
+        phys = first.params if first is not None else lift_start(start)
+        aux = aux0 if (idx == 0 and first is None) else None
+        s = run(idx, start, phys, solv, rounds, aux)
+        if first is not None:
+            s = dataclasses.replace(
+                s, n_steps=s.n_steps + first.n_steps, n_rounds=s.n_rounds + first.n_rounds
             )
-        )
+        summaries.append(s)
 
     order = sorted(
         range(len(summaries)), key=lambda i: (not summaries[i].success, summaries[i].cost)
@@ -649,6 +655,50 @@ def refine(
         range_scale,
         t0,
         "levenberg_marquardt" if isinstance(solv, optx.LevenbergMarquardt) else type(solv).__name__,
+    )
+
+
+def _refine_start(
+    model, noise, data_j, free, range_scale, idx, start, phys, solv, rounds, aux, *, max_steps
+) -> StartSummary:
+    """Refine one start from ``phys`` in up to ``rounds`` visibility/weight rounds."""
+    param = Parametrisation(phys, free, range_scale)
+    total_steps, used_rounds = 0, 0
+    prev_cost = np.inf
+    res_code, cost = 0, np.inf
+    for rnd in range(rounds):
+        if rnd > 0 or aux is None:
+            aux = model.prepare(phys)
+        inv_sigma, _ = _weights(_pure(model), noise, phys, aux)
+        theta0 = _from_physical(param, phys)
+        theta, result, nsteps, cost_j = _solve_round(
+            _pure(model), param, aux, inv_sigma, data_j, theta0, solv, max_steps, noise
+        )
+        used_rounds += 1
+        total_steps += int(nsteps)
+        res_code = int(result._value)
+        cost = float(cost_j)
+        if not np.all(np.isfinite(np.asarray(theta))):
+            res_code = RESULT_NAMES_INV["nonfinite"]
+            cost = np.inf
+            break
+        phys = _to_physical(param, theta)
+        param = param.recentred(phys)
+        if abs(prev_cost - cost) <= 1e-9 * max(cost, 1.0) and rnd > 0:
+            break
+        prev_cost = cost
+    name = RESULT_NAMES.get(res_code, str(res_code))
+    ok = name == "successful" and np.isfinite(cost)
+    return StartSummary(
+        index=idx,
+        start=start,
+        params=phys,
+        cost=cost,
+        success=bool(ok),
+        result=name,
+        message=_message(res_code),
+        n_steps=total_steps,
+        n_rounds=used_rounds,
     )
 
 

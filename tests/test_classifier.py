@@ -244,3 +244,32 @@ def test_ppr_adapter_matches_simulate():
         ref = np.asarray(measure(mm, jnp.asarray(prof.data)))
         # same kernel, same visibility samples; float64 round-off only
         np.testing.assert_allclose(sig[i], np.maximum(ref, 0.0), rtol=1e-9, atol=1e-12 * ref.max())
+
+
+def test_candidates_cover_every_shape(bank, exact):
+    """``Classification.candidates``: the top k plus each shape's best ``per_shape`` columns,
+    in rank order and without repeats; a classification cut too short to hold a shape's
+    candidates is refused rather than silently missing that shape."""
+    x = bank.signatures[int(np.flatnonzero(bank.shape_id == 0)[3])]
+    full = classify(exact, x, k=len(bank))
+    sid = bank.shape_id[full.index[0]]
+    cols = full.candidates(bank, k=2, per_shape=2)
+    assert list(cols) == sorted(set(cols)) and {0, 1} <= set(cols)
+    for s in np.unique(bank.shape_id):
+        first = np.flatnonzero(sid == s)[:2]
+        assert set(first) <= set(cols)  # each shape's two best ranks are in
+    # nothing else: the union of top-2 and the per-shape ranks
+    want = {0, 1} | {int(c) for s in np.unique(bank.shape_id) for c in np.flatnonzero(sid == s)[:2]}
+    assert set(cols) == want
+    assert list(full.candidates(bank, k=0, per_shape=0)) == []
+    # a truncated classification that misses a shape: clear error naming it
+    short = classify(exact, x, k=1)
+    missing = sorted(set(np.unique(bank.shape_id)) - set(bank.shape_id[short.index[0]]))
+    assert len(missing) == 2
+    name = bank.names["shapes"][missing[0]]
+    with pytest.raises(ValueError, match=f"shape '{name}'.*larger k"):
+        short.candidates(bank, k=1, per_shape=1)
+    with pytest.raises(ValueError, match="per_shape=-1"):
+        full.candidates(bank, per_shape=-1)
+    with pytest.raises(ValueError, match="obs=1"):
+        full.candidates(bank, obs=1)

@@ -275,6 +275,38 @@ def test_noise_free_recovery_from_classifier_like_start():
     assert np.all(np.isfinite(res.covariance)) and res.covariance.shape == (11, 11)
 
 
+def test_screening_keeps_the_start_that_reaches_the_global_optimum():
+    """``keep=1``: every start runs one loose round, only the lowest-cost one is refined on.
+    Three starts 60-80 deg off end in local optima (full multi-start: costs > 1e4); the
+    screened run reaches the same optimum as refining every start, in fewer solver steps,
+    and reports the others as screened out with their screening costs."""
+    model = make_toy()
+    data = model.expected(TRUTH, model.prepare(TRUTH))
+    starts = [
+        perturbed(TRUTH, 70.0, seed=3),
+        perturbed(TRUTH, 4.0, seed=2),
+        perturbed(TRUTH, 60.0, seed=4),
+        perturbed(TRUTH, 80.0, seed=7),
+    ]
+    noise = PoissonNoise(floor=1.0)
+    full = refine(model, data, starts, noise=noise)
+    assert [s.index for s in full.starts][0] == 1
+    assert all(s.cost > 1e3 for s in full.starts[1:])  # the far starts' local optima
+    scr = refine(model, data, starts, noise=noise, keep=1)
+    assert scr.success and scr.starts[0].index == 1
+    assert quat_angle_deg(scr.params.quaternion, TRUTH.quaternion) < 1e-5
+    np.testing.assert_allclose(scr.cost, full.cost, atol=1e-9)
+    out = [s for s in scr.starts if s.result == "screened_out"]
+    assert sorted(s.index for s in out) == [0, 2, 3]
+    assert all(not s.success and s.cost > 1e3 and s.n_rounds == 1 for s in out)
+    assert "keep=1" in out[0].message
+    assert sum(s.n_steps for s in scr.starts) < sum(s.n_steps for s in full.starts)
+    with pytest.raises(ValueError, match="keep=0"):
+        refine(model, data, starts, keep=0)
+    with pytest.raises(ValueError, match="screen_tol"):
+        refine(model, data, starts, keep=1, screen_tol=0.0)
+
+
 @pytest.mark.parametrize("solver", ["lm", "dogleg"])
 def test_solvers_on_tiny_model(solver):
     """LM (default) and Dogleg recover the truth of a cheap model; result codes surfaced."""
