@@ -163,6 +163,9 @@ class SamplerConfig(StrictModel):
     autocorr_tol: float = pydantic.Field(50.0, gt=0)
     seed: int = 0
     progress: bool = False
+    # emcee proposal: "stretch" (Goodman-Weare, emcee's default) or "de_snooker" (differential
+    # evolution 0.8 + DE snooker 0.2, ter Braak & Vrugt 2008; bench/bench_mcmc_moves.py)
+    moves: Literal["stretch", "de_snooker"] = "stretch"
 
     @pydantic.model_validator(mode="after")
     def _check(self):
@@ -506,7 +509,9 @@ def sample_posterior(
         p_start = sh.forward(p0)
     else:
         target, p_start = log_prob, p0
-    sampler = emcee.EnsembleSampler(sc.n_walkers, ndim, target, vectorize=True, backend=backend)
+    sampler = emcee.EnsembleSampler(
+        sc.n_walkers, ndim, target, vectorize=True, backend=backend, moves=_moves(sc.moves)
+    )
     sampler.random_state = np.random.RandomState(sc.seed).get_state()
     sampler.run_mcmc(p_start, sc.n_steps, progress=sc.progress)
 
@@ -540,6 +545,15 @@ def sample_posterior(
         elapsed_s=time.perf_counter() - t0,
         path=path,
     )
+
+
+def _moves(name: str):
+    """emcee proposal moves of ``SamplerConfig.moves``."""
+    if name == "stretch":
+        return emcee.moves.StretchMove()
+    if name == "de_snooker":
+        return [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+    raise ValueError(f"sampler.moves = {name!r}: use 'stretch' or 'de_snooker'")
 
 
 class _ReflectanceShear:

@@ -220,3 +220,36 @@ def test_reflectance_shear_is_a_unit_jacobian_bijection():
     r0 = np.abs((n - 1) / (n + 1)) ** 2
     assert np.isclose(sh.shift(theta[0]), np.log(np.mean(r0) + 1e-4), rtol=1e-12)
     assert not _ReflectanceShear.applies(Parametrisation(TRUTH_INTERIOR, ("attitude", "gain")))
+
+
+@pytest.mark.parametrize("moves", ["stretch", "de_snooker"])
+def test_gain_posterior_is_the_closed_form_gamma(moves):
+    """Poisson counts k with expected ``g t`` and a log-uniform gain prior: the posterior of
+    the gain is exactly Gamma(shape = sum k, rate = sum t) (background -> 0). Both emcee
+    proposals (``sampler.moves``) reproduce its 5/50/95 % quantiles to 0.1 posterior sd
+    (Monte Carlo error with >= 10^3 effective samples: ~0.04 sd)."""
+    from scipy import stats
+    from test_refine import TinyCounts, _sparse_counts
+
+    from inversion._params import PhysicalParams
+    from inversion._refine import PoissonCounts
+
+    model = TinyCounts(jnp.linspace(-0.2, 0.2, 24))
+    truth = PhysicalParams([1.0, 0, 0, 0], [12.0], [1.3 + 0.4j], range_offset=0.01, gain=0.02)
+    data, _ = _sparse_counts(model, truth, seed=5)
+    unit = PhysicalParams([1.0, 0, 0, 0], [12.0], [1.3 + 0.4j], range_offset=0.01, gain=1.0)
+    t_sum = float(np.asarray(model.expected(unit, model.prepare(unit))).sum())
+    post_ref = stats.gamma(a=data.sum(), scale=1.0 / t_sum)
+    noise = PoissonCounts(background=1e-12)
+    fit = refine(model, data, unit, noise=noise, free=("gain",))
+    cfg = mcmc_config_from_dict(
+        {
+            "priors": {"gain": {"kind": "loguniform", "low": 1e-6, "high": 1e6}},
+            "sampler": {"n_walkers": NW, "n_steps": 1500, "burn_in": 300, "moves": moves},
+        }
+    )
+    res = sample_posterior(model, data, fit, config=cfg, noise=noise)
+    g = res.samples[:, res.labels.index("gain")]
+    q = np.quantile(g, [0.05, 0.5, 0.95])
+    np.testing.assert_allclose(q, post_ref.ppf([0.05, 0.5, 0.95]), atol=0.1 * post_ref.std())
+    assert res.converged and np.min(res.ess) > 1000, res.summary()
