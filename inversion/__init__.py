@@ -44,7 +44,9 @@ from ._mcmc import (
     ChainTooShortWarning,
     MCMCConfig,
     MCMCResult,
+    ModeMixture,
     load_mcmc_config,
+    sample_modes,
     sample_posterior,
 )
 from ._noise import (
@@ -120,6 +122,8 @@ __all__ = [
     "MCMCResult",
     "load_mcmc_config",
     "sample_posterior",
+    "ModeMixture",
+    "sample_modes",
     "Parametrisation",
     "PhysicalParams",
     "CramerRao",

@@ -29,6 +29,7 @@ import dataclasses
 import math
 import time
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Literal
 
@@ -41,7 +42,15 @@ import pydantic
 
 from ppr._config import ConfigError, StrictModel, load_toml_model, validate_data
 
-from ._params import DEFAULT_FREE, LOG_M_MIN, U_N_IMAG_MIN, Parametrisation, PhysicalParams
+from ._params import (
+    DEFAULT_FREE,
+    LOG_M_MIN,
+    U_N_IMAG_MIN,
+    Parametrisation,
+    PhysicalParams,
+    quat_from_rotvec,
+    quat_multiply,
+)
 from ._refine import (
     PoissonNoise,
     RefineResult,
@@ -57,6 +66,8 @@ __all__ = [
     "ChainTooShortWarning",
     "MCMCConfig",
     "MCMCResult",
+    "ModeMixture",
+    "sample_modes",
     "PriorConfig",
     "SamplerConfig",
     "load_mcmc_config",
@@ -375,6 +386,18 @@ class MCMCResult:
         t = np.asarray(truth_vector)
         return (t >= iv[:, 0]) & (t <= iv[:, 1])
 
+    def quaternions(self) -> np.ndarray:
+        """Absolute attitude of every sample, ``(n, 4)`` scalar-first quaternions: the
+        rotation-vector samples (deg, about the reference) composed with the reference."""
+        par = self.parametrisation
+        q_ref = np.asarray(par.reference.unit_quaternion(), np.float64)
+        if "rot_x [deg]" not in self.labels:
+            return np.broadcast_to(q_ref, (len(self.samples), 4)).copy()
+        i = self.labels.index("rot_x [deg]")
+        rv = jnp.asarray(np.radians(self.samples[:, i : i + 3]))
+        dq = jax.vmap(quat_from_rotvec)(rv)
+        return np.asarray(quat_multiply(dq, jnp.broadcast_to(jnp.asarray(q_ref), dq.shape)))
+
     def truth_vector(self, truth: PhysicalParams) -> np.ndarray:
         """``truth`` in the coordinates of :attr:`samples` (attitude relative to the reference)."""
         par = self.parametrisation
@@ -545,6 +568,102 @@ def sample_posterior(
         elapsed_s=time.perf_counter() - t0,
         path=path,
     )
+
+
+# --------------------------------------------------------------------------- modes
+@dataclasses.dataclass(frozen=True)
+class ModeMixture:
+    """A posterior with separated modes, one chain per mode (:func:`sample_modes`).
+
+    - `modes`: one :class:`MCMCResult` per mode (samples in that mode's coordinates: the
+      attitude as a rotation vector about the mode's own optimum).
+    - `weights`: posterior probability of each mode, ``exp(-cost_k / 2)`` normalised (equal
+      prior mass and posterior volume: exact for the two modes of a parity symmetry,
+      :func:`inversion.mirror_check`); `costs` the modes' refined deviances.
+    """
+
+    modes: tuple[MCMCResult, ...]
+    weights: np.ndarray
+    costs: np.ndarray
+
+    def draw(self, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """``n`` draws from the mixture: (mode index, row of that mode's ``samples``)."""
+        rng = np.random.default_rng(seed)
+        k = rng.choice(len(self.modes), size=n, p=self.weights)
+        rows = np.array([rng.integers(len(self.modes[j].samples)) for j in k], dtype=int)
+        return k, rows
+
+    def quaternions(self, n: int = 4000, seed: int = 0) -> np.ndarray:
+        """``(n, 4)`` attitude draws from the mixture (absolute, scalar-first quaternions)."""
+        k, rows = self.draw(n, seed)
+        out = np.empty((n, 4))
+        for j, mode in enumerate(self.modes):
+            sel = k == j
+            if np.any(sel):
+                out[sel] = mode.quaternions()[rows[sel]]
+        return out
+
+    def interval(self, label: str, level: float = 0.68, n: int = 20000, seed: int = 0):
+        """Equal-tailed interval of a parameter that is not an attitude component (those are
+        relative to each mode's own optimum: use :meth:`quaternions`), over the mixture."""
+        if label.startswith("rot_"):
+            raise ValueError(
+                f"interval: {label!r} is relative to each mode's optimum; use quaternions()"
+            )
+        i = self.modes[0].labels.index(label)
+        k, rows = self.draw(n, seed)
+        x = np.array([self.modes[j].samples[r, i] for j, r in zip(k, rows, strict=True)])
+        q = 50 * (1 - level)
+        return np.percentile(x, [q, 100 - q])
+
+    def summary(self) -> str:
+        lines = [f"mode mixture: {len(self.modes)} modes"]
+        for j, (m, w, c) in enumerate(zip(self.modes, self.weights, self.costs, strict=True)):
+            lines.append(
+                f"  mode {j}: probability {w:.3g}, deviance {c:.6g}, "
+                f"acceptance {np.mean(m.acceptance_fraction):.2f}, max tau {np.max(m.tau):.1f}"
+            )
+        return "\n".join(lines)
+
+
+def sample_modes(
+    model,
+    data,
+    fits: Sequence[RefineResult],
+    *,
+    config: MCMCConfig | None = None,
+    noise=None,
+    **kwargs,
+) -> ModeMixture:
+    """Sample a posterior with several separated modes: one :func:`sample_posterior` chain
+    per refined optimum in `fits` (e.g. ``[chk.fit, chk.mirror]`` of an ambiguous
+    :func:`inversion.mirror_check`), weighted by ``exp(-cost / 2)``.
+
+    An ensemble sampler started in one mode stays there: its walkers cannot cross the
+    degrees-wide low-probability gap between the two attitudes of a parity ambiguity. Each mode
+    is sampled locally instead, and the modes are combined with their posterior
+    probabilities, which for the two mirror images (equal volumes) is the likelihood ratio.
+    `kwargs` go to :func:`sample_posterior` (``free``, ``range_scale``, ``shear``; ``path``
+    gets the mode index appended before its suffix).
+    """
+    if len(fits) < 1:
+        raise ValueError("sample_modes: fits is empty")
+    for j, f in enumerate(fits):
+        if not isinstance(f, RefineResult):
+            raise ValueError(f"sample_modes: fits[{j}] is {type(f).__name__}, not a RefineResult")
+        if not np.isfinite(f.cost):
+            raise ValueError(f"sample_modes: fits[{j}] has a non-finite cost ({f.cost})")
+    path = kwargs.pop("path", None)
+    modes = []
+    for j, f in enumerate(fits):
+        pj = None if path is None else Path(path).with_stem(f"{Path(path).stem}_mode{j}")
+        modes.append(
+            sample_posterior(model, data, f, config=config, noise=noise, path=pj, **kwargs)
+        )
+    costs = np.array([f.cost for f in fits], float)
+    logw = -0.5 * (costs - costs.min())
+    w = np.exp(logw)
+    return ModeMixture(modes=tuple(modes), weights=w / w.sum(), costs=costs)
 
 
 def _moves(name: str):
