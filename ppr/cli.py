@@ -1280,6 +1280,19 @@ def cmd_invert(args) -> int:
                     post = inversion.sample_posterior(
                         model, data, fit.params, config=mcfg, free=tuple(cfg.free), noise=noise
                     )
+                    # an ambiguous mirror check: the posterior has a second mode the chain
+                    # cannot reach; sample it too (inversion.sample_modes' weighting)
+                    post_m = None
+                    if mirror is not None and mirror["ambiguous"]:
+                        other = chk.fit if chk.delta_deviance < 0 else chk.mirror
+                        post_m = inversion.sample_posterior(
+                            model,
+                            data,
+                            other.params,
+                            config=mcfg,
+                            free=tuple(cfg.free),
+                            noise=noise,
+                        )
                 except ValueError as err:
                     raise ConfigError(f"{cfg_path}: mcmc: {err}") from None
             lo68, hi68 = post.interval(0.68).T
@@ -1300,12 +1313,32 @@ def cmd_invert(args) -> int:
                 tv = post.truth_vector(truth)
                 summary["mcmc"]["truth_vector"] = tv
                 summary["mcmc"]["truth_in_95"] = post.contains(tv, 0.95)
+            if post_m is not None:
+                # the other mirror image's mode: its probability (equal volumes), the
+                # quaternion it is centred on, and its intervals (attitude relative to it)
+                p_other = min(mirror["mirror_probability"], 1.0 - mirror["mirror_probability"])
+                lo68m, hi68m = post_m.interval(0.68).T
+                lo95m, hi95m = post_m.interval(0.95).T
+                summary["mcmc"]["mode_probability"] = 1.0 - p_other
+                summary["mcmc"]["mirror_mode"] = {
+                    "probability": p_other,
+                    "quaternion": np.asarray(other.params.unit_quaternion()),
+                    "median": post_m.median(),
+                    "interval68": np.stack([lo68m, hi68m], -1),
+                    "interval95": np.stack([lo95m, hi95m], -1),
+                    "acceptance_fraction": float(np.mean(post_m.acceptance_fraction)),
+                    "tau": post_m.tau,
+                    "converged": bool(post_m.converged),
+                }
             chain = {
                 "chain": post.chain,
                 "log_prob": post.log_prob,
                 "samples": post.samples,
                 "labels": np.array(post.labels),
             }
+            if post_m is not None:
+                chain["mirror_chain"] = post_m.chain
+                chain["mirror_samples"] = post_m.samples
             post.corner_plot(out.path("invert_corner.png"), truth=truth)
         write_json(out.path("invert.json"), summary)
         np.savez_compressed(out.path("invert_chain.npz"), data=data, **chain)

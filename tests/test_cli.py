@@ -447,6 +447,16 @@ def test_invert_end_to_end(tmp_path, capsys):
     mc = summary["mirror_check"]
     assert abs(mc["delta_deviance"]) < 1e-6 * summary["refine"]["cost"] + 1e-6
     assert mc["ambiguous"] and abs(mc["mirror_probability"] - 0.5) < 1e-3
+    # ... which the MCMC samples too, centred on the mirror image, with its probability
+    mm = summary["mcmc"]["mirror_mode"]
+    assert abs(mm["probability"] - 0.5) < 1e-3
+    assert abs(summary["mcmc"]["mode_probability"] + mm["probability"] - 1) < 1e-12
+    if not mc["swapped"]:  # centred on the mirror image (else on the fit it replaced)
+        assert abs(abs(np.dot(mm["quaternion"], mc["mirror_quaternion"])) - 1) < 1e-9
+    assert abs(np.dot(mm["quaternion"], summary["refine"]["quaternion"])) < 1 - 1e-6
+    assert len(mm["interval95"]) == len(summary["mcmc"]["labels"])
+    with np.load(out / "invert_chain.npz") as z:
+        assert z["mirror_chain"].shape == z["chain"].shape
     ref = summary["refine"]  # errors modulo the cube's rotations (and mirror) are no larger
     assert ref["attitude_error_mod_symmetry_deg"] <= ref["attitude_error_deg"] + 1e-9
     assert ref["los_error_mod_mirror_deg"] <= ref["los_error_deg"] + 1e-9
