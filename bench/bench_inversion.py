@@ -229,25 +229,50 @@ def nearest_material(n) -> int:
     return int(np.argmin(np.abs(cat - complex(n))))
 
 
-def truth_in_symmetry(q_true, q_est, sym):
-    """The equivalent of ``q_true`` closest to ``q_est``: its body-symmetry images ``q g`` and
-    those of its mirror image (``inversion.mirror_attitude``; same range profiles, Mueller
-    ``D M D``), when the shape has a mirror plane. A chain that sampled the mirror mode is
-    scored against the truth's mirror image (the two modes are the data's ambiguity, recorded
-    per observation by ``inversion.mirror_check``)."""
+def truth_equivalents(q_true, sym):
+    """Every attitude equivalent to ``q_true`` for a shape of symmetry ``sym``: its images
+    ``q g`` under the body's rotations and, when the body has a mirror plane, those of its
+    mirror image (``inversion.mirror_attitude``; same range profiles, Mueller ``D M D``)."""
     g = symmetry_group(sym)
     heads = [np.asarray(q_true, float)]
     normal = body_mirror_normal(sym)
     if normal is not None:
         heads.append(mirror_attitude(q_true, normal))
-    cands = np.concatenate(
+    return np.concatenate(
         [
             np.asarray(quat_multiply(jnp.asarray(np.broadcast_to(h, g.shape)), jnp.asarray(g)))
             for h in heads
         ]
     )
+
+
+def truth_in_symmetry(q_true, q_est, sym):
+    """The equivalent of ``q_true`` (:func:`truth_equivalents`) closest to ``q_est``."""
+    cands = truth_equivalents(q_true, sym)
     d = np.abs(cands @ np.asarray(q_est, float))
     return cands[int(np.argmax(d))]
+
+
+def truth_for_posterior(post, truth, sym):
+    """The truth as scored against a posterior: of its equivalents (:func:`truth_equivalents`,
+    all giving the same data), the one nearest the posterior in the posterior's own metric
+    (Mahalanobis distance of the attitude components from the median, with the samples'
+    covariance). The geodesically nearest one (:func:`truth_in_symmetry`) is the wrong choice
+    when the roll is unconstrained: a degrees-wide line-of-sight mismatch is then cheaper
+    than a tens-of-degrees roll difference, which the posterior does not care about."""
+    labels = post.labels
+    i = labels.index("rot_x [deg]")
+    att = post.samples[:, i : i + 3]
+    mu = np.median(att, axis=0)
+    prec = np.linalg.pinv(np.cov(att.T))
+    best, best_d = None, np.inf
+    for q in truth_equivalents(np.asarray(truth.quaternion), sym):
+        t = PhysicalParams(q, truth.m, truth.n, truth.corr_length, truth.range_offset, truth.gain)
+        x = post.truth_vector(t)[i : i + 3] - mu
+        d = float(x @ prec @ x)
+        if d < best_d:
+            best, best_d = t, d
+    return best
 
 
 def make_observations(models, n_obs, snrs, seed):
@@ -497,12 +522,7 @@ def run_one(o, models, bank, prep, k, mcmc_cfg, do_mcmc):
     n_med = med[labels.index("n_re[0]")] + 1j * med[labels.index("n_im[0]")]
     cover = {}
     if shape_ok:
-        tq = truth_in_symmetry(
-            np.asarray(truth.quaternion), np.asarray(fit.params.quaternion), sym_of[o["shape"]]
-        )
-        t_eq = PhysicalParams(
-            tq, truth.m, truth.n, truth.corr_length, truth.range_offset, truth.gain
-        )
+        t_eq = truth_for_posterior(post, truth, sym_of[o["shape"]])
         tv = post.truth_vector(t_eq)
         # a truth on a parameter's hard boundary (n'' = 0 for a dielectric) is never inside an
         # equal-tailed interval of a positive parameter: such entries are left out of the

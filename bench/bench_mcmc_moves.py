@@ -27,7 +27,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_inversion as B  # noqa: E402  (sets x64 and the shared models)
 
 from inversion._mcmc import ChainTooShortWarning, mcmc_config_from_dict, sample_posterior  # noqa: E402
-from inversion._params import PhysicalParams  # noqa: E402
 from inversion._refine import refine  # noqa: E402
 
 CASES = ((1, 1000.0), (5, 1000.0), (3, 1000.0), (1, 100.0), (5, 100.0))  # (truth index, SNR)
@@ -62,15 +61,10 @@ def main():
         o = obs[snr][idx]
         model, truth = models[o["shape"]], o["truth"]
         fit = refine(model, o["data"], [truth], noise=B.NOISE, max_steps=100, rounds=3)
-        tq = B.truth_in_symmetry(
-            np.asarray(truth.quaternion), np.asarray(fit.params.quaternion), B.SHAPES[o["shape"]][1]
-        )
-        t_eq = PhysicalParams(
-            tq, truth.m, truth.n, truth.corr_length, truth.range_offset, truth.gain
-        )
         for steps in (300, 1500):
             for moves in ("stretch", "de_snooker"):
                 post, dt = run(model, o["data"], fit, moves, steps)
+                t_eq = B.truth_for_posterior(post, truth, B.SHAPES[o["shape"]][1])
                 lo, hi = post.interval(0.68).T
                 z = (post.truth_vector(t_eq) - post.median()) / np.maximum(0.5 * (hi - lo), 1e-300)
                 keep = [i for i, lab in enumerate(post.labels) if lab != "gain"]
