@@ -229,6 +229,31 @@ def nearest_material(n) -> int:
     return int(np.argmin(np.abs(cat - complex(n))))
 
 
+def chain_config(steps, moves="stretch"):
+    """The MCMC benches' sampler: 24 walkers, ``steps`` steps (a third burned in), the
+    starting ball at half the Laplace scale, a log-uniform gain prior wide enough for the
+    simulator's m^2/sr units."""
+    return mcmc_config_from_dict(
+        {
+            "priors": {"gain": {"kind": "loguniform", "low": 1e-30, "high": 1e30}},
+            "sampler": {
+                "n_walkers": 24,
+                "n_steps": steps,
+                "burn_in": steps // 3,
+                "init_scale": 0.5,
+                "progress": False,
+                "moves": moves,
+            },
+        }
+    )
+
+
+def z_scores(post, t_eq):
+    """(truth - posterior median) / 68 % half-width per parameter, and the 68 % bounds."""
+    lo, hi = post.interval(0.68).T
+    return (post.truth_vector(t_eq) - post.median()) / np.maximum(0.5 * (hi - lo), 1e-300), lo, hi
+
+
 def truth_equivalents(q_true, sym):
     """Every attitude equivalent to ``q_true`` for a shape of symmetry ``sym``: its images
     ``q g`` under the body's rotations and, when the body has a mirror plane, those of its
@@ -734,19 +759,8 @@ def main(argv=None):
         f"{[round(r, 1) for r in bank.resolution_deg]} deg",
         flush=True,
     )
-    mcmc_cfg = mcmc_config_from_dict(
-        {
-            # the simulator returns m^2/sr per bin: counts need gains of ~1e15-1e20
-            "priors": {"gain": {"kind": "loguniform", "low": 1e-30, "high": 1e30}},
-            "sampler": {
-                "n_walkers": 24,
-                "n_steps": args.mcmc_steps,
-                "burn_in": args.mcmc_steps // 3,
-                "init_scale": 0.5,
-                "progress": False,
-            },
-        }
-    )
+    # the simulator returns m^2/sr per bin: counts need gains of ~1e15-1e20 (chain_config)
+    mcmc_cfg = chain_config(args.mcmc_steps)
     obs = make_observations(models, args.n_per_snr, args.snrs, args.seed)
     # warm-up (compilation) on a separate observation, timed separately
     t0 = time.perf_counter()

@@ -26,25 +26,14 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_inversion as B  # noqa: E402  (sets x64 and the shared models)
 
-from inversion._mcmc import ChainTooShortWarning, mcmc_config_from_dict, sample_posterior  # noqa: E402
+from inversion._mcmc import ChainTooShortWarning, sample_posterior  # noqa: E402
 from inversion._refine import refine  # noqa: E402
 
 CASES = ((1, 1000.0), (5, 1000.0), (3, 1000.0), (1, 100.0), (5, 100.0))  # (truth index, SNR)
 
 
 def run(model, data, fit, moves, steps):
-    cfg = mcmc_config_from_dict(
-        {
-            "priors": {"gain": {"kind": "loguniform", "low": 1e-30, "high": 1e30}},
-            "sampler": {
-                "n_walkers": 24,
-                "n_steps": steps,
-                "burn_in": steps // 3,
-                "init_scale": 0.5,
-                "moves": moves,
-            },
-        }
-    )
+    cfg = B.chain_config(steps, moves)
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ChainTooShortWarning)
@@ -65,8 +54,7 @@ def main():
             for moves in ("stretch", "de_snooker"):
                 post, dt = run(model, o["data"], fit, moves, steps)
                 t_eq = B.truth_for_posterior(post, truth, B.SHAPES[o["shape"]][1])
-                lo, hi = post.interval(0.68).T
-                z = (post.truth_vector(t_eq) - post.median()) / np.maximum(0.5 * (hi - lo), 1e-300)
+                z = B.z_scores(post, t_eq)[0]
                 keep = [i for i, lab in enumerate(post.labels) if lab != "gain"]
                 rows.append(
                     (

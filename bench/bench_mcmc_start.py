@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_inversion as B  # noqa: E402  (sets x64 and the shared models)
 
 import inversion._mcmc as MC  # noqa: E402
-from inversion._mcmc import ChainTooShortWarning, mcmc_config_from_dict, sample_posterior  # noqa: E402
+from inversion._mcmc import ChainTooShortWarning, sample_posterior  # noqa: E402
 from inversion._params import PhysicalParams  # noqa: E402
 from inversion._refine import refine  # noqa: E402
 
@@ -68,18 +68,7 @@ def main():
         ):
             MC._ball_root = root
             for steps in (300, 1500):
-                cfg = mcmc_config_from_dict(
-                    {
-                        "priors": {"gain": {"kind": "loguniform", "low": 1e-30, "high": 1e30}},
-                        "sampler": {
-                            "n_walkers": 24,
-                            "n_steps": steps,
-                            "burn_in": steps // 3,
-                            "init_scale": 0.5,
-                            "progress": False,
-                        },
-                    }
-                )
+                cfg = B.chain_config(steps)
                 t0 = time.perf_counter()
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", ChainTooShortWarning)
@@ -87,8 +76,7 @@ def main():
                         model, o["data"], fit, config=cfg, noise=B.NOISE, shear=shear
                     )
                 dt = time.perf_counter() - t0
-                lo, hi = post.interval(0.68).T
-                z = (post.truth_vector(t_eq) - post.median()) / np.maximum(0.5 * (hi - lo), 1e-300)
+                z, lo, hi = B.z_scores(post, t_eq)
                 lab = post.labels
                 i_roll, i_n = lab.index("rot_z [deg]"), lab.index("n_re[0]")
                 rows.append(
