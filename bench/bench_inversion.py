@@ -54,6 +54,7 @@ from inversion._database import TemplateBank  # noqa: E402
 from inversion._grid import (  # noqa: E402
     AttitudeGrid,
     body_mirror_normal,
+    los_half_turn,
     mirror_attitude,
     random_quaternions,
     symmetry_group,
@@ -258,18 +259,21 @@ def z_scores(post, t_eq):
 def truth_equivalents(q_true, sym):
     """Every attitude equivalent to ``q_true`` for a shape of symmetry ``sym``: its images
     ``q g`` under the body's rotations and, when the body has a mirror plane, those of its
-    mirror image (``inversion.mirror_attitude``; same range profiles, Mueller ``D M D``)."""
+    mirror image (``inversion.mirror_attitude``; same range profiles, Mueller ``D M D``),
+    and the half turns of all these about the line of sight (``inversion.los_half_turn``:
+    identical monostatic data)."""
     g = symmetry_group(sym)
     heads = [np.asarray(q_true, float)]
     normal = body_mirror_normal(sym)
     if normal is not None:
         heads.append(mirror_attitude(q_true, normal))
-    return np.concatenate(
+    out = np.concatenate(
         [
             np.asarray(quat_multiply(jnp.asarray(np.broadcast_to(h, g.shape)), jnp.asarray(g)))
             for h in heads
         ]
     )
+    return np.concatenate([out, los_half_turn(out)])
 
 
 def truth_in_symmetry(q_true, q_est, sym):
@@ -357,9 +361,25 @@ def candidate_start(bank, row, shift_bins, data, model):
 def _att_errors(truth, q_est, sym, shape_ok):
     """Attitude and line-of-sight errors (deg, modulo the symmetry); NaN for a wrong shape."""
     if not shape_ok:
-        return dict(att_deg=float("nan"), los_deg=float("nan"), los_mirror_deg=float("nan"))
+        return dict(
+            att_deg=float("nan"),
+            att_sym_deg=float("nan"),
+            los_deg=float("nan"),
+            los_mirror_deg=float("nan"),
+        )
     return dict(
         att_deg=float(attitude_error_deg(truth.quaternion, q_est, sym)[0]),
+        # modulo what no monostatic measurement can tell: the half turn about the line of
+        # sight (exact for any body) and the mirror image (for bodies with a mirror plane)
+        att_sym_deg=float(
+            attitude_error_deg(
+                truth.quaternion,
+                q_est,
+                sym,
+                mirror=body_mirror_normal(sym) is not None,
+                half_turn=True,
+            )[0]
+        ),
         los_deg=float(line_of_sight_error_deg(truth.quaternion, q_est, sym)[0]),
         # modulo the mirror image too: the part of the error the data can tell at all when the
         # off-block Mueller elements are below the noise (inversion.mirror_check)
@@ -608,6 +628,7 @@ def summarize(results, stages):
                 los_median=float(np.median(los_b)),
                 los_le1=float(np.mean(los_b <= 1.0)),
                 los_mirror_median=float("nan"),
+                att_sym_median=float("nan"),
                 mirror_ambiguous=float("nan"),
                 roll_median=float(np.median([c["roll_deg"] for c in crb])),
                 m_rel_median=float(np.median([c["m_rel"] for c in crb])),
@@ -625,6 +646,7 @@ def summarize(results, stages):
             att = np.array([x["att_deg"] for x in rs])
             los = np.array([x["los_deg"] for x in rs])
             los_m = np.array([x["los_mirror_deg"] for x in rs])
+            att_s = np.array([x.get("att_sym_deg", np.nan) for x in rs])
             amb = [x["mirror_ambiguous"] for x in rs if "mirror_ambiguous" in x]
             rows.append(
                 dict(
@@ -641,6 +663,9 @@ def summarize(results, stages):
                     los_le1=float(np.mean(np.nan_to_num(los, nan=1e9) <= 1.0)),
                     los_mirror_median=float(np.nanmedian(los_m))
                     if np.any(np.isfinite(los_m))
+                    else float("nan"),
+                    att_sym_median=float(np.nanmedian(att_s))
+                    if np.any(np.isfinite(att_s))
                     else float("nan"),
                     mirror_ambiguous=float(np.mean(amb)) if amb else float("nan"),
                     roll_median=float("nan"),
@@ -862,13 +887,17 @@ def main(argv=None):
         "better. `LOS err mod mirror` counts the mirror image's line of sight as right; "
         "`mirror ambiguous` is the fraction of observations whose two modes both keep "
         "posterior probability above 5% (for `oracle`: the check run from the truth-started "
-        "fit, i.e. what the data themselves cannot tell, search aside).",
+        "fit, i.e. what the data themselves cannot tell, search aside). `att err mod half "
+        "turn, mirror` is the attitude error modulo the shape's rotations, the half turn about "
+        "the line of sight (`inversion.los_half_turn`: an exact symmetry of any monostatic "
+        "measurement) and the mirror image: the part of the attitude the data can tell at all.",
         "",
         "| SNR | stage | n | attitude err median (deg) | att <= 1 deg | LOS err median (deg) | "
-        "LOS <= 1 deg | LOS err mod mirror median (deg) | mirror ambiguous | "
+        "LOS <= 1 deg | LOS err mod mirror median (deg) | att err mod half turn, mirror "
+        "median (deg) | mirror ambiguous | "
         "m rel err median | abs(n err) median | shape acc | material acc | "
         "shape+material | time median (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
 
     def f(x, fmt):
@@ -878,7 +907,8 @@ def main(argv=None):
         lines.append(
             f"| {r['snr']:g} | {r['stage']} | {r['n']} | {f(r['att_median'], '.3g')} | "
             f"{r['att_le1']:.2f} | {f(r['los_median'], '.3g')} | {r['los_le1']:.2f} | "
-            f"{f(r['los_mirror_median'], '.3g')} | {f(r['mirror_ambiguous'], '.2f')} | "
+            f"{f(r['los_mirror_median'], '.3g')} | {f(r['att_sym_median'], '.3g')} | "
+            f"{f(r['mirror_ambiguous'], '.2f')} | "
             f"{f(r['m_rel_median'], '.3g')} | {f(r['n_err_median'], '.3g')} | "
             f"{f(r['shape_acc'], '.2f')} | {f(r['material_acc'], '.2f')} | "
             f"{f(r['both_acc'], '.2f')} | {f(r['time_median'], '.3g')} |"

@@ -44,7 +44,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._database import TemplateBank
-from ._grid import body_mirror_normal, geodesic_deg, mirror_attitude, quat_mul, symmetry_group
+from ._grid import (
+    body_mirror_normal,
+    geodesic_deg,
+    los_half_turn,
+    mirror_attitude,
+    quat_mul,
+    symmetry_group,
+)
 from ._noise import Observation, canonical_sensor
 
 WEIGHT_KINDS = ("uniform", "channel", "range", "fisher")
@@ -532,31 +539,42 @@ def score_pair(x: np.ndarray, y: np.ndarray, w: np.ndarray, shift: int) -> float
     return float(num / den) if den > 0 else 0.0
 
 
-def _equivalents(q_est, symmetry, mirror: bool) -> np.ndarray:
+def _equivalents(q_est, symmetry, mirror: bool, half_turn: bool = False) -> np.ndarray:
     """``(N, G', 4)``: the attitudes equivalent to each estimate, ``q g`` for the rotations
-    ``g`` of the symmetry and, with ``mirror``, also the mirror image's ``P q sigma g``."""
+    ``g`` of the symmetry; with ``mirror`` also the mirror image's ``P q sigma g``; with
+    ``half_turn`` also all of those turned by 180 deg about the line of sight
+    (:func:`inversion.los_half_turn`)."""
     g = symmetry_group(symmetry) if isinstance(symmetry, str) else np.asarray(symmetry)
     q_est = np.atleast_2d(q_est)
     cand = quat_mul(q_est[:, None, :], g[None, :, :])
-    if not mirror:
-        return cand
-    normal = body_mirror_normal(symmetry) if isinstance(symmetry, str) else None
-    if normal is None:
-        raise ValueError(
-            f"mirror=True needs a named symmetry with a mirror plane (dihedral:n, octahedral), "
-            f"got {symmetry!r}"
-        )
-    return np.concatenate([cand, quat_mul(mirror_attitude(q_est, normal)[:, None, :], g)], 1)
+    if mirror:
+        normal = body_mirror_normal(symmetry) if isinstance(symmetry, str) else None
+        if normal is None:
+            raise ValueError(
+                f"mirror=True needs a named symmetry with a mirror plane (dihedral:n, "
+                f"octahedral), got {symmetry!r}"
+            )
+        cand = np.concatenate([cand, quat_mul(mirror_attitude(q_est, normal)[:, None, :], g)], 1)
+    if half_turn:
+        cand = np.concatenate([cand, los_half_turn(cand)], 1)
+    return cand
 
 
 def attitude_error_deg(
-    q_true, q_est, symmetry: str | np.ndarray = "none", *, mirror: bool = False
+    q_true,
+    q_est,
+    symmetry: str | np.ndarray = "none",
+    *,
+    mirror: bool = False,
+    half_turn: bool = False,
 ) -> np.ndarray:
     """Geodesic angle (deg) between attitudes modulo the shape's symmetry group; with
     ``mirror=True`` also modulo the mirror image (:func:`inversion.mirror_attitude`, world
-    mirror through the sensor's x-z plane)."""
+    mirror through the sensor's x-z plane); with ``half_turn=True`` also modulo a half turn
+    about the line of sight (:func:`inversion.los_half_turn`), an exact symmetry of every
+    monostatic measurement."""
     q_true = np.atleast_2d(q_true)
-    cand = _equivalents(q_est, symmetry, mirror)
+    cand = _equivalents(q_est, symmetry, mirror, half_turn)
     return geodesic_deg(q_true[:, None, :], cand).min(axis=1)
 
 

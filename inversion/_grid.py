@@ -273,6 +273,24 @@ def mirror_attitude(q, body_normal=(0.0, 0.0, 1.0), world_normal=(0.0, 1.0, 0.0)
     return canonical_sign(out)
 
 
+def los_half_turn(q, los=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """The attitude turned by 180 deg about the world line of sight: ``C2(los) (x) q``.
+
+    An exact symmetry of every monostatic measurement, whatever the body: the turn keeps
+    every depth along the line of sight, and it rotates the sensor's polarization frame by
+    180 deg, which is the identity on Stokes vectors (the frame rotation of a Mueller matrix
+    goes with twice the angle). So ``q`` and its half turn give identical data in every
+    channel and bin (``tests/test_pulse.py``); only a bistatic receiver, off the line of
+    sight, breaks it. Unlike the mirror image, the half turn keeps the line of sight in the
+    body frame. ``los``: the world line of sight (``+z`` for the canonical sensor).
+    """
+    a = np.asarray(los, np.float64)
+    if a.shape != (3,) or not np.isclose(np.linalg.norm(a), 1.0, atol=1e-9):
+        raise ValueError(f"los_half_turn: los must be a unit 3-vector, got {a.tolist()}")
+    q = np.asarray(q, np.float64)
+    return canonical_sign(quat_mul(np.broadcast_to(np.concatenate([[0.0], a]), q.shape), q))
+
+
 def symmetry_group(name: str) -> np.ndarray:
     """Rotation group of a shape as ``(|G|, 4)`` quaternions (identity first).
 

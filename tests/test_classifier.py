@@ -273,3 +273,32 @@ def test_candidates_cover_every_shape(bank, exact):
         full.candidates(bank, per_shape=-1)
     with pytest.raises(ValueError, match="obs=1"):
         full.candidates(bank, obs=1)
+
+
+def test_half_turn_about_line_of_sight_in_attitude_errors():
+    """``los_half_turn`` is ``C2(z) q``: an involution (up to sign), 180 deg from ``q``, with
+    the same body-frame line of sight; ``attitude_error_deg(half_turn=True)`` counts it as
+    the same attitude, ``line_of_sight_error_deg`` never sees it."""
+    from inversion import los_half_turn
+    from inversion._classifier import line_of_sight_error_deg
+    from inversion._grid import geodesic_deg
+
+    rng = np.random.default_rng(4)
+    q = rng.normal(size=(5, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    h = los_half_turn(q)
+    np.testing.assert_allclose(np.abs(np.sum(los_half_turn(h) * q, axis=1)), 1.0, atol=1e-12)
+    np.testing.assert_allclose(geodesic_deg(q, h), 180.0, atol=1e-6)
+    np.testing.assert_allclose(attitude_error_deg(q, h, "none"), 180.0, atol=1e-6)
+    np.testing.assert_allclose(attitude_error_deg(q, h, "none", half_turn=True), 0.0, atol=1e-5)
+    np.testing.assert_allclose(line_of_sight_error_deg(q, h, "none"), 0.0, atol=1e-5)
+    # with the mirror too: the half turn of the mirror image is equivalent as well
+    from inversion import mirror_attitude
+
+    hm = los_half_turn(mirror_attitude(q, [0.0, 0.0, 1.0]))
+    assert np.all(attitude_error_deg(q, hm, "dihedral:4", mirror=True) > 1.0)
+    np.testing.assert_allclose(
+        attitude_error_deg(q, hm, "dihedral:4", mirror=True, half_turn=True), 0.0, atol=1e-5
+    )
+    with pytest.raises(ValueError, match="unit 3-vector"):
+        los_half_turn(q, los=(0.0, 0.0, 2.0))

@@ -359,6 +359,39 @@ def test_mirror_image_scene_gives_mirrored_mueller_profile(mesh_fn, mat):
     assert np.abs(m0[:2, 2:]).max() > 1e-4 * scale
 
 
+def test_half_turn_about_line_of_sight_is_exact_for_monostatic_data():
+    """A half turn of the scene about the line of sight keeps every depth and rotates the
+    sensor's polarization frame by 180 deg, the identity on Stokes vectors: the monostatic
+    Mueller profiles at ``C2(los) R`` and ``R`` are identical in all 16 elements, for any body
+    (here non-convex and self-shadowing, three materials, full BRDF). This attitude ambiguity
+    is exact, unlike the mirror image it needs no body symmetry, and it keeps the body-frame
+    line of sight (inversion.los_half_turn). A quarter turn, or a bistatic receiver, breaks
+    it (the check is not vacuous)."""
+    from inversion import los_half_turn
+    from inversion._params import quat_from_rotvec, quat_multiply
+
+    mesh = shapes.cubesat_with_panels(3)
+    mats = [ppr.Material(0.94 + 6.42j, 5.0), ppr.Material(1.5, 300.0), ppr.Material(2.6, 3.0)]
+    q = _random_rotation(21)
+    q_half = los_half_turn(q)  # sensor line of sight: world z
+    quarter = np.asarray(
+        quat_multiply(quat_from_rotvec(jnp.asarray([0, 0, np.pi / 2])), jnp.asarray(q))
+    )
+
+    def sim(qq, sensor=None):
+        sc = _scene(mesh, qq, sensor=sensor, materials=mats, width=0.01, n_bins=64)
+        return np.asarray(ppr.simulate(sc).data)
+
+    m0, m1, m4 = sim(q), sim(q_half), sim(quarter)
+    scale = np.abs(m0).max()
+    np.testing.assert_allclose(m1, m0, rtol=0, atol=1e-12 * scale)
+    assert np.abs(m0[:2, 2:]).max() > 1e-4 * scale  # off-block elements present
+    assert np.abs(m4 - m0).max() > 1e-3 * scale  # a quarter turn is seen
+    bi = ppr.Sensor.make((0, 0, -1.0), bistatic_angle=0.3, bistatic_azimuth=0.4)
+    b0, b1 = sim(q, bi), sim(q_half, bi)
+    assert np.abs(b1 - b0).max() > 1e-3 * np.abs(b0).max()
+
+
 def test_range_offset_shifts_profile_exactly():
     mesh = shapes.cubesat_with_panels(3)
     q = _random_rotation(5)
