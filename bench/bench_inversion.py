@@ -78,7 +78,9 @@ from inversion._refine import (  # noqa: E402
 NOISE = PoissonCounts(background=1e-3)
 
 OUT = Path(__file__).resolve().parent / "results"
-BOUNDS = PhysicalBounds()  # physical box (also the MCMC's uniform index prior)
+# physical box (also the MCMC's uniform index prior); the simulator returns m^2/sr per bin,
+# so counts need gains of ~1e15-1e20, far outside PhysicalBounds' default gain range
+BOUNDS = PhysicalBounds(gain=(1e-30, 1e30))
 NOTES = (
     "Notes: with a monostatic sensor and a single-bounce BRDF the returning microfacets face the "
     "sensor, the Fresnel factor is the normal-incidence scalar and the unknown gain absorbs it: "
@@ -513,6 +515,7 @@ def run_one(o, models, bank, prep, k, mcmc_cfg, do_mcmc):
         noise=NOISE,
         max_steps=100,
         rounds=2,
+        bounds=BOUNDS,
     )
     fit = chk.best
     t_ref = time.perf_counter() - t0

@@ -813,6 +813,7 @@ def mirror_check(
     max_steps: int = 200,
     rounds: int = 2,
     solver: str | Any = "lm",
+    bounds: PhysicalBounds | None = None,
 ) -> MirrorCheck:
     """Refine from the mirror image of ``fit`` and compare the two optima.
 
@@ -829,7 +830,10 @@ def mirror_check(
     `world_normal`: normal of the world mirror plane, which must hold the line of sight and the
     sensor's x polarization reference (``+y`` for the canonical sensor; for a bistatic
     sensor the receiver direction too). `max_steps`, `rounds`, `solver`: as in :func:`refine`
-    (the same `max_steps` as the fit's reuses its compilation).
+    (the same `max_steps` as the fit's reuses its compilation). `bounds`: a physical box
+    (:class:`PhysicalBounds`); when the unbounded mirror refit leaves it
+    (:meth:`RefineResult.outside_bounds`), the mirror is refit from the same start with
+    :func:`refine_bounded`, as one would the fit itself.
     """
     from ._classifier import line_of_sight_error_deg
     from ._grid import body_mirror_normal, mirror_attitude
@@ -856,6 +860,17 @@ def mirror_check(
         rounds=rounds,
         range_scale=fit.parametrisation.range_scale,
     )
+    if bounds is not None and mirror.outside_bounds(bounds):
+        mirror = refine_bounded(
+            model,
+            data,
+            [start],
+            noise=noise,
+            bounds=bounds,
+            free=fit.parametrisation.free,
+            rounds=rounds,
+            range_scale=fit.parametrisation.range_scale,
+        )
     sep = line_of_sight_error_deg(
         np.asarray(p.quaternion), np.asarray(mirror.params.quaternion), symmetry
     )[0]

@@ -621,6 +621,16 @@ def test_bounded_refine_recovers_truth_and_respects_bounds():
     )
     assert far.outside_bounds() == ["n_re[0] = 7.3 outside [0.05, 5]"]
     assert "outside the physical box (refit with refine_bounded)" in far.summary()
+    # mirror_check(bounds=): a mirror refit outside the box is redone with L-BFGS-B
+    from inversion._refine import mirror_check
+
+    fit = refine(model, data, tiny_start(), noise=noise, free=TINY_FREE)
+    free_chk = mirror_check(model, data, fit, "dihedral:4", noise=noise)
+    assert free_chk.mirror.outside_bounds(tight) and free_chk.mirror.method != "lbfgsb_jaxopt"
+    chk = mirror_check(model, data, fit, "dihedral:4", noise=noise, bounds=tight)
+    assert chk.mirror.method == "lbfgsb_jaxopt" and chk.mirror.outside_bounds(tight) == []
+    assert abs(float(np.real(np.asarray(chk.mirror.params.n))[0]) - 1.2) < 1e-9
+    assert chk.delta_deviance > 1.0 and chk.best is fit  # the boxed mirror fits worse
 
 
 # --------------------------------------------------------------------------- ppr simulator
