@@ -258,6 +258,13 @@ def z_scores(post, t_eq):
     return (post.truth_vector(t_eq) - post.median()) / np.maximum(0.5 * (hi - lo), 1e-300), lo, hi
 
 
+def chain_row(case, variant, steps, dt, post, *rest):
+    """A result row of the MCMC benches: case, variant, steps, seconds, the largest
+    integrated autocorrelation time, the mean acceptance fraction, then ``rest``."""
+    tau, acc = float(np.max(post.tau)), float(np.mean(post.acceptance_fraction))
+    return (case, variant, steps, dt, tau, acc, *rest)
+
+
 def truth_equivalents(q_true, sym):
     """Every attitude equivalent to ``q_true`` for a shape of symmetry ``sym``: its images
     ``q g`` under the body's rotations and, when the body has a mirror plane, those of its

@@ -56,17 +56,18 @@ def main():
                 t_eq = B.truth_for_posterior(post, truth, B.SHAPES[o["shape"]][1])
                 z = B.z_scores(post, t_eq)[0]
                 keep = [i for i, lab in enumerate(post.labels) if lab != "gain"]
+                case = f"{o['shape']}/{o['material']} m={float(truth.m[0]):.0f} SNR {snr:g}"
+                az = np.abs(z[keep])
                 rows.append(
-                    (
-                        f"{o['shape']}/{o['material']} m={float(truth.m[0]):.0f} SNR {snr:g}",
+                    B.chain_row(
+                        case,
                         moves,
                         steps,
                         dt,
-                        float(np.max(post.tau)),
-                        float(np.mean(post.acceptance_fraction)),
+                        post,
                         float(np.min(post.ess)) / dt,
-                        float(np.max(np.abs(z[keep]))),
-                        int(np.sum(np.abs(z[keep]) <= 1.0)),
+                        float(np.max(az)),
+                        int(np.sum(az <= 1.0)),
                         len(keep),
                     )
                 )

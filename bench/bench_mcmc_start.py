@@ -79,17 +79,17 @@ def main():
                 z, lo, hi = B.z_scores(post, t_eq)
                 lab = post.labels
                 i_roll, i_n = lab.index("rot_z [deg]"), lab.index("n_re[0]")
+                zs = " ".join(f"{lb.split()[0]} {v:+.1f}" for lb, v in zip(lab, z, strict=True))
                 rows.append(
-                    (
+                    B.chain_row(
                         f"{o['shape']}/{o['material']} m={float(truth.m[0]):.0f}",
                         name,
                         steps,
                         dt,
-                        float(np.max(post.tau)),
-                        float(np.mean(post.acceptance_fraction)),
+                        post,
                         float(hi[i_roll] - lo[i_roll]),
                         float(hi[i_n] - lo[i_n]),
-                        " ".join(f"{lb.split()[0]} {v:+.1f}" for lb, v in zip(lab, z, strict=True)),
+                        zs,
                     )
                 )
                 print(rows[-1], flush=True)
