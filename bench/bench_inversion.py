@@ -127,7 +127,9 @@ def choose_brdf(kind="auto"):
         )
 
 
-def make_models(brdf):
+def make_models(brdf, prune=True):
+    """The bench's forward models, one per shape (``prune``: :class:`SimulatorModel`'s facet
+    pruning, on in the bench; ``bench/bench_prune.py`` measures it against off)."""
     sensor = ppr.Sensor.make()
     pulse = ppr.Pulse.gaussian(PULSE_FWHM)
     bins = ppr.RangeBins.centred(BIN_WIDTH, N_BINS)
@@ -137,7 +139,9 @@ def make_models(brdf):
         mesh = factory()
         mats = tuple(ppr.Material(1.5, 10.0) for _ in mesh.parts)
         scene = ppr.Scene(mesh, mats, ppr.Pose([1.0, 0, 0, 0]), sensor, pulse, bins)
-        models[name] = SimulatorModel(scene, chm, brdf=brdf, dense=True, capacity=CAPACITY)
+        models[name] = SimulatorModel(
+            scene, chm, brdf=brdf, dense=True, capacity=CAPACITY, prune=prune
+        )
     return models
 
 
@@ -183,7 +187,7 @@ def build_bank(models, grid_size):
         grid = AttitudeGrid("hopf", grid_size, SHAPES[name][1])
         res.append(grid.resolution_deg)
         vis = np.stack(
-            [np.asarray(model.prepare(_phys(q, 1.0, 1.5, 0.0, 1.0))) for q in grid.quats]
+            [np.asarray(model.visibility(_phys(q, 1.0, 1.5, 0.0, 1.0))) for q in grid.quats]
         )
         for mi, mname in enumerate(mat_names):
             for fi, fname in enumerate(fin_names):

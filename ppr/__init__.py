@@ -16,7 +16,7 @@ from ._frames import jones_to_mueller, mueller_rotator
 from ._fresnel import fresnel_amplitudes, fresnel_mueller_params
 from ._library import load_material, material_names
 from ._material import Material
-from ._mesh import Mesh, MeshArrays, check_mesh, load_mesh, mesh_arrays, subdivide
+from ._mesh import FaceSubset, Mesh, MeshArrays, check_mesh, load_mesh, mesh_arrays, subdivide
 from ._polarimetry import (
     cloude_eigenvalues,
     degree_of_polarization,
@@ -65,6 +65,7 @@ __all__ = [
     "shapes",
     "Mesh",
     "MeshArrays",
+    "FaceSubset",
     "check_mesh",
     "load_mesh",
     "mesh_arrays",

@@ -337,6 +337,104 @@ class MeshArrays(eqx.Module):
         )
 
 
+class FaceSubset(eqx.Module):
+    """The facets of a :class:`MeshArrays` that can contribute at one pose, and their
+    (normal, part) groups, padded to a small capacity: what pose-local work (a solver round,
+    an MCMC chain: the visibility is held fixed) needs instead of the whole mesh.
+
+    A facet with zero lit-and-visible fraction contributes exactly zero to a render at that
+    visibility, so rendering :meth:`apply`'s arrays with :attr:`vis` gives the full render's
+    result (same values up to the summation order; tests/test_pulse.py) at a cost that
+    scales with the subset: the facets behind the body are about half of a convex mesh, and
+    a padded capacity can be most of a small one (a CubeSat's 12 faces padded to 64, of
+    which at most 6 face the sensor).
+
+    - `faces`: ``(Fc,)`` indices of the kept facets; padding entries repeat a kept facet
+      and carry ``vis == 0``.
+    - `vis`: ``(Fc,)`` their lit-and-visible fractions.
+    - `groups`: ``(Gc,)`` indices of the kept facets' groups in the full group table.
+    - `face_group`: ``(Fc,)`` each kept facet's group as an index into `groups`.
+
+    Build it on the host with :meth:`of`; :meth:`apply` is traceable (gathers only), so a
+    new subset of the same capacities does not recompile.
+    """
+
+    faces: Int[Array, " Fc"]
+    vis: Float[Array, " Fc"]
+    groups: Int[Array, " Gc"]
+    face_group: Int[Array, " Fc"]
+
+    @classmethod
+    def of(
+        cls, arrays: MeshArrays, vis, capacity: int | None = None
+    ) -> FaceSubset:
+        """Host: the facets of ``arrays`` with ``vis > 0``, padded to ``capacity`` (default
+        :func:`subset_capacity` of their count: a few distinct compiled shapes). Groups are
+        kept when there are fewer of them (at their own padded capacity) than facets;
+        otherwise each facet is its own group, as in :func:`mesh_arrays`."""
+        v = np.asarray(vis)
+        valid = np.asarray(arrays.valid)
+        if v.shape != valid.shape or not np.all(np.isfinite(v)):
+            raise ValueError(
+                f"FaceSubset.of: vis must be finite with shape {valid.shape} (one value per "
+                f"padded facet), got shape {v.shape}"
+            )
+        idx = np.flatnonzero((v > 0) & valid)
+        cap = subset_capacity(len(idx)) if capacity is None else int(capacity)
+        if cap < max(len(idx), 1):
+            raise ValueError(
+                f"FaceSubset.of: capacity {cap} is smaller than the {len(idx)} visible facets"
+            )
+        pad_face = int(idx[0]) if len(idx) else 0
+        faces = np.concatenate([idx, np.full(cap - len(idx), pad_face)]).astype(np.int32)
+        fvis = np.concatenate([v[idx], np.zeros(cap - len(idx))])
+        grp = np.asarray(arrays.normal_group)[idx]
+        uniq, inv = np.unique(grp, return_inverse=True)
+        g_cap = subset_capacity(len(uniq))
+        if g_cap < cap:
+            groups = np.concatenate([uniq, np.full(g_cap - len(uniq), uniq[0] if len(uniq) else 0)])
+            face_group = np.concatenate([inv, np.zeros(cap - len(idx), np.int64)])
+        else:
+            # no fewer groups than facets: one group per facet (the kernel then skips the
+            # per-group evaluation, as for an ungrouped mesh_arrays)
+            groups = np.asarray(arrays.normal_group)[faces]
+            face_group = np.arange(cap)
+        return cls(
+            faces=jnp.asarray(faces, jnp.int32),
+            vis=jnp.asarray(fvis, jnp.asarray(vis).dtype),
+            groups=jnp.asarray(groups, jnp.int32),
+            face_group=jnp.asarray(face_group, jnp.int32),
+        )
+
+    @property
+    def n_faces(self) -> int:
+        """Padded facet capacity of the subset."""
+        return int(self.faces.shape[0])
+
+    def apply(self, arrays: MeshArrays) -> MeshArrays:
+        """The subset's :class:`MeshArrays` (traceable): per-face fields at :attr:`faces`,
+        group tables at :attr:`groups`; render it with :attr:`vis`."""
+        return MeshArrays(
+            tri=arrays.tri[self.faces],
+            normals=arrays.normals[self.faces],
+            areas=arrays.areas[self.faces],
+            material_ids=arrays.material_ids[self.faces],
+            valid=arrays.valid[self.faces],
+            normal_group=self.face_group,
+            group_normals=arrays.group_normals[self.groups],
+            group_material_ids=arrays.group_material_ids[self.groups],
+        )
+
+
+def subset_capacity(n: int) -> int:
+    """Padded capacity of a :class:`FaceSubset` of ``n`` facets or groups: the next power of
+    two from 8 up to 64, then :func:`capacity_for`."""
+    n = max(int(n), 1)
+    if n <= 64:
+        return max(8, 1 << (n - 1).bit_length())
+    return capacity_for(n)
+
+
 def capacity_for(n_faces: int) -> int:
     """Padded capacity: the next of 2^k * {1, 1.25, 1.5, 1.75} (at least 64) - at most 25 %
     waste and few distinct compiled shapes."""
