@@ -817,8 +817,10 @@ def main(argv=None):
     obs = make_observations(models, args.n_per_snr, args.snrs, args.seed)
     # warm-up (compilation) on a separate observation, timed separately
     t0 = time.perf_counter()
-    warm = make_observations(models, 1, [args.snrs[0]], args.seed + 99)[0]
-    run_one(warm, models, bank, prep, args.k, mcmc_cfg, True)
+    # one observation per shape: the pruned models' facet subsets (SimulatorModel(prune=True))
+    # have per-shape capacities (8 for the CubeSats, 32 for the cylinder), each compiled once
+    for warm in make_observations(models, len(models), [args.snrs[0]], args.seed + 99):
+        run_one(warm, models, bank, prep, args.k, mcmc_cfg, True)
     # the bounded fallback compiles on first use: warm it up too (one round, one start)
     refine_bounded(
         models[warm["shape"]], warm["data"], warm["truth"], noise=NOISE, bounds=BOUNDS, rounds=1

@@ -30,11 +30,11 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+import bench_inversion as B  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-
-import bench_inversion as B  # noqa: E402
 from _timing import median_time  # noqa: E402
+
 from inversion._mcmc import ChainTooShortWarning, make_log_prob, sample_posterior  # noqa: E402
 from inversion._params import Parametrisation  # noqa: E402
 from inversion._refine import (  # noqa: E402

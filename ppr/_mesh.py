@@ -366,12 +366,18 @@ class FaceSubset(eqx.Module):
 
     @classmethod
     def of(
-        cls, arrays: MeshArrays, vis, capacity: int | None = None
+        cls,
+        arrays: MeshArrays,
+        vis,
+        capacity: int | None = None,
+        group_capacity: int | None = None,
     ) -> FaceSubset:
         """Host: the facets of ``arrays`` with ``vis > 0``, padded to ``capacity`` (default
-        :func:`subset_capacity` of their count: a few distinct compiled shapes). Groups are
-        kept when there are fewer of them (at their own padded capacity) than facets;
-        otherwise each facet is its own group, as in :func:`mesh_arrays`."""
+        :func:`subset_capacity` of their count: a few distinct compiled shapes), and their
+        groups, padded to ``group_capacity`` (default :func:`subset_capacity` of their
+        count). Groups are kept when their capacity is below the facets'; otherwise each
+        facet is its own group, as in :func:`mesh_arrays`. Fixed capacities (at least the
+        largest counts over the poses of a batch) give every subset the same shapes."""
         v = np.asarray(vis)
         valid = np.asarray(arrays.valid)
         if v.shape != valid.shape or not np.all(np.isfinite(v)):
@@ -390,7 +396,12 @@ class FaceSubset(eqx.Module):
         fvis = np.concatenate([v[idx], np.zeros(cap - len(idx))])
         grp = np.asarray(arrays.normal_group)[idx]
         uniq, inv = np.unique(grp, return_inverse=True)
-        g_cap = subset_capacity(len(uniq))
+        g_cap = subset_capacity(len(uniq)) if group_capacity is None else int(group_capacity)
+        if g_cap < len(uniq):
+            raise ValueError(
+                f"FaceSubset.of: group_capacity {g_cap} is smaller than the {len(uniq)} "
+                "groups of the visible facets"
+            )
         if g_cap < cap:
             groups = np.concatenate([uniq, np.full(g_cap - len(uniq), uniq[0] if len(uniq) else 0)])
             face_group = np.concatenate([inv, np.zeros(cap - len(idx), np.int64)])

@@ -677,6 +677,38 @@ def test_simulator_jacobian_finite_with_edge_on_faces():
             assert np.any(J[:, :3] != 0)
 
 
+def test_pruned_simulator_matches_the_whole_mesh():
+    """SimulatorModel(prune=True) (the default) renders only the facets lit and visible at
+    the round's pose (a ppr.FaceSubset: at most 6 of a cube's 12 facets, padded to 8, against
+    64 padded facets): its expected counts and residual Jacobian are those of the unpruned
+    model (bench/bench_prune.py compares the refined fits and chains on the inversion
+    bench's observations)."""
+    import ppr
+    from inversion._refine import _jacobians, _pure
+
+    pruned = _simulator_model()
+    whole = _simulator_model()
+    whole.prune = False
+    assert pruned.prune and pruned.subset_capacities() == (8, 8)
+    q = np.array([0.86, 0.31, -0.22, 0.35])
+    q = q / np.linalg.norm(q)
+    truth = PhysicalParams(q, [10.0], [1.5 + 0.1j], range_offset=0.002, gain=1e3)
+    aux_p, aux_w = pruned.prepare(truth), whole.prepare(truth)
+    assert isinstance(aux_p, ppr.FaceSubset) and aux_p.n_faces == 8
+    assert int(np.sum(np.asarray(aux_w) > 0)) == 6 and aux_w.shape == (64,)
+    mu_p, mu_w = (np.asarray(m.expected(truth, a)) for m, a in ((pruned, aux_p), (whole, aux_w)))
+    np.testing.assert_allclose(mu_p, mu_w, rtol=0, atol=1e-13 * mu_w.max())
+    par = Parametrisation(truth)
+    th = par.from_physical(truth)
+    w = jnp.ones_like(jnp.asarray(mu_w))
+    jp, jw = (
+        np.asarray(_jacobians(_pure(m), par, a, w, jnp.asarray(mu_w), th)[0])
+        for m, a in ((pruned, aux_p), (whole, aux_w))
+    )
+    assert np.abs(jw[:, :3]).max() > 0
+    np.testing.assert_allclose(jp, jw, rtol=0, atol=1e-12 * np.abs(jw).max())
+
+
 def test_mirror_check_finds_the_parity_ambiguity_and_its_breaking():
     """A 3U CubeSat (mirror plane z -> -z) of rough aluminium, monostatic, noise-free counts
     (1e7), with the double-bounce term alone (it carries the off-block Mueller elements; one
