@@ -192,8 +192,10 @@ def test_two_devices_subprocess(reference, tmp_path):
     assert info == {"n_devices": 2, "out_devices": 2}
     two, one = load_database(path), load_database(ref_path)
     # rows are independent, so sharding over two devices changes nothing beyond float32
-    # vectorization effects (1e-6 relative)
-    np.testing.assert_allclose(two.signatures, one.signatures, rtol=1e-6, atol=1e-9)
+    # vectorization effects: XLA may fuse and vectorize the per-device program differently
+    # (measured up to 3.4e-6 relative, 6e-9 absolute on 8 of 45056 entries with jax 0.10.2;
+    # a row computed wrongly or twice would differ by O(1))
+    np.testing.assert_allclose(two.signatures, one.signatures, rtol=1e-5, atol=1e-8)
 
 
 def test_bad_inputs(reference, tmp_path):
