@@ -850,11 +850,11 @@ def test_face_subset_renders_the_full_mesh_values_and_gradients():
     """A FaceSubset (the facets lit and visible at one pose, padded to a small capacity)
     renders what the whole padded mesh renders at that visibility: subdivided non-convex
     CubeSat with panels (~500 facets in 12 normal groups, partly hidden facets with fractions
-    in (0, 1)), three materials, real mueller_brdf at backscatter (values), gradients in
-    attitude, roughness and index (polarizing stand-in). The subset keeps the per-group
+    in (0, 1)), three materials, a bistatic polarizing BRDF (the stand-in: what is new here
+    is the gathering of facets and group tables, BRDF-agnostic; the real mueller_brdf on
+    grouped, pruned facets is test_normal_groups_change_nothing_values_and_gradients),
+    values and gradients in attitude, roughness and index. The subset keeps the per-group
     BRDF; from ungrouped arrays (one group per facet) it has none, and renders the same."""
-    from ppr._brdf import mueller_brdf
-
     mesh = shapes.cubesat_with_panels(3, max_edge=0.1)
     arrays = ppr.mesh_arrays(mesh)
     cap = arrays.normals.shape[0]
@@ -873,7 +873,7 @@ def test_face_subset_renders_the_full_mesh_values_and_gradients():
     )
     kw = dict(n_bins=128, width=0.01, window=128)
 
-    def profile(q, mats, subset, brdf=mueller_brdf, arrays=arrays):
+    def profile(q, mats, subset, brdf=glossy_fresnel_mueller, arrays=arrays):
         a, v = (subset.apply(arrays), subset.vis) if subset is not None else (arrays, vis)
         return _profile(q, mats, a, v, sensor, brdf=brdf, **kw)
 
@@ -885,7 +885,7 @@ def test_face_subset_renders_the_full_mesh_values_and_gradients():
 
     def loss(q, m, n, subset):
         mt = eqx.tree_at(lambda t: (t.m, t.n), mats, (m, n))
-        return jnp.sum(wts * profile(q, mt, subset, glossy_fresnel_mueller))
+        return jnp.sum(wts * profile(q, mt, subset))
 
     grad = jax.grad(loss, argnums=(0, 1, 2))
     ga, gb = grad(qj, mats.m, mats.n, None), grad(qj, mats.m, mats.n, sub)
