@@ -40,49 +40,6 @@ QUANTITY_LABELS = {
 }
 
 
-_API_HOMES = {
-    "mueller_brdf": "ppr._brdf",
-    "depolarization_index": "ppr._polarimetry",
-    "polarizance": "ppr._polarimetry",
-    "diattenuation": "ppr._polarimetry",
-    "retardance": "ppr._polarimetry",
-}
-
-
-def api(name: str):
-    """``ppr.<name>``, or the function from its home module if ``ppr`` does not export it yet
-    (``None`` if neither exists)."""
-    import importlib
-
-    import ppr
-
-    fn = getattr(ppr, name, None)
-    if fn is None and name in _API_HOMES:
-        try:
-            fn = getattr(importlib.import_module(_API_HOMES[name]), name, None)
-        except ImportError:
-            fn = None
-    return fn
-
-
-def supported_terms(terms):
-    """``terms`` itself, or ``None`` (all implemented terms) when it is ``"auto"`` and this
-    build's :func:`ppr.mueller_brdf` does not implement the automatic choice yet."""
-    if terms != "auto":
-        return terms
-    brdf = api("mueller_brdf")
-    if brdf is None:
-        return terms
-    import ppr
-
-    z = np.array([0.0, 0.0, 1.0])
-    try:
-        brdf(z, z, z, ppr.Material(n=1.5, m=10.0), terms="auto")
-    except NotImplementedError:
-        return None
-    return terms
-
-
 # --------------------------------------------------------------------------- geometry helpers
 def quaternion_to_matrix(q: VecLike) -> np.ndarray:
     """Rotation matrix of a quaternion ``(w, x, y, z)`` (any norm > 0, either sign)."""
@@ -276,11 +233,13 @@ def _polarimetry_fn():
     if "fn" not in _POLARIMETRY_JIT:
         import jax
 
-        funcs = {name: api(name) for name in QUANTITIES[1:]}
+        from . import _polarimetry as pol  # noqa: PLC0415
+
+        funcs = {name: getattr(pol, name) for name in QUANTITIES[1:]}
 
         @jax.jit
         def quantities(M):
-            return {name: fn(M) for name, fn in funcs.items() if fn is not None}
+            return {name: fn(M) for name, fn in funcs.items()}
 
         _POLARIMETRY_JIT["fn"] = quantities
     return _POLARIMETRY_JIT["fn"]
@@ -304,7 +263,7 @@ def polarimetric_maps(
         flat = flat / flat[:, :1, :1]
     for name in QUANTITIES[1:]:
         out[name] = np.full(m00.shape, np.nan)
-    if not flat.size or api("retardance") is None:
+    if not flat.size:
         return out
     n = len(flat)
     size = chunk
@@ -330,9 +289,7 @@ def _brdf_eval_fn(terms, wavelength: float) -> Callable:
     import equinox as eqx
     import jax
 
-    brdf = api("mueller_brdf")
-    if brdf is None:
-        raise RuntimeError("ppr.mueller_brdf is not available in this build")
+    from ._brdf import mueller_brdf as brdf  # noqa: PLC0415
 
     @eqx.filter_jit
     def many(k_in, k_out, normal, x_in, x_out, idx, materials):
@@ -378,10 +335,10 @@ def evaluate_mueller(
     out = np.empty((n, 4, 4))
     if n == 0:
         return out
-    evaluate = _brdf_eval_fn(supported_terms(terms), float(wavelength))
+    arrays = [np.asarray(a, float) for a in (k_in, k_out, normal, frame_in, frame_out)]
+    evaluate = _brdf_eval_fn(_host_terms(terms, arrays[0], arrays[1]), float(wavelength))
     mats = _stack_materials([_cast_material(m, dtype) for m in materials])
     idx_all = np.asarray(material_idx, np.int32)
-    arrays = [np.asarray(a, float) for a in (k_in, k_out, normal, frame_in, frame_out)]
     for a in tqdm(range(0, n, chunk), desc=desc, unit="chunk", disable=not progress):
         b = min(a + chunk, n)
         pad = chunk - (b - a)
@@ -397,6 +354,23 @@ def evaluate_mueller(
         )
         out[a:b] = np.asarray(res, dtype=float)[: b - a]
     return out
+
+
+def _host_terms(terms, k_in: np.ndarray, k_out: np.ndarray):
+    """``terms`` with the double term taken from the exact-backscatter table when every row
+    is within its ``PSI_MAX`` of backscatter (a monostatic sensor), decided here on the host
+    as :func:`ppr._pulse.sensor_terms` does for ``ppr.render``: the run-time dispatch would
+    pick the same table, but its compiled program also holds the double-bounce quadrature
+    (about 3x the compilation time)."""
+    from ._brdf import mueller_brdf  # noqa: PLC0415
+    from ._double_table import PSI_MAX  # noqa: PLC0415
+    from ._pulse import backscatter_terms  # noqa: PLC0415
+
+    dk = k_out - k_in
+    if not np.all(np.sum(dk * dk, axis=-1) <= (2.0 * np.sin(0.5 * PSI_MAX)) ** 2):
+        return terms
+    bs = backscatter_terms(mueller_brdf, terms)
+    return terms if bs is None else bs
 
 
 def _stack_materials(materials: Sequence):

@@ -619,12 +619,10 @@ def cmd_simulate(args) -> int:
         terms = tuple(t.strip() for t in terms.split(","))
     with outputs(args.out, SIMULATE_OUTPUTS, args.overwrite) as out:
         _maybe_x64(args.dtype)
-        from ._image import supported_terms
-
         t0 = time.perf_counter()
         try:
             prof = ppr.simulate(
-                scene, states=states, terms=supported_terms(terms), dtype=_dtype(args.dtype)
+                scene, states=states, terms=terms, dtype=_dtype(args.dtype)
             )
             data = np.asarray(prof.data, float)
         except ValueError as err:
@@ -1430,13 +1428,7 @@ def cmd_demo(args) -> int:
     for key, label, _, _ in DEMO_STEPS:
         if key in only and label not in done and label not in skipped:
             skipped.append(label)
-    from ._image import api
-
-    if "image" not in only:
-        pass
-    elif api("mueller_brdf") is None or api("retardance") is None:
-        skipped.append("Mueller image")
-    else:
+    if "image" in only:
         _say(args, "ppr demo: Mueller image of the example satellite ...")
         t0 = time.perf_counter()
         cfg_path = CONFIG_DIR / "cli" / "image.toml"
