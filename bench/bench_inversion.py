@@ -237,10 +237,10 @@ def nearest_material(n) -> int:
     return int(np.argmin(np.abs(cat - complex(n))))
 
 
-def chain_config(steps, moves="stretch"):
+def chain_config(steps, moves="stretch", init_scale=0.5):
     """The MCMC benches' sampler: 24 walkers, ``steps`` steps (a third burned in), the
-    starting ball at half the Laplace scale, a log-uniform gain prior wide enough for the
-    simulator's m^2/sr units."""
+    starting ball at ``init_scale`` (default half) of the Laplace scale, a log-uniform gain
+    prior wide enough for the simulator's m^2/sr units."""
     return mcmc_config_from_dict(
         {
             "priors": {"gain": {"kind": "loguniform", "low": 1e-30, "high": 1e30}},
@@ -248,7 +248,7 @@ def chain_config(steps, moves="stretch"):
                 "n_walkers": 24,
                 "n_steps": steps,
                 "burn_in": steps // 3,
-                "init_scale": 0.5,
+                "init_scale": init_scale,
                 "progress": False,
                 "moves": moves,
             },
