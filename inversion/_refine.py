@@ -1262,6 +1262,14 @@ class SimulatorModel:
                 max_edge * float(np.linalg.norm(w)), sigma_r, float(bins.width), bins.n_bins
             )
         cast = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, dt), t)  # noqa: E731
+        brdf = _default_brdf() if brdf is None else brdf
+        if brdf is ppr.mueller_brdf:
+            # the kernel's traced inputs are valid by construction (attitude normalized,
+            # m = e^x, n'' = softplus): without the traced checks' host callback the solver
+            # and sampler programs can go to JAX's persistent compilation cache
+            from ppr._brdf import mueller_brdf_unchecked  # noqa: PLC0415
+
+            brdf = mueller_brdf_unchecked
         self.scene = scene
         self.prune = bool(prune)
         self._subset_caps: tuple[int, int] | None = None
@@ -1278,10 +1286,10 @@ class SimulatorModel:
             position=jnp.asarray(np.asarray(scene.pose.position, np.float64), dt),
             n_bins=int(bins.n_bins),
             window=int(window),
-            brdf=_default_brdf() if brdf is None else brdf,
+            brdf=brdf,
             # monostatic: the double term's backscatter table, not its quadrature, in the
             # compiled residual and gradient programs
-            terms=ppr.sensor_terms(_default_brdf() if brdf is None else brdf, terms, sensor),
+            terms=ppr.sensor_terms(brdf, terms, sensor),
         )
 
     @property

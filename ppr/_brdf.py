@@ -571,6 +571,7 @@ def mueller_brdf(
     frame_in: Any = None,
     frame_out: Any = None,
     wavelength: float | Array = 532e-9,
+    traced_checks: bool = True,
 ) -> Float[Array, "... 4 4"]:
     """Polarized microfacet Mueller BRDF (1/sr), ``S_out = M @ S_in``.
 
@@ -592,6 +593,11 @@ def mueller_brdf(
     - `frame_out`: x axis of the outgoing beam's Stokes frame (beam along ``+k_out``); same
       default.
     - `wavelength`: metres (used by the double-bounce coherence).
+    - `traced_checks`: attach the checks of *traced* inputs to the result (module docstring,
+      "Validation"). Concrete inputs are always checked. ``False`` is for kernels whose
+      inputs are valid by construction (:func:`mueller_brdf_unchecked`): the checks are an
+      ``equinox`` host callback, and JAX does not store programs with host callbacks in its
+      persistent compilation cache.
 
     **Returns:** ``(..., 4, 4)`` in the common float dtype of the directions and the material.
     Validation and tolerances: see the module docstring.
@@ -659,7 +665,18 @@ def mueller_brdf(
         (material.m.astype(dt), material.n.astype(jnp.result_type(dt, jnp.complex64))),
     )
     out = _brdf_core(k_in, k_out, normal, material, frame_in, frame_out, wavelength, names=names)
-    return _attach_errors(out, errors)
+    return _attach_errors(out, errors) if traced_checks else out
+
+
+def mueller_brdf_unchecked(
+    k_in: Any, k_out: Any, normal: Any, material: Material, **kwargs
+) -> Float[Array, "... 4 4"]:
+    """:func:`mueller_brdf` with ``traced_checks=False``: for kernels whose traced inputs are
+    valid by construction (the inversion's forward model: attitudes normalized, ``m = e^x``,
+    ``n'' = softplus(.)``, directions from a validated sensor and mesh). Its compiled
+    programs hold no host callback, so JAX's persistent compilation cache can store them
+    (the ``ppr`` CLI turns that cache on). Concrete inputs are still checked."""
+    return mueller_brdf(k_in, k_out, normal, material, traced_checks=False, **kwargs)
 
 
 @functools.partial(jax.jit, static_argnames=("names",))

@@ -363,9 +363,14 @@ def backscatter_terms(brdf: Callable, terms) -> tuple[str, ...] | None:
     exact-backscatter table (``"double:backscatter"``, :mod:`ppr._double_table`), or None when
     that changes nothing (another BRDF, or no double term). ``"auto"`` keeps the double term
     at backscatter: from the table it costs little, and leaving it out was only a saving."""
-    from ._brdf import _resolve_terms, implemented_terms, mueller_brdf  # noqa: PLC0415
+    from ._brdf import (  # noqa: PLC0415
+        _resolve_terms,
+        implemented_terms,
+        mueller_brdf,
+        mueller_brdf_unchecked,
+    )
 
-    if brdf is not mueller_brdf:
+    if brdf is not mueller_brdf and brdf is not mueller_brdf_unchecked:
         return None
     names = implemented_terms() if terms is None or terms == "auto" else _resolve_terms(terms)
     if "double" not in names:

@@ -463,6 +463,32 @@ def test_bad_material_raises():
         g(jnp.asarray([0.0, 0.6, -0.8]))
 
 
+def test_unchecked_variant_same_values_no_host_callback():
+    """``mueller_brdf_unchecked`` (the inversion's kernels: inputs valid by construction)
+    returns the checked BRDF's values (to round-off), its compiled program holds no host
+    callback (so JAX's persistent compilation cache can store it: programs with one are never
+    written), and concrete bad input still raises."""
+    import re
+
+    from ppr._brdf import mueller_brdf_unchecked
+
+    rng = np.random.default_rng(5)
+    k, kp = rng.normal(size=(2, 64, 3))
+    k[:, 2], kp[:, 2] = np.abs(k[:, 2]) + 0.1, np.abs(kp[:, 2]) + 0.1  # upper hemisphere
+    k, kp = (jnp.asarray(a / np.linalg.norm(a, axis=1, keepdims=True)) for a in (k, kp))
+    mat = Material(n=jnp.asarray(0.94 + 6.42j), m=jnp.asarray(rng.uniform(0.5, 50.0, 64)))
+    out = {}
+    for name, fn in (("checked", mueller_brdf), ("unchecked", mueller_brdf_unchecked)):
+        f = jax.jit(lambda a, b, mt, fn=fn: fn(a, b, jnp.asarray(Z), mt, terms=CORE))
+        calls = set(re.findall(r"custom_call @(\w+)", f.lower(k, kp, mat).as_text()))
+        out[name] = (np.asarray(f(k, kp, mat)), any("callback" in c for c in calls))
+    # round-off only: the checks' reductions change how XLA fuses the kernel
+    np.testing.assert_allclose(out["unchecked"][0], out["checked"][0], rtol=1e-12, atol=1e-15)
+    assert out["checked"][1] and not out["unchecked"][1]
+    with pytest.raises(ValueError, match="k_in"):
+        mueller_brdf_unchecked(np.array([0.0, 0.6, -0.8]), Z, Z, Material(n=1.5, m=1.0))
+
+
 def test_grazing_is_zero_with_finite_gradient():
     def f(k):
         mat = Material(n=1.5, m=0.0)
