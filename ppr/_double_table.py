@@ -126,6 +126,13 @@ float64); ``T / E`` is 0 where ``E`` underflowed."""
 RANK_TOL: float = 1e-9
 """Singular values of the stacked ``Z`` below ``RANK_TOL`` times the largest are dropped."""
 
+ONE_MATERIAL_MIN_BATCH: int = 96
+"""Smallest batch for which one shared material takes the contracted-rows path
+(:func:`_interp_one_material`, a fixed cost of contracting all the table's rows); smaller
+batches gather their own rows. Measured crossover between 64 and 128 elements under ``vmap``
+over 12 materials (an MCMC half-ensemble; bench/results/double_table.md, "small
+batches"), where the contraction made the log-probability 2x slower."""
+
 PSI_MAX: float = 1e-3
 """Largest bistatic angle (rad) at which ``mueller_brdf`` uses the table for the double
 term (its dependence on ``psi`` through ``gamma(psi)`` is kept; the rest is taken at
@@ -336,6 +343,8 @@ class _Table:
         vals = np.concatenate([logE[..., None], np.asarray(f["Tn"], float)], axis=-1)
         self.k = (vals.shape[-1] - 1) // self.rank
         self.vals = _pad_quadratic(_pad_quadratic(vals, 0), 1)  # (nx+2, nu+2, 1 + k r)
+        # u-major copy for the one-material path: its 4 rows in u are one contiguous block
+        self.vals_u = np.ascontiguousarray(self.vals.transpose(1, 0, 2))  # (nu+2, nx+2, .)
         self.slope_pad = _pad_quadratic(self.slope_end, 0)
         self.info = str(f["info"])
 
@@ -394,9 +403,11 @@ def _interp_one_material(
     Returns ``(log E, slope)`` as ``(...,)`` arrays and ``T/E @ W`` as ``(..., 16)``."""
     j, tu = _cell(u, 0.0, tab.du, tab.nu)
     wu = _cr_weights(tu)
-    vals = jnp.asarray(tab.vals, dt)  # (nx + 3, nu + 3, 1 + k r)
-    cols = jax.lax.dynamic_slice_in_dim(vals, j, 4, axis=1)  # (nx + 3, 4, 1 + k r)
-    row = jnp.einsum("b,xbv->xv", jnp.stack(wu), cols)  # (nx + 3, 1 + k r)
+    vals = jnp.asarray(tab.vals_u, dt)  # (nu + 3, nx + 3, 1 + k r), u-major
+    # one contiguous (4, nx + 3, 1 + k r) block: under vmap over materials (MCMC walkers) a
+    # slice along the table's second axis became a strided gather and copy
+    cols = jax.lax.dynamic_slice_in_dim(vals, j, 4, axis=0)
+    row = jnp.einsum("b,bxv->xv", jnp.stack(wu), cols)  # (nx + 3, 1 + k r)
     rows_e = row[:, 0]  # log E
     rows_m = row[:, 1:] @ W  # (nx + 3, 16): the contracted T/E
     sl = jnp.asarray(tab.slope_pad, dt)
@@ -472,7 +483,7 @@ def double_backscatter_44(
     n_im0 = jnp.imag(jnp.asarray(material.n)).astype(dt)
     g = node_products(n_re0, n_im0, tab.k, white=white)  # (..., 4, k), material's own shape
     V = jnp.asarray(tab.V, dt)  # (r, 4, 16)
-    if g.ndim == 2 and jnp.ndim(material.m) == 0:
+    if g.ndim == 2 and jnp.ndim(material.m) == 0 and math.prod(batch) >= ONE_MATERIAL_MIN_BATCH:
         # one material for the whole batch: fold it into the (k r, 16) map and interpolate
         # the contracted rows
         W = jnp.einsum("qj,rqe->jre", g, V).reshape(tab.k * tab.rank, 16)

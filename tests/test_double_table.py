@@ -223,3 +223,46 @@ def test_cut_above_m_max_is_negligible():
     dbl = np.asarray(_quadrature(REF_ORDER, True)(k, k, z, mat, e, e))[:, 0, 0]
     rest = np.asarray(mueller_brdf(k, k, z, mat, terms=("single", "multiple")))[:, 0, 0]
     assert np.all(dbl <= 1e-30 * rest), (dbl / rest).max()
+
+
+def test_one_material_paths_agree():
+    """One material for the whole batch has two evaluation orders of the same linear
+    interpolation: from ``ONE_MATERIAL_MIN_BATCH`` elements up, the table's rows are
+    contracted with the material once and interpolated in incidence only
+    (``_interp_one_material``); smaller batches (a few facets per MCMC walker) gather their own
+    rows. Both must equal the per-element-material evaluation to rounding (float64), in
+    values and in the gradient with respect to m and n (which flow through the contraction
+    in the first order and through the per-element rows in the others)."""
+    rng = np.random.default_rng(11)
+    n_rows = 2 * T.ONE_MATERIAL_MIN_BATCH
+    nrm, k, _, fi, _ = random_geometry(rng, n_rows, 0.0)
+    small = T.ONE_MATERIAL_MIN_BATCH // 4
+
+    def total(mv, nv, sl):
+        mat = Material(n=nv, m=mv)
+        return _table(k[sl], k[sl], nrm[sl], mat, fi[sl], fi[sl])
+
+    def summed(mv, nv, kk, nn, ff):
+        out = T.double_backscatter_term(kk, kk, nn, Material(n=nv, m=mv), ff, ff)
+        return jnp.sum(out[..., :2, :])
+
+    grad = jax.jit(jax.grad(summed, argnums=(0, 1)))
+    for n_idx, m in ((AL, 0.7), (TIO2, 12.0)):
+        one = (jnp.asarray(m), jnp.asarray(n_idx, jnp.complex128))
+        per = (jnp.full(n_rows, m), jnp.full(n_rows, n_idx, jnp.complex128))
+        whole = np.asarray(total(*one, slice(None)))
+        ref = np.asarray(total(*per, slice(None)))
+        chunks = np.concatenate(
+            [np.asarray(total(*one, slice(a, a + small))) for a in range(0, n_rows, small)]
+        )
+        scale = np.abs(ref[:, :1, :1]).max()
+        assert scale > 0
+        np.testing.assert_allclose(whole / scale, ref / scale, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(chunks / scale, ref / scale, rtol=0, atol=1e-12)
+        g_whole = grad(*one, k, nrm, fi)
+        g_small = [grad(*one, k[a:a + small], nrm[a:a + small], fi[a:a + small])
+                   for a in range(0, n_rows, small)]
+        for i in range(2):
+            got = complex(g_whole[i])
+            want = complex(sum(complex(g[i]) for g in g_small))
+            assert abs(got - want) <= 1e-10 * abs(want), (i, got, want)

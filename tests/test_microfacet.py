@@ -388,6 +388,29 @@ def test_compacted_quadrature_equals_whole_batch(reference, frac):
     np.testing.assert_allclose(got, ref, rtol=1e-9)
 
 
+def test_node_axis_equals_node_loop(monkeypatch):
+    """The quadrature sums its nodes either on a node axis (value-only calls of small
+    batches, ppr._microfacet.NODE_AXIS_MAX) or in a loop: the same sum in another order, so
+    the value and both partials agree to rounding in float64, on elements that need the
+    correction (grazing, rough to smooth) and elements that do not."""
+    rng = np.random.default_rng(5)
+    n = 300
+    m = jnp.asarray(np.exp(rng.uniform(np.log(0.01), np.log(3e4), n)))
+    c = jnp.asarray(np.where(rng.uniform(size=n) < 0.5, rng.uniform(1e-5, 0.3, n),
+                             rng.uniform(0, 1, n)))
+    out = {}
+    for mode, limit in (("axis", 1 << 62), ("loop", 0)):
+        monkeypatch.setattr(_mfi, "NODE_AXIS_MAX", limit)
+        monkeypatch.setattr(_mfi, "NODE_AXIS_PARTIALS", limit > 0)
+        # a new function object: traced afresh under the patched rule
+        out[mode] = jax.jit(lambda m, c: _mfi._quadrature(m, c, mf.DEFAULT_ORDER, True))(m, c)
+    for a, b in zip(out["axis"], out["loop"], strict=True):
+        # rtol: d/dc sums node terms of both signs (measured 6e-13 there, 3e-14 in the
+        # value); atol: subnormal products (below 1e-300) round differently in the two orders
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-11, atol=1e-300)
+    assert np.count_nonzero(np.asarray(out["loop"][0])) > n // 3
+
+
 def test_vmap_over_batches_equals_flat_batch():
     """Under vmap the correction's rule folds the mapped axis into the batch (no
     select-over-branches): vmapped values and gradients equal the flat evaluation."""
