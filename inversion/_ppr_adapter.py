@@ -98,7 +98,16 @@ class PprSignatures:
         self.window = ppr.window_size(extent, self.sigma_r, self.bin_width_m, self.n_bins)
         chan = measurement.channel_matrix()  # (C, 4, 4)
         self.projection = jnp.asarray(chan.reshape(len(chan), 16).T, dtype)  # (16, C)
-        self.brdf = ppr.mueller_brdf if brdf is None else brdf
+        for f in self.finishes:
+            ppr.Material(mats[0].n, f)  # a bad finish raises here, naming Material.m
+        if brdf is None or brdf is ppr.mueller_brdf:
+            # every material and finish is concrete and checked above, attitudes are
+            # normalized in the kernel: without the traced checks' host callback the compiled
+            # kernel can come from the persistent compilation cache
+            from ppr._brdf import mueller_brdf_unchecked  # noqa: PLC0415
+
+            brdf = mueller_brdf_unchecked
+        self.brdf = brdf
         self.terms = None if terms is None else (terms if isinstance(terms, str) else tuple(terms))
         # monostatic sensor: the double term from the exact-backscatter table, chosen here (the
         # sensor is concrete) so that the compiled kernel holds no double-bounce quadrature

@@ -20,8 +20,7 @@ attitude quaternion ``(w, x, y, z)``. The camera is the receiver: image columns 
 from __future__ import annotations
 
 import dataclasses
-import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -282,32 +281,6 @@ def polarimetric_maps(
     return out
 
 
-@functools.lru_cache(maxsize=16)
-def _brdf_eval_fn(terms, wavelength: float) -> Callable:
-    """One jitted evaluator over a fixed-size chunk of pixels: the per-part materials are
-    gathered per pixel (fields with a leading pixel axis broadcast with the directions)."""
-    import equinox as eqx
-    import jax
-
-    from ._brdf import mueller_brdf as brdf  # noqa: PLC0415
-
-    @eqx.filter_jit
-    def many(k_in, k_out, normal, x_in, x_out, idx, materials):
-        mats = jax.tree_util.tree_map(lambda a: a[idx], materials)
-        return brdf(
-            k_in,
-            k_out,
-            normal,
-            mats,
-            terms=terms,
-            frame_in=x_in,
-            frame_out=x_out,
-            wavelength=wavelength,
-        )
-
-    return many
-
-
 def evaluate_mueller(
     k_in: np.ndarray,
     k_out: np.ndarray,
@@ -325,9 +298,12 @@ def evaluate_mueller(
     desc: str = "Mueller BRDF",
 ) -> np.ndarray:
     """:func:`ppr.mueller_brdf` over ``N`` rows (``(N, 3)`` arrays; row ``i`` uses
-    ``materials[material_idx[i]]``) in padded chunks of ``chunk`` rows through one jitted
-    function, so every caller with the same (terms, wavelength, dtype, chunk) shares one
-    compilation. Returns ``(N, 4, 4)`` float64 (1/sr)."""
+    ``materials[material_idx[i]]``) in padded chunks of ``chunk`` rows, so every caller with
+    the same (terms, dtype, chunk) shares one compilation of the BRDF's jitted core. The
+    inputs are checked on the host, chunk by chunk (a bad row raises ``ValueError`` naming
+    the argument); the compiled program holds no host callback and can come from the
+    persistent compilation cache. Returns ``(N, 4, 4)`` float64 (1/sr)."""
+    import jax
     import jax.numpy as jnp
     from tqdm.auto import tqdm
 
@@ -335,10 +311,22 @@ def evaluate_mueller(
     out = np.empty((n, 4, 4))
     if n == 0:
         return out
+    from ._brdf import mueller_brdf  # noqa: PLC0415
+
     arrays = [np.asarray(a, float) for a in (k_in, k_out, normal, frame_in, frame_out)]
-    evaluate = _brdf_eval_fn(_host_terms(terms, arrays[0], arrays[1]), float(wavelength))
+    names = _host_terms(terms, arrays[0], arrays[1])
     mats = _stack_materials([_cast_material(m, dtype) for m in materials])
     idx_all = np.asarray(material_idx, np.int32)
+
+    def evaluate(ki, ko, nr, fi, fo, idx, mats):
+        # eager call on concrete chunks: the input checks run on the host (a bad row raises
+        # here, naming the argument) and the jitted core holds no host callback, so its
+        # program goes to the persistent compilation cache (``ppr`` CLI)
+        mat = jax.tree_util.tree_map(lambda a: a[idx], mats)
+        return mueller_brdf(
+            ki, ko, nr, mat, terms=names, frame_in=fi, frame_out=fo, wavelength=wavelength
+        )
+
     for a in tqdm(range(0, n, chunk), desc=desc, unit="chunk", disable=not progress):
         b = min(a + chunk, n)
         pad = chunk - (b - a)

@@ -452,6 +452,7 @@ def render(
     part = single_part(arrays)
     if faces is not None:
         arrays, vis = _take_faces(arrays, vis, faces)
+    brdf = _unchecked_if_concrete(brdf, materials, pose)
     # decided here for a concrete sensor, so that the compiled program holds the table only
     # (facet_weights decides by lax.cond when the sensor is traced)
     terms = sensor_terms(brdf, terms, sensor)
@@ -471,6 +472,29 @@ def render(
         terms=terms,
         part=part,
     )
+
+
+def _unchecked_if_concrete(brdf: Callable, materials: Material, pose: Pose) -> Callable:
+    """:func:`ppr._brdf.mueller_brdf_unchecked` in place of :func:`ppr.mueller_brdf` when the
+    materials and the pose are concrete. The BRDF's inputs are then valid by construction:
+    ``Material`` and ``Pose`` check concrete values when built, the sensor's directions and
+    frames are validated unit vectors rotated by a normalized quaternion, mesh normals are
+    unit and back-facing facets get the bisector. Without the traced checks' host callback
+    the render's program can go to the persistent compilation cache. Traced materials or
+    poses (a caller's ``jit`` or ``grad``) keep the checks."""
+    from ._brdf import _validate_material, mueller_brdf, mueller_brdf_unchecked  # noqa: PLC0415
+
+    if brdf is not mueller_brdf:
+        return brdf
+    leaves = jax.tree_util.tree_leaves((materials, pose))
+    if any(isinstance(a, jax.core.Tracer) for a in leaves):
+        return brdf
+    # the same checks on the host (a Material or Pose edited with eqx.tree_at skips its own)
+    _validate_material(materials)
+    for name in ("quaternion", "position"):
+        if not np.all(np.isfinite(np.asarray(getattr(pose, name)))):
+            raise ValueError(f"pose.{name} must be finite, got {np.asarray(getattr(pose, name))}")
+    return mueller_brdf_unchecked
 
 
 def single_part(arrays: MeshArrays) -> int | None:

@@ -792,6 +792,40 @@ def test_real_brdf_wiring_energy_and_frames():
     assert np.all(np.abs(d) <= d[0, 0][None, None, :] * (1 + 1e-3) + 1e-6 * d[0, 0].max())
 
 
+def test_concrete_render_drops_the_traced_checks_and_checks_on_the_host():
+    """``render`` with concrete materials and pose (``ppr.simulate``) swaps ``ppr.mueller_brdf``
+    for its unchecked variant, whose program holds no host callback and so can come from the
+    persistent compilation cache (values: test_real_brdf_wiring_energy_and_frames, which goes
+    through that path). The checks then run on the host: a material edited past its own
+    checks (``eqx.tree_at``) or a non-finite pose still raise, naming the field. Traced
+    materials or poses keep the traced checks."""
+    from ppr._brdf import mueller_brdf, mueller_brdf_unchecked
+    from ppr._pulse import _unchecked_if_concrete
+
+    mats = stack_materials([ppr.Material(0.94 + 6.42j, 20.0), ppr.Material(1.46, 3.0)])
+    pose = ppr.Pose(_random_rotation(4))
+    assert _unchecked_if_concrete(mueller_brdf, mats, pose) is mueller_brdf_unchecked
+    assert _unchecked_if_concrete(glossy_fresnel_mueller, mats, pose) is glossy_fresnel_mueller
+    seen = []
+
+    def traced(m, q):
+        seen.append(_unchecked_if_concrete(mueller_brdf, m, ppr.Pose(q)))
+        return q
+
+    jax.jit(traced)(mats, pose.quaternion)
+    jax.jit(lambda q: traced(mats, q))(pose.quaternion)
+    assert seen == [mueller_brdf, mueller_brdf]
+    bad_m = eqx.tree_at(lambda m: m.m, mats, jnp.asarray([20.0, -1.0]))
+    with pytest.raises(ValueError, match="material.m"):
+        _unchecked_if_concrete(mueller_brdf, bad_m, pose)
+    bad_n = eqx.tree_at(lambda m: m.n, mats, jnp.asarray([0.94 - 6.42j, 1.46 + 0j]))
+    with pytest.raises(ValueError, match="material.n"):
+        _unchecked_if_concrete(mueller_brdf, bad_n, pose)
+    bad_q = eqx.tree_at(lambda p: p.quaternion, pose, jnp.asarray([np.nan, 0.0, 0.0, 1.0]))
+    with pytest.raises(ValueError, match="pose.quaternion"):
+        _unchecked_if_concrete(mueller_brdf, mats, bad_q)
+
+
 def test_normal_groups_change_nothing_values_and_gradients():
     """The BRDF evaluated once per (normal, part) group (MeshArrays.normal_group) gives the same
     profile as one BRDF per facet (real mueller_brdf, default terms at backscatter: single +
