@@ -302,8 +302,9 @@ NODE_AXIS_MAX = 2**18
 for 64-4096 elements in float64 (bench/bench_lobe.py, "Small batches"); the MCMC's
 log-probability (a few facets per walker) spends most of its time here."""
 NODE_AXIS_PARTIALS = False
-"""Also sum the custom-JVP partials on a node axis: measured 1.1-1.5x *slower* than the loop
-for 16-4096 elements (bench/bench_lobe.py), so off."""
+"""Also sum the custom-JVP partials on a node axis: no consistent gain (bench/bench_lobe.py,
+three runs: 0.7-1.5x the loop's time, the loop faster at 256-512 elements every time), so
+off: gradients keep the loop the refiner was tuned with."""
 
 COMPACT_MIN = 4096
 """Batches of at least this many elements evaluate the quadrature only on the elements that
