@@ -107,8 +107,10 @@ the normalized matrix tends to diag(1, 0, 0, 0): an ideal depolarizer.
 Near-backscatter geometry: incidence 20 deg, receiver tilted in the plane of incidence by the
 bistatic angle. The depolarization index is 1 for a non-depolarizing (Jones) matrix and 0 for
 an ideal depolarizer.""",
-    """ms = np.logspace(0, 4, 7 if SMALL else 25)
-psi = np.radians(np.linspace(0.0, 10.0, 6 if SMALL else 41))
+    """# small settings: the shapes of the next cell's call (4 materials x 11 angles), so the two
+# cells share one compilation of the BRDF
+ms = np.logspace(0, 4, 4 if SMALL else 25)
+psi = np.radians(np.linspace(0.0, 10.0, 11 if SMALL else 41))
 th = np.radians(20.0)
 k_in = np.array([np.sin(th), 0.0, np.cos(th)])
 k_out = np.stack([np.sin(th - psi), 0 * psi, np.cos(th - psi)], -1)
@@ -425,7 +427,8 @@ can beat at the truth (inverse expected Fisher information); it scales as 1/sqrt
 infinite entry is an exact symmetry of the measurement: e.g. the roll about the line of sight
 when every return is a normal-incidence reflection (Mueller `R diag(1, 1, -1, -1)`), which
 no polarization channel can see.""",
-    """crb = inversion.cramer_rao(model, truth, noise)
+    """crb = inversion.cramer_rao(model, truth, noise, free=free)   # the same free parameters
+assert crb.labels == fit.labels
 print(f"attitude bound: {crb.attitude_sigma_deg:.3g} deg (refined error above)")
 for lab, s_fit, s_crb in zip(crb.labels, fit.sigma, crb.sigma):
     print(f"{lab:>18s}: fit sigma {s_fit:.3g}   Cramer-Rao bound {s_crb:.3g}")
