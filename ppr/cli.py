@@ -1761,9 +1761,9 @@ def enable_compile_cache() -> None:
     inversion's forward model (:class:`inversion.SimulatorModel`) therefore renders with
     :func:`ppr._brdf.mueller_brdf_unchecked` (its inputs are valid by construction), so the
     solver and sampler programs are cached: ``ppr invert -c configs/cli/invert.toml`` took
-    192 s cold and 75 s warm (180 and 198 s before, nothing cached; 2-core VM). Programs
-    that call the checked BRDF under ``jit`` (``ppr simulate``, images) are still compiled
-    every run."""
+    192 s cold and 75 s warm (180 and 198 s before, nothing cached; 2-core VM). ``ppr
+    simulate``, ``ppr image`` and database builds check concrete inputs on the host and
+    compile the unchecked BRDF, so their programs are cached too (README.md)."""
     if os.environ.get("PPR_JAX_CACHE", "1") == "0":
         return
     import jax
