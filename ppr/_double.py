@@ -351,8 +351,10 @@ def _path_jones(k, kp, d1, e, n_re, n_im, white, thr, probe=None):
     c1 = jnp.clip(0.5 * safe_sqrt(_sdot(a1, a1)), 0.0, 1.0)
     c2 = jnp.clip(0.5 * safe_sqrt(_sdot(a2, a2)), 0.0, 1.0)
     if probe is None:
-        rs1r, rs1i, rp1r, rp1i = _fresnel(n_re, n_im, c1, white)
-        rs2r, rs2i, rp2r, rp2i = _fresnel(n_re, n_im, c2, white)
+        # both facets in one Fresnel evaluation (half its traced program: compile time)
+        both = _fresnel(n_re[..., None], n_im[..., None], jnp.stack([c1, c2], -1), white)
+        rs1r, rs1i, rp1r, rp1i = (r[..., 0] for r in both)
+        rs2r, rs2i, rp2r, rp2i = (r[..., 1] for r in both)
     else:
         one, zero = jnp.ones_like(c1), jnp.zeros_like(c1)
         rs2r, rs2i, rp2r, rp2i = one, zero, one, zero
@@ -765,19 +767,26 @@ def _half_paths(k, kp, normal, e, m, n_re, n_im, *, reverse, order, coef, white,
     bal = jax.nn.sigmoid(log_p1 - jnp.where(v2, log_p2, -1e30))
     valid = ok2 & v2 & (c1 > 0.0)
     dn = _sdot(d1, nq)
-    inner = _mcp_eval(coef[..., None, :], mq, jnp.abs(dn))
+    ca = jnp.clip(_sdot(kq, nq), 0.0, 1.0)
+    cb = jnp.clip(_sdot(kpq, nq), 0.0, 1.0)
+    # <h.u>+ at |d1.n| (per node) and at k.n, k'.n (per element) in one Chebyshev evaluation:
+    # each evaluation is an unrolled recurrence, and the three separate ones were a fifth of
+    # the traced program (compile time)
+    nn = dn.shape[-1]
+    mcp = _mcp_eval(coef[..., None, :], mq, jnp.concatenate([jnp.abs(dn), ca, cb], axis=-1))
+    inner, mcp_a, mcp_b = mcp[..., :nn], mcp[..., nn : nn + 1], mcp[..., nn + 1 :]
     # shadowing-blocking correlation (module docstring, "Two-facet visibility"):
     # rho(k, d1) rho(k', -d1), each in [0, 1]
     hn = (mq + 1.0) / (mq + 2.0)
     p_d = jnp.clip(hn * jnp.abs(dn) / inner, 0.0, 1.0)  # P(+-d1) of the upward one
-    ca = jnp.clip(_sdot(kq, nq), 0.0, 1.0)
-    cb = jnp.clip(_sdot(kpq, nq), 0.0, 1.0)
-    p_a = jnp.clip(hn * ca / _mcp_eval(coef[..., None, :], mq, ca), 0.0, 1.0)
-    p_b = jnp.clip(hn * cb / _mcp_eval(coef[..., None, :], mq, cb), 0.0, 1.0)
+    p_a = jnp.clip(hn * ca / mcp_a, 0.0, 1.0)
+    p_b = jnp.clip(hn * cb / mcp_b, 0.0, 1.0)
     up = dn > 0.0
-    rho = jnp.where(up, _rho(p_a, p_d, _azimuth_f(kq, d1, nq, thr)), 1.0) * jnp.where(
-        up, 1.0, _rho(p_b, p_d, _azimuth_f(kpq, _sneg(d1), nq, thr))
-    )
+    # the one factor that is not 1: rho(k, d1) where d1 heads up, rho(k', -d1) where it heads
+    # down (one evaluation on the selected arguments, not two)
+    a_up = tuple(jnp.where(up, x, y) for x, y in zip(kq, kpq, strict=True))
+    d_up = tuple(jnp.where(up, x, -x) for x in d1)
+    rho = _rho(jnp.where(up, p_a, p_b), p_d, _azimuth_f(a_up, d_up, nq, thr))
     w = jnp.where(
         valid, wq * bal * rho * c1 * ((mq + 1.0) / (2.0 * math.pi)) * p2 / (4.0 * inner), 0.0
     )
@@ -830,7 +839,8 @@ def _mueller_e_frames(k, kp, normal, e, m, n_re, n_im, gamma, *, order, inner_or
     c = jnp.clip(jnp.sum(k * normal, axis=-1), 0.0, 1.0)
     cp = jnp.clip(jnp.sum(kp * normal, axis=-1), 0.0, 1.0)
     hn = (m + 1.0) / (m + 2.0)
-    pref = hn / (_mcp_eval(coef, m, c) * _mcp_eval(coef, m, cp))
+    mcp = _mcp_eval(coef[..., None, :], m[..., None], jnp.stack([c, cp], axis=-1))
+    pref = hn / (mcp[..., 0] * mcp[..., 1])
     g = gamma[..., None]
     return pref[..., None] * ((1.0 - g) * m_inc + g * m_coh)
 

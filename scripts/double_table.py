@@ -71,7 +71,11 @@ def kprime_nodes(n_mu=N_MU, n_phi=N_PHI):
 
 
 @functools.cache
+@functools.cache
 def _white_double(order):
+    """One jitted program per quadrature order (cached: every call of :func:`_eval_pairs`
+    with the same order reuses its compilation)."""
+
     @jax.jit
     def f(k, kp, m):
         z = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0]), k.shape)

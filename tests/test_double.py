@@ -647,6 +647,22 @@ def test_full_brdf_reciprocity_and_realizability():
         assert cloude_min_eig(a) >= -1e-10 * a[0, 0]
 
 
+@functools.cache
+def _double_table_script():
+    """scripts/double_table.py (the albedo table's E_double), loaded once per process: its
+    jitted quadrature is cached on the module, so the parametrizations below share one
+    compilation (8 s) instead of one each."""
+    import importlib.util
+    import os
+
+    spec = importlib.util.spec_from_file_location(
+        "double_table", os.path.join(os.path.dirname(__file__), "..", "scripts", "double_table.py")
+    )
+    dtab = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(dtab)
+    return dtab
+
+
 @pytest.mark.parametrize("m", [0.0, 1.0, 3.0, 3000.0])
 def test_white_furnace_single_double_multiple(m):
     """Ideal white (F = 1): single + double + multiple has directional albedo 1."""
@@ -669,14 +685,7 @@ def test_white_furnace_single_double_multiple(m):
     e1 = np.sum(f1 * wt, -1)
     # double (incoherent part: the coherent cone is left out of the energy bookkeeping) and
     # multiple: the broad lobes, Gauss-Legendre in k' (the nodes the albedo table used)
-    import importlib.util
-    import os
-
-    spec = importlib.util.spec_from_file_location(
-        "double_table", os.path.join(os.path.dirname(__file__), "..", "scripts", "double_table.py")
-    )
-    dtab = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(dtab)
+    dtab = _double_table_script()
     e2 = dtab.e_double(np.full(3, m), mus)
     kp, wq = dtab.kprime_nodes()
     k = np.stack([np.sqrt(1 - mus**2), 0 * mus, mus], -1)
