@@ -370,10 +370,34 @@ def test_vmap_equals_loop_and_broadcasting():
     # broadcasting: (3, 1, 3) x (1, 4, 3) -> (3, 4, 4, 4)
     out = mueller_brdf(ki[:3, None], ko[None, :4], Z, Material(n=1.5, m=10.0), terms=CORE)
     assert out.shape == (3, 4, 4, 4)
+    # eager calls are padded to a bucket (ppr._brdf.eager_bucket; the comparisons with the
+    # traced vmap above check the padded results): (2, 6) is another shape of 12 rows, so
+    # it reuses the program of (3, 4)
+    from ppr._brdf import _brdf_core
+
+    n0 = _brdf_core._cache_size()
+    out26 = mueller_brdf(ki[:2, None], ko[None, :6], Z, Material(n=1.5, m=10.0), terms=CORE)
+    assert _brdf_core._cache_size() == n0
+    np.testing.assert_allclose(np.asarray(out26)[:, :4], np.asarray(out)[:2], rtol=1e-13)
     np.testing.assert_allclose(
         np.asarray(out[1, 2]), np.asarray(mueller_brdf(ki[1], ko[2], Z, Material(n=1.5, m=10.0), terms=CORE)),
         rtol=1e-12,
     )
+
+
+def test_eager_bucket_sizes():
+    """Eager calls pad their flattened batch to ppr._brdf.eager_bucket(n): at least n, at most
+    25 % more above 8 rows (the padded results are checked against the traced path in
+    test_vmap_equals_loop_and_broadcasting)."""
+    from ppr._brdf import eager_bucket
+
+    assert [eager_bucket(n) for n in (1, 8, 9, 17, 100, 4096, 4097)] == [
+        8, 8, 10, 20, 112, 4096, 5120
+    ]
+    assert eager_bucket(0) is None
+    sizes = [eager_bucket(n) for n in range(1, 100_000)]
+    assert all(n <= b <= max(8, 1.25 * n) for n, b in enumerate(sizes, 1))
+    assert len(set(sizes)) == 56  # 4 programs per factor of 2 in batch size
 
 
 def test_terms_add_up_and_registry_errors():
