@@ -445,25 +445,16 @@ def _rot2a3(x_from, x_to, d):
     return jnp.where(ok, (c * c - s * s) * inv, 1.0), jnp.where(ok, 2.0 * c * s * inv, 0.0)
 
 
-def double_backscatter_44(
-    k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9, coherent=True
-) -> Array:
-    """:func:`double_backscatter_term` (``frame_in``/``frame_out`` may be SoA tuples of three
-    arrays). The entries stay on a trailing axis throughout, and the frame rotations are
-    :func:`ppr._frames.rotate_mueller_44`: built ``(16, ...)`` and transposed at the end, the
-    term ran 1.8x slower (bench/profile_brdf.py)."""
+def backscatter_local(k3, n3, material, m, dt, batch, scale) -> tuple[Array, Array]:
+    """The table's double term at exact backscatter in the shared frames ``e = normalize(n x
+    k)`` (input beam along ``-k`` and output beam along ``+k``, both with x axis ``e``):
+    ``(M, valid)``, ``M`` the row-major ``(..., 16)`` entries times ``scale`` (the coherent
+    enhancement ``1 + gamma``), 0 where ``valid`` is false (grazing, or ``m > M_MAX``).
+    ``k3``, ``n3``: SoA unit vectors of shape ``batch``; ``m`` the exponent broadcast to it."""
     tab = load_table()
-    f_in3, f_out3 = _split(frame_in), _split(frame_out)
-    k, kp, nrm, _, _, m, n_re, n_im, dt, batch = D._broadcast_inputs(
-        k_in, k_out, normal, material, k_in, k_out
-    )
-    k3, kp3, n3 = _split(k), _split(kp), _split(nrm)
-    f_in3 = tuple(jnp.broadcast_to(jnp.asarray(a, dt), batch) for a in f_in3)
-    f_out3 = tuple(jnp.broadcast_to(jnp.asarray(a, dt), batch) for a in f_out3)
     g_min = tiny(dt) * 1e8
     c = _dot3(k3, n3)
-    cp = _dot3(kp3, n3)
-    valid = (c > g_min) & (cp > g_min) & (m <= M_MAX)
+    valid = (c > g_min) & (m <= M_MAX)
     c_safe = jnp.where(valid, jnp.clip(c, 0.0, 1.0), 1.0)
     # x = asinh(TAU s / c); s by the double where (the term has a cusp |theta| at normal
     # incidence: zero gradient there instead of 0 * inf)
@@ -473,11 +464,6 @@ def double_backscatter_44(
     x = jnp.arcsinh(TAU * sn / c_safe)
     m_safe = jnp.where(valid, m, 0.0)
     u = jnp.sqrt(m_safe + M_SHIFT) - math.sqrt(M_SHIFT)
-    if coherent:
-        gamma = D.coherence_factor(k, kp, wavelength, material.corr_length).astype(dt)
-        gamma = jnp.broadcast_to(gamma, batch)
-    else:
-        gamma = jnp.zeros(batch, dt)
     white = bool(getattr(material, "white", False))
     n_re0 = jnp.real(jnp.asarray(material.n)).astype(dt)
     n_im0 = jnp.imag(jnp.asarray(material.n)).astype(dt)
@@ -491,13 +477,13 @@ def double_backscatter_44(
         log_e, slope, M16 = _interp_one_material(tab, x, u0, W, dt)
         log_e = log_e + slope * jnp.maximum(x - X_MAX, 0.0)
         env = jnp.where(valid, jnp.exp(jnp.minimum(log_e, 50.0)), 0.0)
-        M16 = M16 * (env * (1.0 + gamma))[..., None]
+        M16 = M16 * (env * scale)[..., None]
     else:
         log_e, tn, slope = _interp(tab, x, u, dt)
         log_e = log_e + slope * jnp.maximum(x - X_MAX, 0.0)
         env = jnp.where(valid, jnp.exp(jnp.minimum(log_e, 50.0)), 0.0)
         # the envelope and the coherent enhancement scale whole rows, before the contraction
-        tn = tn * (env * (1.0 + gamma))[..., None]
+        tn = tn * (env * scale)[..., None]
         if g.ndim == 2:
             W = jnp.einsum("qj,rqe->jre", g, V).reshape(tab.k * tab.rank, 16)
             M16 = tn @ W
@@ -510,6 +496,30 @@ def double_backscatter_44(
             # 4-D broadcast product and sum)
             beta = jnp.stack([jnp.sum(T * gb[..., q, :, None], axis=-2) for q in range(4)], -1)
             M16 = beta.reshape(batch + (4 * tab.rank,)) @ V.reshape(4 * tab.rank, 16)
+    return M16, valid
+
+
+def double_backscatter_44(
+    k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9, coherent=True
+) -> Array:
+    """:func:`double_backscatter_term` (``frame_in``/``frame_out`` may be SoA tuples of three
+    arrays). The entries stay on a trailing axis throughout, and the frame rotations are
+    :func:`ppr._frames.rotate_mueller_44`: built ``(16, ...)`` and transposed at the end, the
+    term ran 1.8x slower (bench/profile_brdf.py)."""
+    f_in3, f_out3 = _split(frame_in), _split(frame_out)
+    k, kp, nrm, _, _, m, n_re, n_im, dt, batch = D._broadcast_inputs(
+        k_in, k_out, normal, material, k_in, k_out
+    )
+    k3, kp3, n3 = _split(k), _split(kp), _split(nrm)
+    f_in3 = tuple(jnp.broadcast_to(jnp.asarray(a, dt), batch) for a in f_in3)
+    f_out3 = tuple(jnp.broadcast_to(jnp.asarray(a, dt), batch) for a in f_out3)
+    if coherent:
+        gamma = D.coherence_factor(k, kp, wavelength, material.corr_length).astype(dt)
+        gamma = jnp.broadcast_to(gamma, batch)
+    else:
+        gamma = jnp.zeros(batch, dt)
+    M16, valid = backscatter_local(k3, n3, material, m, dt, batch, 1.0 + gamma)
+    valid = valid & (_dot3(kp3, n3) > tiny(dt) * 1e8)
     # frames: e = normalize(n x k) (as in the table; ppr._double._common_frame at k' = k),
     # its projection _|_ k' for the output; component arithmetic throughout
     e = _default_frame3(k3, n3)
@@ -520,7 +530,15 @@ def double_backscatter_44(
     inv = 1.0 / jnp.sqrt(jnp.where(ok, sq, 1.0))
     fb = _perp3_any(kp3)
     e_out = tuple(jnp.where(ok, a * inv, f) for a, f in zip(e_out, fb, strict=True))
-    c_in, s_in = _rot2a3(f_in3, e, _neg3(k3))
+    return rotate_local(M16, valid, e, e_out, k3, kp3, f_in3, f_out3)
+
+
+def rotate_local(M16, valid, e_in, e_out, k3, kp3, f_in3, f_out3) -> Array:
+    """``(..., 4, 4)``: the local ``(..., 16)`` entries ``M16`` (input frame x axis ``e_in``
+    about ``-k``, output ``e_out`` about ``+k'``) rotated into the frames ``f_in3``, ``f_out3``
+    (SoA), 0 where not ``valid``."""
+    batch = M16.shape[:-1]
+    c_in, s_in = _rot2a3(f_in3, e_in, _neg3(k3))
     c_out, s_out = _rot2a3(e_out, f_out3, kp3)
     # M and the angles stored first: XLA CPU otherwise re-computes the gathers, the envelope
     # and the frame arithmetic inside the rotation, once per entry (full BRDF at backscatter
