@@ -335,7 +335,9 @@ class _Table:
     def __init__(self, f):
         x, u = np.asarray(f["x"], float), np.asarray(f["u"], float)
         self.nx, self.nu = len(x), len(u)
-        self.dx, self.du = x[1] - x[0], u[1] - u[0]
+        # Python floats: NumPy float64 scalars are not weakly typed in JAX, and would promote
+        # float32 lookups to float64 when x64 is enabled
+        self.dx, self.du = float(x[1] - x[0]), float(u[1] - u[0])
         self.V = np.asarray(f["V"], float)  # (r, 4, 16)
         self.rank = self.V.shape[0]
         logE = np.asarray(f["logE"], float)
