@@ -299,7 +299,9 @@ def facet_weights(
     passed unbatched, which lets the BRDF take its one-material paths."""
     rt = rot.T
     u_in = rt @ sensor.laser_dir
-    u_out = rt @ sensor.receiver_dir
+    # a monostatic sensor: k_out is the same array as k_in (the BRDF's exact-backscatter
+    # kernel, and XLA shares the work of the two directions)
+    u_out = u_in if sensor.monostatic else rt @ sensor.receiver_dir
     x_tx = rt @ sensor.frame_tx
     x_rx = rt @ sensor.frame_rx
     nrm = arrays.normals
@@ -327,7 +329,7 @@ def facet_weights(
         mat = jax.tree_util.tree_map(lambda a: a[g_mid], materials)
     count = g_nrm.shape[0]
     k_in = jnp.broadcast_to(u_in, (count, 3))
-    k_out = jnp.broadcast_to(u_out, (count, 3))
+    k_out = k_in if sensor.monostatic else jnp.broadcast_to(u_out, (count, 3))
 
     def call(t):
         return brdf(
@@ -344,6 +346,8 @@ def facet_weights(
     bs = backscatter_terms(brdf, terms)
     if bs is None:
         m = call(terms)
+    elif sensor.monostatic:
+        m = call(bs)
     else:
         # one decision per sensor (unbatched under vmap over poses, unlike the per-facet
         # directions): the exact-backscatter table of the double term, or its quadrature
@@ -393,6 +397,8 @@ def sensor_terms(brdf: Callable, terms, sensor: Sensor):
     double-bounce quadrature."""
     bs = backscatter_terms(brdf, terms)
     dirs = (sensor.laser_dir, sensor.receiver_dir)
+    if bs is not None and sensor.monostatic:
+        return bs
     if bs is None or any(isinstance(a, jax.core.Tracer) for a in dirs):
         return terms
     return bs if _near_np(*dirs) else terms

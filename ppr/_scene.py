@@ -90,15 +90,36 @@ def _perp(x_ref: np.ndarray, d: np.ndarray, name: str) -> np.ndarray:
 
 class Sensor(eqx.Module):
     """Laser/receiver directions, polarization reference frames and wavelength (see the
-    module docstring). Build with :meth:`Sensor.make`."""
+    module docstring). Build with :meth:`Sensor.make`.
+
+    ``monostatic`` (static): ``receiver_dir`` equals ``laser_dir`` exactly. Default: derived
+    from concrete directions (False for traced ones); ``True`` for concrete unequal directions
+    is an error. A monostatic sensor's facets are evaluated with ``k_out`` the same array as
+    ``k_in``, which selects the exact-backscatter BRDF kernel (:func:`ppr.mueller_brdf`,
+    "Exact backscatter"); being static, the choice survives ``jit`` over the sensor."""
 
     laser_dir: Array = eqx.field(converter=_f)
     receiver_dir: Array = eqx.field(converter=_f)
     frame_tx: Array = eqx.field(converter=_f)
     frame_rx: Array = eqx.field(converter=_f)
     wavelength: Array = eqx.field(converter=_f, default=532e-9)
+    monostatic: bool | None = eqx.field(static=True, default=None)
+
+    def __post_init__(self):
+        if self.monostatic is None:
+            a, b = self.laser_dir, self.receiver_dir
+            self.monostatic = bool(
+                _concrete(a) and _concrete(b) and np.array_equal(np.asarray(a), np.asarray(b))
+            )
 
     def __check_init__(self):
+        a, b = self.laser_dir, self.receiver_dir
+        if self.monostatic and _concrete(a) and _concrete(b):
+            if not np.array_equal(np.asarray(a), np.asarray(b)):
+                raise ValueError(
+                    "Sensor.monostatic=True needs receiver_dir equal to laser_dir, got "
+                    f"laser_dir {np.asarray(a).tolist()}, receiver_dir {np.asarray(b).tolist()}"
+                )
         for name in ("laser_dir", "receiver_dir", "frame_tx", "frame_rx"):
             v = getattr(self, name)
             if v.shape[-1:] != (3,):
@@ -156,8 +177,11 @@ class Sensor(eqx.Module):
                 raise ValueError(f"bistatic_angle must be in [0, pi/2) rad, got {bistatic_angle!r}")
             y_tx = np.cross(-u_in, x_tx)
             az = float(bistatic_azimuth)
-            u_out = np.cos(b) * u_in + np.sin(b) * (np.cos(az) * x_tx + np.sin(az) * y_tx)
-            u_out /= np.linalg.norm(u_out)
+            if b == 0.0:
+                u_out = u_in.copy()  # exactly monostatic (no renormalization rounding)
+            else:
+                u_out = np.cos(b) * u_in + np.sin(b) * (np.cos(az) * x_tx + np.sin(az) * y_tx)
+                u_out /= np.linalg.norm(u_out)
         if np.dot(u_in, u_out) <= 0:
             raise ValueError(
                 f"receiver_dir {u_out.tolist()} is more than 90 deg from the laser direction"

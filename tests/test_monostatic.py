@@ -198,3 +198,44 @@ def test_same_direction_detection():
         k, k
     )
     assert traced == [(True, False)]
+
+
+def test_monostatic_sensor_renders_as_the_general_kernel():
+    """``Sensor.make()`` at zero bistatic angle is exactly monostatic (``monostatic`` True,
+    derived from its directions), and its rendered Mueller profile (the exact-backscatter
+    kernel) equals that of the same sensor marked not monostatic (the general kernel) to
+    1e-12 of the profile's peak (float64, a 3U CubeSat with panels in a random attitude,
+    three materials). A sensor flagged monostatic with unequal directions is an error naming
+    the field."""
+    import dataclasses
+
+    import ppr
+    from ppr import shapes
+
+    sensor = ppr.Sensor.make((0.3, -0.2, -1.0))
+    assert sensor.monostatic
+    assert not ppr.Sensor.make((0, 0, -1.0), bistatic_angle=1e-5).monostatic
+    general_sensor = dataclasses.replace(sensor, monostatic=False)
+    mesh = shapes.cubesat_with_panels(3)
+    mats = [
+        ppr.load_material(name, 532e-9, dtype=np.float64)
+        for name in ("aluminium", "white_paint_tio2", "fused_silica")
+    ]
+    q = unit(np.random.default_rng(4).normal(size=4))
+    prof = {}
+    for label, s in (("mono", sensor), ("general", general_sensor)):
+        scene = ppr.Scene(
+            mesh,
+            tuple(mats),
+            ppr.Pose(q, (0.0, 0.0, 0.0)),
+            s,
+            ppr.Pulse.gaussian(100e-12),
+            ppr.RangeBins.centred(0.01, 128, 1e6),
+            4,
+        )
+        prof[label] = np.asarray(ppr.simulate(scene, dtype=np.float64).data)
+    peak = np.abs(prof["general"]).max()
+    assert peak > 0
+    assert np.max(np.abs(prof["mono"] - prof["general"])) <= 1e-12 * peak
+    with pytest.raises(ValueError, match="Sensor.monostatic"):
+        ppr.Sensor([0, 0, 1.0], [0, 0.6, 0.8], [1.0, 0, 0], [1.0, 0, 0], monostatic=True)
