@@ -14,7 +14,8 @@ the quadrature of ``ppr._double``, error against evaluations/s, and full-BRDF th
    material (as a mesh's facets have), against a plain NumPy implementation of the same
    lookup (Catmull-Rom gathers, node Fresnel, contraction, frame rotations) on a subset;
    the quadrature's evals/s at those orders; the full BRDF ``mueller_brdf`` at exact
-   backscatter (single, single + double + multiple), float32.
+   backscatter (single, single + double + multiple), float32, with the general kernel
+   (``k_out`` a separate array) and the exact-backscatter kernel (``k_out`` is ``k_in``).
 
 Writes bench/results/double_table.md and .png.
 """
@@ -239,18 +240,37 @@ def small_batches(repeats=51):
     return out
 
 
+FULL_TERMS = (
+    ("single",),
+    ("single", "double:backscatter", "multiple"),
+    ("single", "double", "multiple"),
+)
+
+
 def full_brdf(n, repeats):
+    """evals/s of ``mueller_brdf`` at exact backscatter: the general kernel (``k_out`` a
+    separate array with the same values) and the exact-backscatter kernel (``k_out`` is
+    ``k_in``), default frames and given frames (as ``ppr.render`` passes them), one material
+    and per-element materials. Returns ``{(terms, frames, material): (general, mono)}``."""
     res = {}
-    k, nrm, mat, f, _ = inputs(n, jnp.float32, False)
-    for terms in (
-        ("single",),
-        ("double",),
-        ("double:backscatter",),
-        ("single", "double", "multiple"),
-        ("single", "double:backscatter", "multiple"),
-    ):
-        fn = jax.jit(lambda k, nrm, mat, terms=terms: mueller_brdf(k, k, nrm, mat, terms=terms))
-        res["+".join(terms)] = n / median_time(fn, k, nrm, mat, repeats=repeats)
+    for per in (False, True):
+        k, nrm, mat, f, _ = inputs(n, jnp.float32, per)
+        k2 = k + 0.0  # another buffer: the general kernel sees two arguments
+        for frames in ("default", "given"):
+            fr = {} if frames == "default" else None
+            for terms in FULL_TERMS if not per else FULL_TERMS[1:2]:
+
+                def gen(k, k2, nrm, mat, f, terms=terms, fr=fr):
+                    kw = fr if fr is not None else dict(frame_in=f, frame_out=f)
+                    return mueller_brdf(k, k2, nrm, mat, terms=terms, **kw)
+
+                def mono(k, nrm, mat, f, terms=terms, fr=fr):
+                    kw = fr if fr is not None else dict(frame_in=f, frame_out=f)
+                    return mueller_brdf(k, k, nrm, mat, terms=terms, **kw)
+
+                g = n / median_time(jax.jit(gen), k, k2, nrm, mat, f, repeats=repeats)
+                mo = n / median_time(jax.jit(mono), k, nrm, mat, f, repeats=repeats)
+                res[("+".join(terms), frames, "per element" if per else "one")] = (g, mo)
     return res
 
 
@@ -312,21 +332,25 @@ def main():
         f"{np_rate:.3g} evals/s; JAX float64 / NumPy = {t64 / np_rate:.1f}; max difference "
         f"{np_diff:.1e} of M00.",
         "",
-        "## Full BRDF at exact backscatter (`mueller_brdf`, float32, one material, m = 3)",
+        "## Full BRDF at exact backscatter (`mueller_brdf`, float32, m = 3 or per element)",
         "",
-        "| terms | evals/s |",
-        "|---|---|",
+        "`general`: `k_out` a separate array with the values of `k_in` (the general kernel; "
+        "`double` is then the run-time dispatch, one `lax.cond` between the table and the "
+        "quadrature); `exact`: `k_out` is `k_in` (the exact-backscatter kernel, "
+        "`ppr._brdf._mono_core`, as a monostatic `ppr.Sensor` renders). Frames: `default` "
+        "(the BRDF's own) or `given` (random beam frames, as `ppr.render` passes them).",
+        "",
+        "| terms | frames | material | general evals/s | exact evals/s | exact / general |",
+        "|---|---|---|---|---|---|",
     ]
-    for name, rate in full.items():
-        lines.append(f"| {name} | {rate:.3g} |")
+    for (terms, frames, per), (g, mo) in full.items():
+        lines.append(f"| {terms} | {frames} | {per} | {g:.3g} | {mo:.3g} | {mo / g:.1f} |")
+    fk = ("single+double+multiple", "given", "one")
+    sk = ("single", "given", "one")
     lines += [
         "",
-        f"Full / single-only time ratio: {full['single'] / full['single+double+multiple']:.1f} "
-        f"with `double` (the run-time dispatch: one `lax.cond` between the table and the "
-        f"quadrature, whose boundary stores its operands and result), "
-        f"{full['single'] / full['single+double:backscatter+multiple']:.1f} with "
-        "`double:backscatter` (a caller that knows its sensor is monostatic, as `ppr.render` "
-        "does).",
+        f"Full / single-only time ratio, given frames, one material: general "
+        f"{full[sk][0] / full[fk][0]:.1f}, exact {full[sk][1] / full[fk][1]:.1f}.",
     ]
     lines += [
         "",
