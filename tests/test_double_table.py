@@ -160,7 +160,12 @@ def test_float32_matches_float64():
         a = [jnp.asarray(x, dt) for x in (k, kp, nrm, fi, fo)]
         out[dt] = np.asarray(_table(a[0], a[1], a[2], mat, a[3], a[4]))
     scale = np.abs(out[np.float64][:, 0, 0])[:, None, None]
-    assert np.max(np.abs(out[np.float32] - out[np.float64]) / scale) < 1e-4
+    # rows whose double term is below float32's range (grazing at large m: 4e-85 here) are 0
+    # in float32; the others agree to 1e-4 of their M00
+    ok = scale > 1e-30
+    err = np.abs(out[np.float32] - out[np.float64]) / scale
+    assert np.max(np.where(ok, err, 0.0)) < 1e-4
+    assert np.all(np.abs(np.where(ok, 0.0, out[np.float32])) <= 1e-30)
 
 
 def test_reciprocity_and_realizability():
