@@ -3,6 +3,11 @@
 import os
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+# Hermetic compilation: `ppr.cli.main` enables a persistent XLA cache in ~/.cache/ppr/jax
+# unless PPR_JAX_CACHE=0, and JAX config is process-wide. A test that calls the CLI would
+# otherwise switch the cache on for the rest of its worker, and later tests would time (and
+# run) against executables left by earlier runs, not against what a clean checkout compiles.
+os.environ["PPR_JAX_CACHE"] = "0"
 
 import jax  # noqa: E402
 
