@@ -351,6 +351,49 @@ def test_gradients_finite_along_the_path_including_edge_on_facet():
     assert quat_angle_deg(res.params.quaternion, TRUTH.quaternion) < 1e-5
 
 
+def test_forward_jacobian_linearization_equals_autodiff():
+    """The solvers' expected counts (inversion._refine._expected_forward_jac: a custom JVP
+    applying the forward-mode Jacobian) have the plain function's values, JVP, VJP (the
+    transpose optimistix takes) and Jacobian, to rounding; a tangent on anything but theta
+    raises instead of being dropped."""
+    from inversion._refine import _expected_forward_jac
+
+    model = make_toy()
+    start = perturbed(TRUTH, 5.0)
+    par = Parametrisation(start)
+    th = par.from_physical(start)
+    aux = model.prepare(start)
+
+    def plain(t):
+        return model.expected(par.to_physical(t), aux)
+
+    def custom(t):
+        return _expected_forward_jac(t, par, model, aux)
+
+    dth = jnp.asarray(np.random.default_rng(2).normal(size=th.shape))
+    ct = jnp.asarray(np.random.default_rng(3).normal(size=model.bins.shape[:0] + (16, 48)))
+
+    @jax.jit  # one program: eager autodiff of the toy model dispatches hundreds of small ones
+    def both(th, dth, ct):
+        out = []
+        for f, jac in ((plain, jax.jacfwd), (custom, jax.jacrev)):
+            y, t = jax.jvp(f, (th,), (dth,))
+            out.append((y, t, jax.vjp(f, th)[1](ct)[0], jac(f)(th)))
+        return out
+
+    ref, got = both(th, dth, ct)
+    for a, b in zip(got, ref, strict=True):  # values, JVP, VJP, Jacobian
+        np.testing.assert_allclose(
+            np.asarray(a), np.asarray(b), rtol=0, atol=1e-12 * np.abs(np.asarray(b)).max()
+        )
+    with pytest.raises(NotImplementedError, match="theta only"):
+        jax.jvp(
+            lambda a: _expected_forward_jac(th, par, eqx.tree_at(lambda mo: mo.areas, model, a),
+                                            aux),
+            (model.areas,), (jnp.ones_like(model.areas),),
+        )
+
+
 def test_covariance_matches_scatter_of_noisy_fits():
     """(J^T J)^-1 in physical units agrees with the spread of fits over noise realisations."""
     model = make_toy()
