@@ -18,13 +18,13 @@ jax.config.update("jax_enable_x64", True)
 # two xdist workers share them from the start instead of one worker finishing a long test
 # alone at the end (xdist's "load" scheduler hands out the collected order round-robin).
 SLOW_FIRST = (
+    "test_double.py::test_stiff_cases_finite_values_and_gradients_and_float32_matches_float64",
     "test_notebooks.py::test_notebook_runs[04_inversion_mcmc]",  # 92
     "test_cli.py::test_invert_end_to_end",  # 79
     "test_notebooks.py::test_notebook_runs[01_brdf_tour]",  # 74
     "test_notebooks.py::test_notebook_runs[05_validation]",  # 70
     "test_refine.py::test_mirror_check_finds_the_parity_ambiguity_and_its_breaking",  # 57
     "test_notebooks.py::test_notebook_runs[02_cubesat_simulation]",  # 54
-    "test_double.py::test_stiff_cases_finite_values_and_gradients",  # 2 x 52
     "test_pulse.py::test_normal_groups_change_nothing_values_and_gradients",  # 49
     "test_double.py::test_auto_rule_skips_only_where_negligible",  # 38
     "test_double.py::test_white_albedo_matches_process_monte_carlo",  # 37
