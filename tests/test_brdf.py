@@ -142,14 +142,19 @@ def test_single_term_equals_assembly_of_public_pieces():
     n = 200
     ki, ko = _random_upper(rng, n), _random_upper(rng, n)
     mat = _random_materials(rng, n)
-    xi, xo = default_frame(-ki, Z), default_frame(ko, Z)
     M = np.asarray(mueller_brdf(ki, ko, Z, mat, terms=("single",)))
     h = _unit(ki + ko)
-    p = ndf(mat.m, h @ Z)
-    pk = joint_visibility(mat.m, ki, ko, Z, order=256)
-    scal = p * pk / (4 * mean_cosine_n(mat.m) * (ki @ Z) * (ko @ Z))
-    F = facet_mueller_in_beam_frames(jnp.real(mat.n), jnp.imag(mat.n), ki, ko, h, xi, xo)
-    ref = np.asarray(scal[..., None, None] * F)
+
+    @jax.jit  # the reference in one program (eager, its pieces compile op by op)
+    def reference(ki, ko, h, m, n):
+        xi, xo = default_frame(-ki, Z), default_frame(ko, Z)
+        p = ndf(m, h @ Z)
+        pk = joint_visibility(m, ki, ko, Z, order=256)
+        scal = p * pk / (4 * mean_cosine_n(m) * (ki @ Z) * (ko @ Z))
+        F = facet_mueller_in_beam_frames(jnp.real(n), jnp.imag(n), ki, ko, h, xi, xo)
+        return scal[..., None, None] * F
+
+    ref = np.asarray(reference(ki, ko, h, mat.m, mat.n))
     scale = np.max(np.abs(ref), axis=(-2, -1), keepdims=True) + 1e-300
     # visibility order 64 vs 256 (2e-14) and (h.n)^m via |h - n|^2 vs 1 - h.n (m up to 1e6:
     # relative 1e6 * 1e-16 / (1 - h.n)); 1e-9 covers both
@@ -357,9 +362,9 @@ def test_vmap_equals_loop_and_broadcasting():
     ms = np.array([0.0, 0.5, 10.0, 1e3, 1e5, 1e6])
     ns = np.array([1.5, 0.94 + 6.42j, 1.0, 2.6, 0.54 + 2.23j, 1.46])
     batched = np.asarray(mueller_brdf(ki, ko, Z, Material(n=ns, m=ms), terms=CORE))
-    vm = jax.vmap(
+    vm = jax.jit(jax.vmap(  # jitted: the vmapped trace in one program, not op by op
         lambda a, b, m, n: mueller_brdf(a, b, jnp.asarray(Z), Material(n=n, m=m), terms=CORE)
-    )
+    ))
     vmapped = np.asarray(vm(jnp.asarray(ki), jnp.asarray(ko), jnp.asarray(ms), jnp.asarray(ns)))
     loop = np.stack([
         np.asarray(mueller_brdf(ki[i], ko[i], Z, Material(n=ns[i], m=ms[i]), terms=CORE))
