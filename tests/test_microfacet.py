@@ -272,14 +272,21 @@ def _all_terms(m, ki, ko, normal):
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_stiff_cases_finite_values_and_gradients(dtype):
     m, ki, ko, normal = _stiff_inputs(dtype)
-    val = np.asarray(jax.jit(jax.vmap(_all_terms))(m, ki, ko, normal))
+    @jax.jit  # values and gradients in one program
+    def values_and_gradients(m, ki, ko, normal):
+        val = jax.vmap(_all_terms)(m, ki, ko, normal)
+        grads = jax.vmap(jax.grad(_all_terms, argnums=(0, 1, 2, 3)))(m, ki, ko, normal)
+        # visibility's slope at the exactly tangent direction
+        gc = jax.vmap(jax.grad(mf.visibility, argnums=1))(m, jnp.zeros_like(m))
+        return val, grads, gc
+
+    val, grads, gc = values_and_gradients(m, ki, ko, normal)
+    val = np.asarray(val)
     assert val.dtype == dtype and np.all(np.isfinite(val))
-    grads = jax.jit(jax.vmap(jax.grad(_all_terms, argnums=(0, 1, 2, 3))))(m, ki, ko, normal)
     for g in grads:
         assert g.dtype == dtype  # float32 in, float32 gradients out
         assert np.all(np.isfinite(np.asarray(g)))
     # visibility has a finite, positive slope at the exactly tangent direction
-    gc = jax.vmap(jax.grad(mf.visibility, argnums=1))(m, np.zeros_like(m))
     assert np.all(np.isfinite(gc)) and np.all(np.asarray(gc) > 0)
 
 
