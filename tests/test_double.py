@@ -712,6 +712,7 @@ def test_auto_rule_skips_only_where_negligible():
     from ppr._double import AUTO_M_MAX, AUTO_TOL
     from ppr._polarimetry import depolarization_index
 
+    depolarization_index = jax.jit(depolarization_index)  # one program, not op by op
     rng = np.random.default_rng(10)
     nb = 24
     ti = rng.uniform(0, 80, nb)
