@@ -290,3 +290,17 @@ def is_realizable(M: MuellerLike, tol: float = 1e-6) -> Bool[Array, "..."]:
     w = cloude_eigenvalues(M)
     scale = jnp.maximum(M[..., 0, 0], jnp.max(jnp.abs(M), axis=(-2, -1)))
     return w[..., -1] >= -tol * scale
+
+
+# Eager calls run one compiled program per input shape and dtype instead of dispatching
+# dozens of operations one by one (lu_chipman on 300 float64 matrices: first call 6.0 -> 1.3 s,
+# later calls 301 -> 0.6 ms). Under a caller's jit they are inlined as before.
+lu_chipman = jax.jit(lu_chipman)
+diattenuation = jax.jit(diattenuation)
+polarizance = jax.jit(polarizance)
+retardance = jax.jit(retardance)
+depolarization_index = jax.jit(depolarization_index)
+degree_of_polarization = jax.jit(degree_of_polarization)
+coherency_matrix = jax.jit(coherency_matrix)
+cloude_eigenvalues = jax.jit(cloude_eigenvalues)
+is_realizable = jax.jit(is_realizable)
