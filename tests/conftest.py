@@ -31,6 +31,7 @@ SLOW_FIRST = (
     "test_pulse.py::test_face_subset_renders_the_full_mesh_values_and_gradients",  # 35
     "test_refine.py::test_noise_free_recovery_from_classifier_like_start",  # 32
     "test_furnace.py::test_white_furnace_all_terms",  # 32
+    "test_compile_once.py::test_unoptimized_compilation_gives_the_same_values_and_gradients",
     "test_notebooks.py::test_notebook_runs[03_classifier_evaluation]",  # 27
 )
 

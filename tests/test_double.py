@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compile_once import jit_once
 
 from ppr import Material
 from ppr._double import (
@@ -195,7 +196,9 @@ REF_ORDER = (24, 64)  # 3 u panels x 24 nodes, 64 azimuths
 
 @functools.cache
 def _jit_term(order, coherent):
-    return jax.jit(
+    # the reference order's program sums 4608 nodes per row: it keeps LLVM's optimization
+    jit = jax.jit if order == REF_ORDER else jit_once
+    return jit(
         lambda k, kp, nrm, mat, fi, fo: double_bounce_term(
             k, kp, nrm, mat, fi, fo, order=order, coherent=coherent
         )
@@ -445,18 +448,28 @@ def _sample_lobe(rng, m, n):
     return np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1)
 
 
-def _sample_visible(rng, m, w):
-    """Facet normals with density p(h) (h.w)+ / <h.w>+ by rejection (one w per row)."""
+def _sample_visible(rng, m, w, budget=3000):
+    """Facet normals with density p(h) (h.w)+ / <h.w>+ by rejection (one w per row): lobe
+    candidates, each accepted with probability h.w; a row takes its first accepted candidate,
+    and gives up after ``budget`` candidates. The candidates of the rows still open are drawn
+    K at a time (the first acceptance among i.i.d. candidates has the same law as drawing them
+    one by one), so the rows that need thousands of tries cost one array pass per round."""
     out = np.zeros_like(w)
     todo = np.ones(len(w), bool)
-    for _ in range(3000):
-        idx = np.nonzero(todo)[0]
+    tried = np.zeros(len(w), np.int64)
+    while True:
+        idx = np.nonzero(todo & (tried < budget))[0]
         if idx.size == 0:
             break
-        h = _sample_lobe(rng, m, idx.size)
-        acc = rng.uniform(size=idx.size) < np.sum(h * w[idx], -1)
-        out[idx[acc]] = h[acc]
-        todo[idx[acc]] = False
+        k = int(min(budget - tried[idx].min(), max(1, 2_000_000 // idx.size)))
+        h = _sample_lobe(rng, m, idx.size * k).reshape(idx.size, k, 3)
+        acc = rng.uniform(size=(idx.size, k)) < np.einsum("rkc,rc->rk", h, w[idx])
+        acc &= tried[idx, None] + np.arange(k) < budget
+        hit = acc.any(1)
+        rows = idx[hit]
+        out[rows] = h[hit, acc[hit].argmax(1)]
+        todo[rows] = False
+        tried[idx] += k
     return out, ~todo
 
 
@@ -588,7 +601,7 @@ def test_stiff_cases_finite_values_and_gradients_and_float32_matches_float64():
                 k, jnp.asarray(kp, dtype), z, mat, jnp.asarray(fi, dtype), jnp.asarray(fo, dtype)
             )
 
-        @jax.jit
+        @jit_once
         def values_and_gradients(*a):
             # the 16 entries, and the gradient of their sum (reverse mode, as jax.grad) from the
             # same linearization
@@ -614,20 +627,23 @@ def test_stiff_cases_finite_values_and_gradients_and_float32_matches_float64():
 # the full BRDF with the double term: reciprocity, realizability, white furnace, "auto"
 
 
-def _full(terms, k, kp, mat, fi=None, fo=None):
+@functools.cache
+def _full_jit(terms, frames):
     from ppr._brdf import mueller_brdf
 
-    return np.asarray(
-        mueller_brdf(
-            jx(k),
-            jx(kp),
-            jx(np.broadcast_to(Z, np.shape(k))),
-            mat,
-            terms=terms,
-            frame_in=fi,
-            frame_out=fo,
+    if frames:
+        return jit_once(
+            lambda k, kp, nrm, mat, fi, fo: mueller_brdf(
+                k, kp, nrm, mat, terms=terms, frame_in=fi, frame_out=fo
+            )
         )
-    )
+    return jit_once(lambda k, kp, nrm, mat: mueller_brdf(k, kp, nrm, mat, terms=terms))
+
+
+def _full(terms, k, kp, mat, fi=None, fo=None):
+    frames = () if fi is None else (jx(fi), jx(fo))
+    nrm = jx(np.broadcast_to(Z, np.shape(k)))
+    return np.asarray(_full_jit(terms, bool(frames))(jx(k), jx(kp), nrm, mat, *frames))
 
 
 def test_full_brdf_reciprocity_and_realizability():
