@@ -8,10 +8,33 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 # otherwise switch the cache on for the rest of its worker, and later tests would time (and
 # run) against executables left by earlier runs, not against what a clean checkout compiles.
 os.environ["PPR_JAX_CACHE"] = "0"
+# Compile unoptimized (tests/compile_level.py), here and in the subprocesses and notebook
+# kernels the tests start; tests marked `optimized` run with JAX's defaults.
+os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
 
 import jax  # noqa: E402
+import pytest  # noqa: E402
+from compile_level import DEFAULT, UNOPTIMIZED, apply  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+apply(UNOPTIMIZED)
+
+
+@pytest.fixture(autouse=True)
+def _compile_level(request):
+    """Tests marked ``optimized`` (their cost is running, not compiling) compile with JAX's
+    default optimization; every other test compiles unoptimized."""
+    if request.node.get_closest_marker("optimized") is None:
+        yield
+        return
+    # JAX's jit cache does not key on the switch: drop the worker's unoptimized executables,
+    # or the test would reuse any that an earlier test compiled for the same program
+    jax.clear_caches()
+    apply(DEFAULT)
+    try:
+        yield
+    finally:
+        apply(UNOPTIMIZED)
 
 
 # The slowest tests (seconds of one worker, `--durations`, 2026-12-02) run first, so that the
@@ -31,7 +54,7 @@ SLOW_FIRST = (
     "test_pulse.py::test_face_subset_renders_the_full_mesh_values_and_gradients",  # 35
     "test_refine.py::test_noise_free_recovery_from_classifier_like_start",  # 32
     "test_furnace.py::test_white_furnace_all_terms",  # 32
-    "test_compile_once.py::test_unoptimized_compilation_gives_the_same_values_and_gradients",
+    "test_compile_level.py::test_unoptimized_compilation_gives_the_same_values_and_gradients",
     "test_notebooks.py::test_notebook_runs[03_classifier_evaluation]",  # 27
 )
 

@@ -15,7 +15,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from compile_once import jit_once
 
 import ppr
 from ppr import _albedo
@@ -281,7 +280,7 @@ def test_stiff_cases_finite_values_and_gradients(dtype):
         return jnp.sum(M * W), M
 
     args = tuple(jnp.asarray(a, dtype) for a in (m, n.real, n.imag, ki, ko))
-    grads, M = jit_once(jax.grad(total, argnums=(0, 1, 2, 3, 4), has_aux=True))(*args)
+    grads, M = jax.jit(jax.grad(total, argnums=(0, 1, 2, 3, 4), has_aux=True))(*args)
     M = np.asarray(M)
     assert M.dtype == dtype
     assert np.all(np.isfinite(M))
@@ -412,7 +411,7 @@ def test_terms_add_up_and_registry_errors():
     mat = Material(n=0.94 + 6.42j, m=3.0)
     names = ppr._brdf.implemented_terms()
 
-    @jit_once  # one compilation for the full model and every term alone
+    @jax.jit  # one compilation for the full model and every term alone
     def full_and_parts(ki, ko):
         full = mueller_brdf(ki, ko, jnp.asarray(Z), mat)
         return full, sum(mueller_brdf(ki, ko, jnp.asarray(Z), mat, terms=(t,)) for t in names)
@@ -509,7 +508,7 @@ def test_unchecked_variant_same_values_no_host_callback():
     mat = Material(n=jnp.asarray(0.94 + 6.42j), m=jnp.asarray(rng.uniform(0.5, 50.0, 64)))
     out = {}
     for name, fn in (("checked", mueller_brdf), ("unchecked", mueller_brdf_unchecked)):
-        f = jit_once(lambda a, b, mt, fn=fn: fn(a, b, jnp.asarray(Z), mt, terms=CORE))
+        f = jax.jit(lambda a, b, mt, fn=fn: fn(a, b, jnp.asarray(Z), mt, terms=CORE))
         calls = set(re.findall(r"custom_call @(\w+)", f.lower(k, kp, mat).as_text()))
         out[name] = (np.asarray(f(k, kp, mat)), any("callback" in c for c in calls))
     # round-off only: the checks' reductions change how XLA fuses the kernel
@@ -524,7 +523,7 @@ def test_grazing_is_zero_with_finite_gradient():
         mat = Material(n=1.5, m=0.0)
         return jnp.sum(mueller_brdf(k, _unit([0.3, 0.2, 1.0]), jnp.asarray(Z), mat, terms=CORE))
 
-    f_and_grad = jit_once(jax.value_and_grad(f))  # the double term's grazing rows: test_double
+    f_and_grad = jax.jit(jax.value_and_grad(f))  # the double term's grazing rows: test_double
     k = jnp.asarray([1.0, 0.0, 0.0])
     val, grad = f_and_grad(k)
     assert float(val) == 0.0
@@ -560,8 +559,8 @@ def test_one_material_fast_paths_match_per_element(dtype, tol):
     ki = _random_upper(rng, n, min_cos=1e-4).astype(dtype)
     ko = _random_upper(rng, n, min_cos=1e-4).astype(dtype)
     cdt = np.complex64 if dtype == np.float32 else np.complex128
-    f = jit_once(lambda ki, ko, mat: mueller_brdf(ki, ko, Z.astype(dtype), mat,
-                                                  terms=("single", "multiple")))
+    f = jax.jit(lambda ki, ko, mat: mueller_brdf(ki, ko, Z.astype(dtype), mat,
+                                                 terms=("single", "multiple")))
     for n_idx, m in ((0.94 + 6.42j, 300.0), (1.46 + 0j, 3.0), (2.67 + 0j, 0.3)):
         one = Material(n=jnp.asarray(n_idx, cdt), m=jnp.asarray(m, dtype))
         per = Material(n=jnp.full(n, n_idx, cdt), m=jnp.full(n, m, dtype))

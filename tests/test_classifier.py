@@ -54,12 +54,16 @@ def test_noise_free_grid_points_exact(bank, exact):
     )
     res = classify(exact, x, k=3)
     # score 1 at the true row (float32 spectra: 2e-5), right integer shift
-    top = res.index[:, 0]
     np.testing.assert_allclose(res.score[:, 0], 1.0, atol=2e-5)
-    same = np.all(
-        np.isclose(bank.signatures[top], bank.signatures[rows], rtol=1e-5, atol=1e-7), axis=(1, 2)
-    )
-    assert np.all((top == rows) | same)  # ties only between identical signatures
+    # another row ranks first only in a tie: the true row is among the 3 best, with the best
+    # score to float32 rounding (measured gap <= 1.8e-7). Symmetric attitudes, and one cube /
+    # 3U box pair, render the same signature up to the rounding of the facet sums: 4e-7 of the
+    # peak with the default compilation, 2e-5 compiled unoptimized as in the test suite
+    # (tests/compile_level.py), so comparing the signatures themselves would be fragile.
+    hit = res.index == rows[:, None]
+    assert np.all(hit.any(axis=1))
+    true_score = np.max(np.where(hit, res.score, -np.inf), axis=1)
+    np.testing.assert_allclose(true_score, res.score[:, 0], rtol=0, atol=1e-6)
     np.testing.assert_array_equal(res.shift[:, 0], shifts)
     assert np.all(res.certified)
 

@@ -20,7 +20,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from compile_once import jit_once
 
 from ppr import Material
 from ppr._double import (
@@ -196,9 +195,7 @@ REF_ORDER = (24, 64)  # 3 u panels x 24 nodes, 64 azimuths
 
 @functools.cache
 def _jit_term(order, coherent):
-    # the reference order's program sums 4608 nodes per row: it keeps LLVM's optimization
-    jit = jax.jit if order == REF_ORDER else jit_once
-    return jit(
+    return jax.jit(
         lambda k, kp, nrm, mat, fi, fo: double_bounce_term(
             k, kp, nrm, mat, fi, fo, order=order, coherent=coherent
         )
@@ -237,6 +234,7 @@ def _case_geometry(ti, to, po):
     return k, kp, frame_for(-k), frame_for(kp, np.array([1.0, -0.3, 0.4]))
 
 
+@pytest.mark.optimized  # runs large batches (tests/compile_level.py)
 def test_matches_bruteforce_reference():
     geo = [_case_geometry(ti, to, po) for _, _, ti, to, po in CASES]
     ks, kps, fis, fos = (np.stack(a) for a in zip(*geo))
@@ -253,6 +251,7 @@ def test_matches_bruteforce_reference():
         )
 
 
+@pytest.mark.optimized  # runs large batches (tests/compile_level.py)
 def test_coherent_backscatter_matches_reference():
     """At psi = 0 the reversed path (the integration point -d1) adds in amplitude."""
     cases = [(AL, 1.0, 20.0), (TIO2, 3.0, 50.0)]
@@ -527,6 +526,7 @@ def term_white_albedo(m, theta, order=(16, 16), n_mu=24, n_phi=48):
     return float(np.sum(M[:, 0, 0] * wt))
 
 
+@pytest.mark.optimized  # runs large batches (tests/compile_level.py)
 @pytest.mark.parametrize("m,theta", [(1.0, 30.0), (3.0, 65.0)])
 def test_white_albedo_matches_process_monte_carlo(m, theta):
     mc, err = process_mc_white_albedo(m, theta, 300_000)
@@ -601,7 +601,7 @@ def test_stiff_cases_finite_values_and_gradients_and_float32_matches_float64():
                 k, jnp.asarray(kp, dtype), z, mat, jnp.asarray(fi, dtype), jnp.asarray(fo, dtype)
             )
 
-        @jit_once
+        @jax.jit
         def values_and_gradients(*a):
             # the 16 entries, and the gradient of their sum (reverse mode, as jax.grad) from the
             # same linearization
@@ -627,23 +627,20 @@ def test_stiff_cases_finite_values_and_gradients_and_float32_matches_float64():
 # the full BRDF with the double term: reciprocity, realizability, white furnace, "auto"
 
 
-@functools.cache
-def _full_jit(terms, frames):
+def _full(terms, k, kp, mat, fi=None, fo=None):
     from ppr._brdf import mueller_brdf
 
-    if frames:
-        return jit_once(
-            lambda k, kp, nrm, mat, fi, fo: mueller_brdf(
-                k, kp, nrm, mat, terms=terms, frame_in=fi, frame_out=fo
-            )
+    return np.asarray(
+        mueller_brdf(
+            jx(k),
+            jx(kp),
+            jx(np.broadcast_to(Z, np.shape(k))),
+            mat,
+            terms=terms,
+            frame_in=fi,
+            frame_out=fo,
         )
-    return jit_once(lambda k, kp, nrm, mat: mueller_brdf(k, kp, nrm, mat, terms=terms))
-
-
-def _full(terms, k, kp, mat, fi=None, fo=None):
-    frames = () if fi is None else (jx(fi), jx(fo))
-    nrm = jx(np.broadcast_to(Z, np.shape(k)))
-    return np.asarray(_full_jit(terms, bool(frames))(jx(k), jx(kp), nrm, mat, *frames))
+    )
 
 
 def test_full_brdf_reciprocity_and_realizability():

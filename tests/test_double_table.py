@@ -16,7 +16,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from compile_once import jit_once
 
 from ppr import Material, mueller_brdf
 from ppr import _double as D
@@ -56,6 +55,7 @@ def _quadrature(order, coherent):
     )
 
 
+@pytest.mark.optimized  # runs large batches (tests/compile_level.py)
 def test_table_matches_quadrature_near_backscatter():
     """Error of the table vs the (16, 64) quadrature, as a fraction of M00(single + double):
     <= 1e-3 (measured 3.3e-4 at psi <= 1e-4, 5.8e-4 at psi = PSI_MAX = 1e-3, aluminium)."""
@@ -87,7 +87,7 @@ def test_coherent_part_is_twice_the_incoherent_at_backscatter():
     rng = np.random.default_rng(3)
     nrm, k, _, fi, _ = random_geometry(rng, 6, 0.0)
     mat = Material(n=jnp.asarray(np.array([AL, TIO2] * 3)), m=jnp.asarray([0.5, 2.0, 8.0] * 2))
-    both = jit_once(
+    both = jax.jit(
         lambda *a: [D.double_bounce_term(*a, order=(2, 8), coherent=c) for c in (False, True)]
     )
     inc, coh = (np.asarray(x) for x in both(k, k, nrm, mat, fi, fi))
@@ -135,17 +135,18 @@ def test_stiff_cases_finite_values_and_gradients(dtype):
     z = jnp.asarray([0.0, 0.0, 1.0], dtype)
     e = jnp.asarray([0.0, 1.0, 0.0], dtype)
 
+    @jax.jit
     def f(k, m, nr, ni):
         mat = Material(n=(nr + 1j * ni).astype(cdt), m=m)
         return T.double_backscatter_term(k, k, z, mat, e, e)
 
     args = (jnp.asarray(k, dtype), jnp.asarray(ms, dtype), dtype(0.94), dtype(6.42))
-    val = np.asarray(jit_once(f)(*args))
+    val = np.asarray(f(*args))
     assert np.all(np.isfinite(val))
     assert np.all(val[th >= np.pi / 2] == 0.0)
     assert np.all(val[ms > T.M_MAX] == 0.0)
     assert np.all(val[(th < np.radians(89.0)) & (ms <= 10.0), 0, 0] > 0.0)
-    grads = jit_once(jax.grad(lambda *a: jnp.sum(f(*a) ** 2), argnums=(0, 1, 2, 3)))(*args)
+    grads = jax.jit(jax.grad(lambda *a: jnp.sum(f(*a) ** 2), argnums=(0, 1, 2, 3)))(*args)
     for g in grads:
         assert np.all(np.isfinite(np.asarray(g)))
 
@@ -251,7 +252,7 @@ def test_one_material_paths_agree():
         out = T.double_backscatter_term(kk, kk, nn, Material(n=nv, m=mv), ff, ff)
         return jnp.sum(out[..., :2, :])
 
-    grad = jit_once(jax.grad(summed, argnums=(0, 1)))
+    grad = jax.jit(jax.grad(summed, argnums=(0, 1)))
     for n_idx, m in ((AL, 0.7), (TIO2, 12.0)):
         one = (jnp.asarray(m), jnp.asarray(n_idx, jnp.complex128))
         per = (jnp.full(n_rows, m), jnp.full(n_rows, n_idx, jnp.complex128))

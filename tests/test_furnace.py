@@ -129,6 +129,7 @@ def _white_grid():
     return directional_albedo(M_LIST, np.deg2rad(THETA_DEG))
 
 
+@pytest.mark.optimized  # runs large batches (tests/compile_level.py)
 def test_white_furnace_all_terms():
     """Ideal white (F = 1), default terms: directional albedo 1 within 1e-3 at every m in
     [0, 1e6] and incidence 0..89 deg."""
@@ -138,6 +139,7 @@ def test_white_furnace_all_terms():
     assert err.max() < 1e-3, (err.max(), M_LIST[i], THETA_DEG[j], e1[i, j], e3[i, j])
 
 
+@pytest.mark.optimized  # runs large batches (tests/compile_level.py)
 def test_explicit_terms_never_exceed_one():
     """single + double <= 1 (the flux entering bounce 2 is exactly 1 - E_single, PHYSICS.md
     s4 / ppr/_double.py): the runtime quadrature must not overshoot (quadrature slack 2e-4)."""
@@ -145,6 +147,7 @@ def test_explicit_terms_never_exceed_one():
     assert e1.max() <= 1.0 + 2e-4, (e1.max(), np.unravel_index(np.argmax(e1), e1.shape))
 
 
+@pytest.mark.optimized  # runs large batches (tests/compile_level.py)
 def test_white_furnace_independent_plain_quadrature():
     """Broad lobes (m <= 10): plain Gauss-Legendre in (cos theta_out, phi_out), 64 x 64
     nodes, for every term together, independent of the half-vector mapping. Kinks of the
@@ -175,6 +178,7 @@ def test_white_furnace_independent_plain_quadrature():
 N_REAL = [0.94 + 6.42j, 0.54 + 2.23j, 0.054 + 3.43j, 1.461 + 0j, 2.668 + 0j, 1.0 + 10j, 1.0 + 0j]
 
 
+@pytest.mark.optimized  # runs large batches (tests/compile_level.py)
 @pytest.mark.parametrize("n_index", N_REAL)
 def test_albedo_at_most_one_for_real_materials(n_index):
     theta = np.deg2rad([0.0, 60.0, 85.0, 89.0])
@@ -189,6 +193,7 @@ def test_albedo_at_most_one_for_real_materials(n_index):
         np.testing.assert_allclose(E, 0.0, atol=1e-12)  # no index contrast, no reflection
 
 
+@pytest.mark.optimized  # runs large batches (tests/compile_level.py)
 @pytest.mark.xfail(
     strict=True,
     reason="known, open: 40 x 48 Catmull-Rom table of single + double vs direct quadrature "

@@ -130,6 +130,7 @@ def test_short_chain_warns_and_outputs_are_written(tmp_path):
     assert "acceptance" in res.summary()
 
 
+@pytest.mark.optimized  # runs long chains (tests/compile_level.py)
 def test_posterior_coverage_small():
     """Truth inside the 99% (and 68%) intervals at the expected rate over seeded trials.
 
@@ -223,6 +224,7 @@ def test_reflectance_shear_is_a_unit_jacobian_bijection():
     assert not _ReflectanceShear.applies(Parametrisation(TRUTH_INTERIOR, ("attitude", "gain")))
 
 
+@pytest.mark.optimized  # runs long chains (tests/compile_level.py)
 @pytest.mark.parametrize("moves", ["stretch", "de_snooker"])
 def test_gain_posterior_is_the_closed_form_gamma(moves):
     """Poisson counts k with expected ``g t`` and a log-uniform gain prior: the posterior of
@@ -272,6 +274,7 @@ class ParityToy(eqx.Module):
         return aux * phys.gain * jnp.stack([prof, 0.5 * prof]) + 0.5
 
 
+@pytest.mark.optimized  # runs long chains (tests/compile_level.py)
 def test_two_mode_mixture_matches_quadrature():
     """A chain started in one mode of a two-mode posterior never visits the other (the gap
     is ~10^3 posterior sd wide); ``sample_modes`` samples each mode and weights them by

@@ -16,7 +16,6 @@ import jax.numpy as jnp
 import mpmath as mp
 import numpy as np
 import pytest
-from compile_once import jit_once
 
 from ppr import _microfacet as _mfi
 from ppr import microfacet as mf
@@ -464,11 +463,11 @@ def test_visibility_one_material_gradients():
     """Tabulated path: JVP against central differences of the table itself (float64), finite
     values and gradients at the stiff ends (c = 0, c = 1, m = 0, m = 1e6) in both dtypes, and
     agreement with the quadrature's gradients."""
-    f = jit_once(_mfi.visibility_one_material)
-    jvp_c = jit_once(lambda m, c: jax.jvp(lambda c: _mfi.visibility_one_material(m, c), (c,),
+    f = jax.jit(_mfi.visibility_one_material)
+    jvp_c = jax.jit(lambda m, c: jax.jvp(lambda c: _mfi.visibility_one_material(m, c), (c,),
                                          (jnp.ones_like(c),))[1])
-    grad_m = jit_once(jax.grad(lambda m, c: jnp.sum(_mfi.visibility_one_material(m, c))))
-    grad_q = jit_once(jax.grad(lambda m, c: jnp.sum(mf.visibility(m, c))))
+    grad_m = jax.jit(jax.grad(lambda m, c: jnp.sum(_mfi.visibility_one_material(m, c))))
+    grad_q = jax.jit(jax.grad(lambda m, c: jnp.sum(mf.visibility(m, c))))
     rng = np.random.default_rng(5)
     c = rng.uniform(0.01, 0.99, 16)
     for m in (0.0, 0.7, 30.0, 3e3):
@@ -481,7 +480,7 @@ def test_visibility_one_material_gradients():
         gm = float(grad_m(m, c))
         np.testing.assert_allclose(gm, fd_m, rtol=1e-4, atol=1e-9)
         np.testing.assert_allclose(gm, float(grad_q(m, c)), rtol=1e-4, atol=1e-9)
-    grad_mc = jit_once(jax.grad(lambda m, c: jnp.sum(_mfi.visibility_one_material(m, c)),
+    grad_mc = jax.jit(jax.grad(lambda m, c: jnp.sum(_mfi.visibility_one_material(m, c)),
                                argnums=(0, 1)))
     for dt in (np.float32, np.float64):
         c = np.array([0.0, 1e-7, 0.5, 1.0 - 1e-6, 1.0], dt)

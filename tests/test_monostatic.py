@@ -19,7 +19,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from compile_once import jit_once
 
 from ppr import Material, mueller_brdf
 from ppr._brdf import _same_direction
@@ -71,7 +70,7 @@ def materials(n, dt):
     }
 
 
-@functools.partial(jit_once, static_argnames=("terms",))
+@functools.partial(jax.jit, static_argnames=("terms",))
 def general(k_in, k_out, nrm, mat, fi, fo, *, terms):
     """The general kernel: k_in and k_out are different tracers."""
     return mueller_brdf(k_in, k_out, nrm, mat, terms=terms, frame_in=fi, frame_out=fo)
@@ -123,7 +122,7 @@ def test_monostatic_gradients_float64():
     args = (k, nrm, np.asarray(mat.m), np.asarray(jnp.real(mat.n)), np.asarray(jnp.imag(mat.n)))
     w = jnp.asarray(np.random.default_rng(2).normal(size=(4, 4)))
 
-    @jit_once
+    @jax.jit
     def value_and_grad(*a):
         def f(k, nrm, m, n_re, n_im):
             M = mueller_brdf(k, k, nrm, Material(n_re + 1j * n_im, m))
@@ -158,7 +157,7 @@ def test_monostatic_float32_values_and_gradients():
     k32, n32 = k.astype(np.float32), nrm.astype(np.float32)
     w = jnp.asarray(np.random.default_rng(2).normal(size=(4, 4)), jnp.float32)
 
-    @jit_once
+    @jax.jit
     def value_and_grad(k, nrm, m, n_re, n_im):
         def f(k, nrm, m, n_re, n_im):
             M = mueller_brdf(k, k, nrm, Material(n_re + 1j * n_im, m))

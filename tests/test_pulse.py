@@ -12,7 +12,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from compile_once import ONCE, jit_once
 from scipy import integrate, stats
 
 import ppr
@@ -531,7 +530,7 @@ def _loss_fn(q, mats, arrays, vis, sensor, wts):
     return jnp.sum(_profile(q, mats, arrays, vis, sensor) * wts)
 
 
-_loss_grad = eqx.filter_jit(jax.value_and_grad(_loss_fn, argnums=(0, 1)), compiler_options=ONCE)
+_loss_grad = eqx.filter_jit(jax.value_and_grad(_loss_fn, argnums=(0, 1)))
 
 
 def _loss(*args):  # finite differences reuse the gradient's compilation
@@ -876,7 +875,7 @@ def test_normal_groups_change_nothing_values_and_gradients():
     a, b = (np.asarray(profile(x, qj, mats)) for x in (grouped, flat))
     assert np.abs(a[1:]).max() > 1e-3 * np.abs(a[0]).max()  # polarizing
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-13 * np.abs(b).max())
-    grad = jit_once(jax.grad(loss, argnums=(0, 1, 2)))
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))
     ga, gb = (grad(qj, mats.m, mats.n, x) for x in (grouped, flat))
     for x, y in zip(ga, gb, strict=True):
         assert np.all(np.isfinite(np.asarray(x)))

@@ -1,0 +1,61 @@
+"""How much the test suite's programs are optimized when compiled.
+
+Most tests compile a program (a BRDF variant, a stiff-case gradient, a render, a solver) and run
+it once or a few times on a small batch: their cost is the compilation, and most of that is
+LLVM optimizing the generated kernels. The suite therefore compiles with JAX's
+``jax_disable_most_optimizations`` (XLA backend optimization level 0, no expensive LLVM
+passes): the double term's value+gradient program compiles in 13 s instead of 24 s (user CPU
+27 s instead of 45 s) and runs in 0.55 s instead of 0.07 s.
+
+Tests whose cost is running (Monte Carlo sums over large batches, MCMC chains, high-order
+reference quadratures) are marked ``@pytest.mark.optimized`` and run with the defaults
+(``tests/conftest.py``). XLA's HLO passes are the same either way, so values agree to
+rounding; ``tests/test_compile_level.py`` checks that on the BRDF. Users, benchmarks and the
+notebooks' own runs use the defaults.
+
+JAX's jit cache does not key on this switch: a program compiled unoptimized by one test would
+be reused as is by a later ``optimized`` test in the same worker (measured: the MCMC coverage
+test took 74 s instead of 14 s that way). So an ``optimized`` test starts with
+``jax.clear_caches()``; the optimized executables it leaves behind are reused by later tests,
+which costs them nothing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import jax
+
+UNOPTIMIZED = {"jax_disable_most_optimizations": True}
+DEFAULT = {"jax_disable_most_optimizations": False}
+ENV = "JAX_DISABLE_MOST_OPTIMIZATIONS"  # read by JAX at import: subprocesses and kernels
+
+
+def apply(settings: dict) -> None:
+    for name, value in settings.items():
+        jax.config.update(name, value)
+
+
+@contextlib.contextmanager
+def optimized():
+    """Compile with JAX's defaults inside the block (then back to the suite's setting)."""
+    before = {"jax_disable_most_optimizations": _flag()}
+    apply(DEFAULT)
+    try:
+        yield
+    finally:
+        apply(before)
+
+
+@contextlib.contextmanager
+def unoptimized():
+    before = {"jax_disable_most_optimizations": _flag()}
+    apply(UNOPTIMIZED)
+    try:
+        yield
+    finally:
+        apply(before)
+
+
+def _flag() -> bool:
+    return bool(jax.config.read("jax_disable_most_optimizations"))
