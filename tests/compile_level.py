@@ -15,9 +15,9 @@ notebooks' own runs use the defaults.
 
 JAX's jit cache does not key on this switch: a program compiled unoptimized by one test would
 be reused as is by a later ``optimized`` test in the same worker (measured: the MCMC coverage
-test took 74 s instead of 14 s that way). So an ``optimized`` test starts with
-``jax.clear_caches()``; the optimized executables it leaves behind are reused by later tests,
-which costs them nothing.
+test took 74 s instead of 14 s that way). So when a worker switches to the defaults it first
+calls ``jax.clear_caches()``; consecutive optimized tests (a marked module) share their
+programs, and the optimized executables left behind are reused by later tests at no cost.
 """
 
 from __future__ import annotations

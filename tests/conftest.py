@@ -20,21 +20,24 @@ jax.config.update("jax_enable_x64", True)
 apply(UNOPTIMIZED)
 
 
+_optimized = [False]  # the worker's current setting
+
+
 @pytest.fixture(autouse=True)
 def _compile_level(request):
     """Tests marked ``optimized`` (their cost is running, not compiling) compile with JAX's
-    default optimization; every other test compiles unoptimized."""
-    if request.node.get_closest_marker("optimized") is None:
-        yield
-        return
-    # JAX's jit cache does not key on the switch: drop the worker's unoptimized executables,
-    # or the test would reuse any that an earlier test compiled for the same program
-    jax.clear_caches()
-    apply(DEFAULT)
-    try:
-        yield
-    finally:
+    default optimization; every other test compiles unoptimized. JAX's jit cache does not key
+    on the switch, so switching to the defaults drops the worker's (unoptimized) executables
+    first, or the test would reuse any that an earlier test compiled for the same program.
+    Switching back keeps the optimized ones: reusing them costs nothing."""
+    marked = request.node.get_closest_marker("optimized") is not None
+    if marked and not _optimized[0]:
+        jax.clear_caches()
+        apply(DEFAULT)
+    elif not marked and _optimized[0]:
         apply(UNOPTIMIZED)
+    _optimized[0] = marked
+    yield
 
 
 # The slowest tests (seconds of one worker, `--durations`, 2026-12-02) run first, so that the

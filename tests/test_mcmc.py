@@ -30,6 +30,10 @@ from inversion._params import Parametrisation
 from inversion._refine import PoissonNoise, refine
 from ppr._config import ConfigError
 
+# The chains run thousands of log-probability evaluations: the module compiles with JAX's
+# defaults (tests/compile_level.py; unoptimized, the coverage test alone took 74 s, not 14 s)
+pytestmark = pytest.mark.optimized
+
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "inversion" / "default.toml"
 NW = 32  # one walker count everywhere: the vmapped log-probability compiles once
 
@@ -130,7 +134,6 @@ def test_short_chain_warns_and_outputs_are_written(tmp_path):
     assert "acceptance" in res.summary()
 
 
-@pytest.mark.optimized  # runs long chains (tests/compile_level.py)
 def test_posterior_coverage_small():
     """Truth inside the 99% (and 68%) intervals at the expected rate over seeded trials.
 
@@ -224,7 +227,6 @@ def test_reflectance_shear_is_a_unit_jacobian_bijection():
     assert not _ReflectanceShear.applies(Parametrisation(TRUTH_INTERIOR, ("attitude", "gain")))
 
 
-@pytest.mark.optimized  # runs long chains (tests/compile_level.py)
 @pytest.mark.parametrize("moves", ["stretch", "de_snooker"])
 def test_gain_posterior_is_the_closed_form_gamma(moves):
     """Poisson counts k with expected ``g t`` and a log-uniform gain prior: the posterior of
@@ -274,7 +276,6 @@ class ParityToy(eqx.Module):
         return aux * phys.gain * jnp.stack([prof, 0.5 * prof]) + 0.5
 
 
-@pytest.mark.optimized  # runs long chains (tests/compile_level.py)
 def test_two_mode_mixture_matches_quadrature():
     """A chain started in one mode of a two-mode posterior never visits the other (the gap
     is ~10^3 posterior sd wide); ``sample_modes`` samples each mode and weights them by

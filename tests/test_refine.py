@@ -275,7 +275,6 @@ def test_noise_free_recovery_from_classifier_like_start():
     assert np.all(np.isfinite(res.covariance)) and res.covariance.shape == (11, 11)
 
 
-@pytest.mark.optimized  # many solver steps from many starts (tests/compile_level.py)
 def test_screening_keeps_the_start_that_reaches_the_global_optimum():
     """``keep=1``: every start runs one loose round, only the lowest-cost one is refined on.
     Three starts 60-80 deg off end in local optima (full multi-start: costs > 1e4); the
