@@ -28,7 +28,6 @@ import jax
 
 UNOPTIMIZED = {"jax_disable_most_optimizations": True}
 DEFAULT = {"jax_disable_most_optimizations": False}
-ENV = "JAX_DISABLE_MOST_OPTIMIZATIONS"  # read by JAX at import: subprocesses and kernels
 
 
 def apply(settings: dict) -> None:
@@ -37,25 +36,21 @@ def apply(settings: dict) -> None:
 
 
 @contextlib.contextmanager
+def compiled_with(settings: dict):
+    """Compile with ``settings`` inside the block, then restore the previous setting."""
+    before = {name: jax.config.read(name) for name in settings}
+    apply(settings)
+    try:
+        yield
+    finally:
+        apply(before)
+
+
 def optimized():
-    """Compile with JAX's defaults inside the block (then back to the suite's setting)."""
-    before = {"jax_disable_most_optimizations": _flag()}
-    apply(DEFAULT)
-    try:
-        yield
-    finally:
-        apply(before)
+    """JAX's defaults inside the block (``with optimized(): ...``)."""
+    return compiled_with(DEFAULT)
 
 
-@contextlib.contextmanager
 def unoptimized():
-    before = {"jax_disable_most_optimizations": _flag()}
-    apply(UNOPTIMIZED)
-    try:
-        yield
-    finally:
-        apply(before)
-
-
-def _flag() -> bool:
-    return bool(jax.config.read("jax_disable_most_optimizations"))
+    """The suite's unoptimized setting inside the block."""
+    return compiled_with(UNOPTIMIZED)
