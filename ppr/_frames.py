@@ -13,6 +13,10 @@ does not depend on the sign of ``s``. At exact backscatter (``k_out = k_in``) an
 geometry (``k_out = -k_in``) ``s`` is undefined, but so is the dependence on it (normal
 incidence: ``r_s = -r_p``; grazing: ``r_s = r_p``, ``d_in = d_out``): any ``s`` perpendicular
 to ``k_in`` gives the same matrix, and the fallback below keeps values and gradients finite.
+
+The array-valued public functions (:func:`default_frame`, :func:`mueller_rotator`,
+:func:`jones_to_mueller`, :func:`facet_jones_in_beam_frames`,
+:func:`facet_mueller_in_beam_frames`) are ``jax.jit``-wrapped, as in :mod:`ppr._fresnel`.
 """
 
 from __future__ import annotations
@@ -109,6 +113,7 @@ def _default_frame3(d: "Vec", normal: "Vec") -> "Vec":
     return tuple(jnp.where(ok, c * inv, f) for c, f in zip(cr, fb, strict=True))
 
 
+@jax.jit
 def default_frame(d: VLike, normal: VLike) -> Float[Array, "... 3"]:
     """Frame vector (x axis) of a beam travelling along ``d``: the s direction
     ``normalize(normal x d)``; where ``d`` is parallel to ``normal`` (no plane of incidence)
@@ -155,6 +160,7 @@ def rotation_cos_sin_2a(
     return safe_div(c * c - s * s, r2, fill=1.0), safe_div(2.0 * c * s, r2, fill=0.0)
 
 
+@jax.jit
 def mueller_rotator(c2: FLike, s2: FLike) -> Float[Array, "... 4 4"]:
     """Stokes rotator ``[[1,0,0,0],[0,c2,s2,0],[0,-s2,c2,0],[0,0,0,1]]`` (frame rotation by
     ``a`` with ``c2 = cos 2a``, ``s2 = sin 2a``)."""
@@ -180,6 +186,7 @@ def mueller_from_params(a: FLike, b: FLike, c: FLike, d: FLike) -> Float[Array, 
     return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
 
 
+@jax.jit
 def jones_to_mueller(J: Complex[ArrayLike, "... 2 2"]) -> Float[Array, "... 4 4"]:
     """Mueller matrix ``A (J (x) J^*) A^{-1}`` of a (batched) 2x2 complex Jones matrix."""
     J = jnp.asarray(J)
@@ -301,6 +308,7 @@ def facet_jones_in_beam_frames_re(
     return mat(0), mat(1)
 
 
+@jax.jit
 def facet_jones_in_beam_frames(
     n_re: FLike, n_im: FLike, k_in: VLike, k_out: VLike, h: VLike, x_in: VLike, x_out: VLike
 ) -> Complex[Array, "... 2 2"]:
@@ -540,6 +548,7 @@ def facet_mueller_rows(n_re, n_im, k_in, k_out, h, x_in, x_out):
     )
 
 
+@jax.jit
 def facet_mueller_in_beam_frames(
     n_re: FLike, n_im: FLike, k_in: VLike, k_out: VLike, h: VLike, x_in: VLike, x_out: VLike
 ) -> Float[Array, "... 4 4"]:

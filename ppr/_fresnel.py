@@ -23,10 +23,15 @@ on XLA CPU, STYLE.md section 10). The complex square root uses the cancellation-
 ``t = sqrt((|Re z| + |z|)/2)`` (:func:`complex_sqrt_re`), guarded by double ``where`` at
 ``z = 0`` (``n = 1`` at grazing, or a real ``n < 1`` at its critical angle), so values and
 gradients are finite for all ``0 <= cos t <= 1``, real or complex ``n``.
+
+The public entry points (:func:`fresnel_amplitudes`, :func:`fresnel_mueller_params`) are
+``jax.jit``-wrapped: an eager call runs one compiled program per input shape and dtype instead
+of dispatching each operation; under a caller's ``jit`` they are inlined.
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 from ._safe import float_dtype, tiny
@@ -108,6 +113,7 @@ def fresnel_amplitudes_re(
     return rs_re, rs_im, rp_re, rp_im
 
 
+@jax.jit
 def fresnel_amplitudes(
     n: Complex[ArrayLike, "..."] | Float[ArrayLike, "..."], cos_t: Float[ArrayLike, "..."]
 ) -> tuple[Complex[Array, "..."], Complex[Array, "..."]]:
@@ -133,6 +139,7 @@ def jax_complex(re: Array, im: Array) -> Array:
     return re.astype(cdt) + 1j * im.astype(cdt)
 
 
+@jax.jit
 def fresnel_mueller_params(
     n_re: Float[ArrayLike, "..."], n_im: Float[ArrayLike, "..."], cos_t: Float[ArrayLike, "..."]
 ) -> tuple[Float[Array, "..."], Float[Array, "..."], Float[Array, "..."], Float[Array, "..."]]:

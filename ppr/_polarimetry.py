@@ -17,6 +17,11 @@ iteration (Higham) with closed-form 3x3 inverses instead of an eigendecompositio
 gradients stay finite at degenerate singular values (pure retarders, diagonal depolarizers);
 they are zeroed where a quantity is undefined (no light, ``D = 1``, singular ``m'``), which the
 result marks in ``valid`` / ``singular``.
+
+Every public function is ``jax.jit``-wrapped: eager calls run one compiled program per input
+shape and dtype instead of dispatching dozens of operations one by one (``lu_chipman`` on 300
+float64 matrices: first call 6.0 -> 1.3 s, later calls 301 -> 0.6 ms). Under a caller's
+``jit`` they are inlined.
 """
 
 from __future__ import annotations
@@ -127,6 +132,7 @@ def _polar_orthogonal(X: Array) -> Array:
     return jax.lax.fori_loop(0, _NEWTON_STEPS, step, X)
 
 
+@jax.jit
 def lu_chipman(M: MuellerLike) -> LuChipman:
     """Lu-Chipman polar decomposition ``M = M_Delta @ M_R @ M_D`` of (batched) Mueller matrices.
 
@@ -217,23 +223,27 @@ def lu_chipman(M: MuellerLike) -> LuChipman:
     )
 
 
+@jax.jit
 def diattenuation(M: MuellerLike) -> Float[Array, "..."]:
     """Diattenuation ``D = sqrt(M01^2 + M02^2 + M03^2) / M00`` (0 where ``M00 = 0``)."""
     Mn, _, valid = _normalized(_as_mueller(M))
     return jnp.where(valid, safe_sqrt(jnp.sum(Mn[..., 0, 1:] ** 2, axis=-1)), 0.0)
 
 
+@jax.jit
 def polarizance(M: MuellerLike) -> Float[Array, "..."]:
     """Polarizance ``P = sqrt(M10^2 + M20^2 + M30^2) / M00`` (0 where ``M00 = 0``)."""
     Mn, _, valid = _normalized(_as_mueller(M))
     return jnp.where(valid, safe_sqrt(jnp.sum(Mn[..., 1:, 0] ** 2, axis=-1)), 0.0)
 
 
+@jax.jit
 def retardance(M: MuellerLike) -> Float[Array, "..."]:
     """Total retardance (rad) of the Lu-Chipman retarder factor."""
     return lu_chipman(M).retardance
 
 
+@jax.jit
 def depolarization_index(M: MuellerLike) -> Float[Array, "..."]:
     """Gil-Bernabeu depolarization index ``sqrt((sum M_ij^2 - M00^2) / (3 M00^2))``.
 
@@ -245,6 +255,7 @@ def depolarization_index(M: MuellerLike) -> Float[Array, "..."]:
     return jnp.where(valid, safe_sqrt(s / 3.0), 0.0)
 
 
+@jax.jit
 def degree_of_polarization(
     M: MuellerLike, s_in: Float[ArrayLike, "... 4"]
 ) -> Float[Array, "..."]:
@@ -263,6 +274,7 @@ _PAULI = np.array(
 _COHERENCY_BASIS = np.einsum("iab,jcd->ijacbd", _PAULI, np.conj(_PAULI)).reshape(4, 4, 4, 4)
 
 
+@jax.jit
 def coherency_matrix(M: MuellerLike) -> Array:
     """Cloude coherency matrix ``H = 1/4 sum_ij M_ij sigma_i (x) sigma_j^*`` (Hermitian 4x4,
     ``trace H = M00``; rank one for a Jones-derived M)."""
@@ -272,6 +284,7 @@ def coherency_matrix(M: MuellerLike) -> Array:
     return 0.25 * jnp.einsum("...ij,ijab->...ab", M.astype(cdt), B)
 
 
+@jax.jit
 def cloude_eigenvalues(M: MuellerLike) -> Float[Array, "... 4"]:
     """Real eigenvalues of the coherency matrix, sorted in descending order (sum = M00).
 
@@ -284,6 +297,7 @@ def cloude_eigenvalues(M: MuellerLike) -> Float[Array, "... 4"]:
     return w[..., ::-1]
 
 
+@jax.jit
 def is_realizable(M: MuellerLike, tol: float = 1e-6) -> Bool[Array, "..."]:
     """True where every Cloude eigenvalue is ``>= -tol * max(M00, |M|_max)``."""
     M = _as_mueller(M)
@@ -291,16 +305,3 @@ def is_realizable(M: MuellerLike, tol: float = 1e-6) -> Bool[Array, "..."]:
     scale = jnp.maximum(M[..., 0, 0], jnp.max(jnp.abs(M), axis=(-2, -1)))
     return w[..., -1] >= -tol * scale
 
-
-# Eager calls run one compiled program per input shape and dtype instead of dispatching
-# dozens of operations one by one (lu_chipman on 300 float64 matrices: first call 6.0 -> 1.3 s,
-# later calls 301 -> 0.6 ms). Under a caller's jit they are inlined as before.
-lu_chipman = jax.jit(lu_chipman)
-diattenuation = jax.jit(diattenuation)
-polarizance = jax.jit(polarizance)
-retardance = jax.jit(retardance)
-depolarization_index = jax.jit(depolarization_index)
-degree_of_polarization = jax.jit(degree_of_polarization)
-coherency_matrix = jax.jit(coherency_matrix)
-cloude_eigenvalues = jax.jit(cloude_eigenvalues)
-is_realizable = jax.jit(is_realizable)

@@ -20,16 +20,6 @@ from ppr._frames import (
 from ppr._fresnel import fresnel_amplitudes, fresnel_amplitudes_re, fresnel_mueller_params
 from ppr._fresnel import fresnel_mueller_params as pol_params
 
-# jit the entry points once (per shape/dtype): op-by-op dispatch compiles every primitive and
-# dominated this file's run time
-fresnel_amplitudes = jax.jit(fresnel_amplitudes)
-fresnel_mueller_params = jax.jit(fresnel_mueller_params)
-facet_jones_in_beam_frames = jax.jit(facet_jones_in_beam_frames)
-facet_mueller_in_beam_frames = jax.jit(facet_mueller_in_beam_frames)
-jones_to_mueller = jax.jit(jones_to_mueller)
-mueller_rotator = jax.jit(mueller_rotator)
-default_frame_jit = jax.jit(default_frame)
-
 RNG = np.random.default_rng(7)
 METALS = [0.94 + 6.42j, 1.38 + 10.25j, 0.54 + 2.23j, 0.054 + 3.43j, 1 + 10j, 0.2 + 7j]
 
@@ -159,7 +149,7 @@ def test_rotation_composition_and_vectors():
 def test_default_frame():
     normal = np.array([0.0, 0.0, 1.0])
     d = unit(np.array([[0.3, -0.2, -0.9], [0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [1e-20, 0, 1]]))
-    x = np.array(default_frame_jit(d, normal))
+    x = np.array(default_frame(d, normal))
     np.testing.assert_allclose(np.linalg.norm(x, axis=-1), 1.0, atol=1e-14)
     np.testing.assert_allclose(np.sum(x * d, -1), 0.0, atol=1e-14)
     np.testing.assert_allclose(x[0], unit(np.cross(normal, d[0])), atol=1e-14)
