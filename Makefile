@@ -25,4 +25,4 @@ bench: $(VENV)/.installed
 	for f in bench/bench_*.py; do $(PY) $$f || exit 1; done
 
 lint: $(VENV)/.installed
-	$(VENV)/bin/ruff check ppr inversion tests bench
+	$(VENV)/bin/ruff check .

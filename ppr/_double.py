@@ -242,7 +242,7 @@ def _snormalize(v, fallback, thr):
     sq = _sdot(v, v)
     ok = sq > thr
     inv = jax.lax.rsqrt(jnp.where(ok, sq, 1.0))
-    return tuple(jnp.where(ok, vi * inv, fi) for vi, fi in zip(v, fallback)), ok
+    return tuple(jnp.where(ok, vi * inv, fi) for vi, fi in zip(v, fallback, strict=True)), ok
 
 
 def _split(v):
@@ -274,8 +274,8 @@ def _mueller_of_h(H: np.ndarray) -> np.ndarray:
     for i in range(2):
         for j in range(2):
             for k in range(2):
-                for l in range(2):
-                    K[2 * i + k, 2 * j + l] = H[2 * i + j, 2 * k + l]
+                for l_ in range(2):
+                    K[2 * i + k, 2 * j + l_] = H[2 * i + j, 2 * k + l_]
     A = np.asarray(A_STOKES)
     return A @ K @ np.linalg.inv(A)
 
@@ -346,8 +346,8 @@ def _path_jones(k, kp, d1, e, n_re, n_im, white, thr, probe=None):
     ``b = r_p1 r_p2``) wherever the chain is coplanar (``C_12`` diagonal: exact backscatter).
     """
     # cos t1 = |k + d1| / 2, cos t2 = |k' - d1| / 2 (both mirror geometries)
-    a1 = tuple(x + y for x, y in zip(k, d1))
-    a2 = tuple(x - y for x, y in zip(kp, d1))
+    a1 = tuple(x + y for x, y in zip(k, d1, strict=True))
+    a2 = tuple(x - y for x, y in zip(kp, d1, strict=True))
     c1 = jnp.clip(0.5 * safe_sqrt(_sdot(a1, a1)), 0.0, 1.0)
     c2 = jnp.clip(0.5 * safe_sqrt(_sdot(a2, a2)), 0.0, 1.0)
     if probe is None:
@@ -611,7 +611,7 @@ def _log_cos_pow(m, ts, thr):
 
 def _lobe_pow(m, h, nq, hn, thr):
     """(h.n)^m from |h - n|^2 (float32-accurate near h = n), 0 for h.n <= thr."""
-    dv = tuple(a - b for a, b in zip(h, nq))
+    dv = tuple(a - b for a, b in zip(h, nq, strict=True))
     q2 = _sdot(dv, dv)
     ok = hn > thr
     lg = jnp.log1p(-0.5 * jnp.clip(jnp.where(ok, q2, 0.0), 0.0, 1.999))
@@ -621,12 +621,12 @@ def _lobe_pow(m, h, nq, hn, thr):
 def _azimuth_f(a, d, nq, thr):
     """Ashikhmin's f(phi) = cos(phi / 2) = |u_a + u_d| / 2 (unit projections on the surface
     plane); 1 where a projection vanishes (SoA tuples)."""
-    pa = tuple(x - _sdot(a, nq) * y for x, y in zip(a, nq))
-    pd = tuple(x - _sdot(d, nq) * y for x, y in zip(d, nq))
+    pa = tuple(x - _sdot(a, nq) * y for x, y in zip(a, nq, strict=True))
+    pd = tuple(x - _sdot(d, nq) * y for x, y in zip(d, nq, strict=True))
     fb = tuple(jnp.zeros_like(pd[0]) for _ in range(3))
     ua, oka = _snormalize(pa, fb, thr * 1e6)
     ud, okd = _snormalize(pd, fb, thr * 1e6)
-    sm = tuple(x + y for x, y in zip(ua, ud))
+    sm = tuple(x + y for x, y in zip(ua, ud, strict=True))
     f = 0.5 * safe_sqrt(jnp.clip(_sdot(sm, sm), 0.0, 4.0))
     return jnp.where(oka & okd, jnp.clip(f, 0.0, 1.0), 1.0)
 
@@ -756,9 +756,9 @@ def _half_paths(k, kp, normal, e, m, n_re, n_im, *, reverse, order, coef, white,
     nq = tuple(ex(normal[..., i]) for i in range(3))
     eq = tuple(ex(e[..., i]) for i in range(3))
     c1 = jnp.clip(_sdot(kq, h1), 0.0, 1.0)
-    d1 = tuple(2.0 * c1 * hi - ki for hi, ki in zip(h1, kq))
+    d1 = tuple(2.0 * c1 * hi - ki for hi, ki in zip(h1, kq, strict=True))
     fb = (jnp.zeros_like(c1), jnp.zeros_like(c1), jnp.ones_like(c1))
-    h2, ok2 = _snormalize(tuple(a - b for a, b in zip(kpq, d1)), fb, thr)
+    h2, ok2 = _snormalize(tuple(a - b for a, b in zip(kpq, d1, strict=True)), fb, thr)
     p2, v2, log_p2 = _lobe_pow(mq, h2, nq, _sdot(h2, nq), thr)
     # balance weight p1 / (p1 + p2) (the other half, parametrized by h2, carries p2 / (p1+p2));
     # p1 = cos^m t = u^(m / (m+1)) up to the common (m+1)/(2 pi). As a logistic function of
@@ -797,8 +797,8 @@ def _half_paths(k, kp, normal, e, m, n_re, n_im, *, reverse, order, coef, white,
             J = _path_jones(kq, kpq, d1, eq, ex(n_re), ex(n_im), white, thr, probe)
     else:  # per element (both halves in one batch, :func:`_accumulate`)
         rq = ex(reverse)
-        first = tuple(jnp.where(rq, b, a) for a, b in zip(kq, kpq))
-        second = tuple(jnp.where(rq, a, b) for a, b in zip(kq, kpq))
+        first = tuple(jnp.where(rq, b, a) for a, b in zip(kq, kpq, strict=True))
+        second = tuple(jnp.where(rq, a, b) for a, b in zip(kq, kpq, strict=True))
         d = tuple(jnp.where(rq, -x, x) for x in d1)
         J = _path_jones(first, second, d, eq, ex(n_re), ex(n_im), white, thr, probe)
     return w, J, c1

@@ -74,11 +74,15 @@ class Material(eqx.Module):
                 f"exp(i(kz - wt)) convention), got n={np.asarray(self.n)!r}"
             )
         if _is_concrete(self.n) and np.any(np.real(np.asarray(self.n)) <= 0):
-            raise ValueError(f"Material.n must have a positive real part, got n={np.asarray(self.n)!r}")
+            raise ValueError(
+                f"Material.n must have a positive real part, got n={np.asarray(self.n)!r}"
+            )
         if _is_concrete(self.m):
             m = np.asarray(self.m)
             if np.any(m < 0) or np.any(m > 1e6 * (1 + 1e-9)):
-                raise ValueError(f"Material.m (Blinn-Phong exponent) must lie in [0, 1e6], got m={m!r}")
+                raise ValueError(
+                    f"Material.m (Blinn-Phong exponent) must lie in [0, 1e6], got m={m!r}"
+                )
         if _is_concrete(self.corr_length) and np.any(np.asarray(self.corr_length) <= 0):
             raise ValueError(
                 f"Material.corr_length must be > 0 metres, got {np.asarray(self.corr_length)!r}"

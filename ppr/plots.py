@@ -35,7 +35,9 @@ def brdf_quantity_figure(
     import matplotlib.pyplot as plt
 
     nrow, ncol = len(panels), len(columns)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 2.8 * nrow), squeeze=False, sharex=True)
+    fig, axes = plt.subplots(
+        nrow, ncol, figsize=(4.2 * ncol, 2.8 * nrow), squeeze=False, sharex=True
+    )
     for r, (qlabel, curves) in enumerate(panels):
         for c, ctitle in enumerate(columns):
             ax = axes[r, c]

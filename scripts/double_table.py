@@ -226,7 +226,6 @@ def measure_matter_table(out_dir):
                 rows.append((th, psi, az, k, kp / np.linalg.norm(kp)))
     K = np.stack([r[3] for r in rows])
     KP = np.stack([r[4] for r in rows])
-    z = np.broadcast_to([0.0, 0.0, 1.0], K.shape)
 
     @jax.jit
     def f(k, kp, n, m):
@@ -237,7 +236,7 @@ def measure_matter_table(out_dir):
         return tot, nod
 
     res = {}
-    for mname, n in MATS:
+    for _mname, n in MATS:
         for m in MS:
             tot, nod = f(jnp.asarray(K), jnp.asarray(KP), jnp.full(len(K), n), jnp.full(len(K), m))
             tot, nod = np.asarray(tot), np.asarray(nod)
@@ -245,7 +244,7 @@ def measure_matter_table(out_dir):
             ddi = np.abs(
                 np.asarray(depolarization_index(tot)) - np.asarray(depolarization_index(nod))
             )
-            for i, (th, psi, az, _, _) in enumerate(rows):
+            for i, (_th, psi, _az, _, _) in enumerate(rows):
                 key = (m, psi)
                 r = res.setdefault(key, [0.0, 0.0])
                 r[0] = max(r[0], float(abs(r00[i])))

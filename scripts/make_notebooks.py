@@ -4,11 +4,14 @@
 The notebooks are generated, not hand-edited, so they stay reviewable as plain Python here.
 Each notebook's first code cell reads ``PPR_SMALL`` (``PPR_SMALL=1``: small grids, short
 chains; the test suite runs them that way, ``tests/test_notebooks.py``). Outputs are not
-stored. Regenerate with ``python scripts/make_notebooks.py``.
+stored. Regenerate with ``.venv/bin/python scripts/make_notebooks.py`` (needs ruff, from the
+test extra: the written notebooks are fixed and formatted with it).
 """
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import nbformat
@@ -115,7 +118,7 @@ th = np.radians(20.0)
 k_in = np.array([np.sin(th), 0.0, np.cos(th)])
 k_out = np.stack([np.sin(th - psi), 0 * psi, np.cos(th - psi)], -1)
 fig, axes = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
-for ax, name in zip(axes, ("aluminium", "white_paint_tio2")):
+for ax, name in zip(axes, ("aluminium", "white_paint_tio2"), strict=True):
     base = ppr.load_material(name, 532e-9)
     mats = ppr.Material(n=np.full((len(ms), 1), complex(base.n)), m=ms[:, None])  # batched over m
     Mg = brdf(k_in, k_out[None], normal, mats, frame_in=ey, frame_out=ey)
@@ -141,7 +144,7 @@ Ms = brdf(k_in, k_out[None], normal, mats, frame_in=ey, frame_out=ey)
 lc = jax.jit(ppr.lu_chipman)(Ms)
 fig, axes = plt.subplots(1, 4, figsize=(16, 3.6), constrained_layout=True)
 for ax, (label, val) in zip(axes, [("M00 [1/sr]", lc.m00), ("diattenuation", lc.diattenuation),
-                                   ("polarizance", lc.polarizance), ("retardance [rad]", lc.retardance)]):
+                                   ("polarizance", lc.polarizance), ("retardance [rad]", lc.retardance)], strict=True):
     for i, finish in enumerate(finishes):
         ax.plot(np.degrees(psi), np.asarray(val)[i], label=f"{finish} (m={m_f[i]:g})")
     ax.set_title(label); ax.set_xlabel("bistatic angle [deg]")
@@ -253,7 +256,7 @@ img = _image.render_mueller_image(
     frame_tx=np.asarray(scene.sensor.frame_tx), frame_rx=np.asarray(scene.sensor.frame_rx),
     quaternion=np.asarray(scene.pose.quaternion), n_pixels=48 if SMALL else 160)
 fig, axes = plt.subplots(1, 3, figsize=(13, 4), constrained_layout=True)
-for ax, q in zip(axes, ("reflectance", "depolarization_index", "retardance")):
+for ax, q in zip(axes, ("reflectance", "depolarization_index", "retardance"), strict=True):
     im = ax.imshow(img.quantities[q]); ax.set_title(_image.QUANTITY_LABELS[q]); fig.colorbar(im, ax=ax)""",
 ]
 
@@ -403,7 +406,7 @@ infinite). The full BRDF's depolarizing terms carry it.""",
     """import jax.numpy as jnp
 from inversion._params import quat_from_rotvec, quat_multiply
 starts = []
-for k in range(1 if SMALL else 6):
+for _ in range(1 if SMALL else 6):
     w = rng.normal(size=3); w *= np.radians(rng.uniform(5, 10)) / np.linalg.norm(w)
     q = np.asarray(quat_multiply(quat_from_rotvec(jnp.asarray(w)), jnp.asarray(q_true)))
     f = rng.uniform(0.7, 1.3, 4)
@@ -415,7 +418,8 @@ noise = inversion.PoissonCounts()   # exact Poisson likelihood of the photo-coun
 from inversion._params import DEFAULT_FREE
 free = ("attitude", "m", "range_offset", "gain") if SMALL else DEFAULT_FREE
 fit = inversion.refine(model, data, starts, noise=noise, free=free)
-print(f"refine: {time.perf_counter() - t0:.1f} s, result: {fit.result if hasattr(fit, 'result') else ''}")
+status = fit.result if hasattr(fit, "result") else ""
+print(f"refine: {time.perf_counter() - t0:.1f} s, result: {status}")
 p = fit.params
 print("attitude error [deg]:", float(quat_angle_deg(p.unit_quaternion(), q_true)))
 print("m:", np.asarray(p.m), "(true 20)   n:", np.asarray(p.n), "(true 1.4+0.05j)")
@@ -430,7 +434,7 @@ no polarization channel can see.""",
     """crb = inversion.cramer_rao(model, truth, noise, free=free)   # the same free parameters
 assert crb.labels == fit.labels
 print(f"attitude bound: {crb.attitude_sigma_deg:.3g} deg (refined error above)")
-for lab, s_fit, s_crb in zip(crb.labels, fit.sigma, crb.sigma):
+for lab, s_fit, s_crb in zip(crb.labels, fit.sigma, crb.sigma, strict=True):
     print(f"{lab:>18s}: fit sigma {s_fit:.3g}   Cramer-Rao bound {s_crb:.3g}")
 """,
     """md:## The mirror image: a second mode no local bound sees
@@ -486,8 +490,8 @@ print(post)""",
 lo, hi = post.interval(0.95).T
 med = post.median()
 tv = post.truth_vector(truth)
-for lab, l, m_, h, t in zip(post.labels, lo, med, hi, tv):
-    print(f"{lab:>14s}: {m_: .4g}  95% [{l: .4g}, {h: .4g}]  truth {t: .4g}")""",
+for lab, lo_, m_, hi_, t in zip(post.labels, lo, med, hi, tv, strict=True):
+    print(f"{lab:>14s}: {m_: .4g}  95% [{lo_: .4g}, {hi_: .4g}]  truth {t: .4g}")""",
     """import tempfile
 with tempfile.TemporaryDirectory() as d:
     post.corner_plot(Path(d) / "corner.png", truth=truth)
@@ -560,7 +564,8 @@ for m in ([1.0, 10.0] if SMALL else [0.5, 1.0, 10.0, 100.0]):
     for tdeg in (0.0, 60.0):
         th = np.radians(tdeg); k_in = np.array([np.sin(th), 0.0, np.cos(th)])
         g = np.asarray(brdf(k_in, k_out, normal, white)[..., 0, 0]) * z * 2 * np.pi
-        print(f"m = {m:5g}, incidence {tdeg:4.0f} deg: E = {g.mean():.4f} +- {g.std() / np.sqrt(n_mc):.4f}")""",
+        se = g.std() / np.sqrt(n_mc)
+        print(f"m = {m:5g}, incidence {tdeg:4.0f} deg: E = {g.mean():.4f} +- {se:.4f}")""",
     """md:## 4. Reciprocity
 `M(k_in, k_out)` equals the reciprocal transform of `M(k_out, k_in)`: for the scalar part,
 `M00(k_in, k_out) = M00(k_out, k_in)` exactly.""",
@@ -598,9 +603,18 @@ NOTEBOOKS = {
 
 def main() -> None:
     OUT.mkdir(exist_ok=True)
+    paths = []
     for name, cells in NOTEBOOKS.items():
         nbformat.write(nb(cells), OUT / name)
-        print("wrote", OUT / name)
+        paths.append(str(OUT / name))
+    # the written notebooks in the project's ruff style (pyproject.toml): sorted imports, one
+    # statement per line, wrapped lines; what ruff cannot fix is fixed in the sources above
+    ruff = [sys.executable, "-m", "ruff"]
+    subprocess.run([*ruff, "check", "--fix", "--quiet", *paths], check=False)
+    subprocess.run([*ruff, "format", "--quiet", *paths], check=True)
+    subprocess.run([*ruff, "check", *paths], check=True)
+    for p in paths:
+        print("wrote", p)
 
 
 if __name__ == "__main__":

@@ -41,7 +41,11 @@ def _unit(v):
 
 def _dir(theta, phi):
     return np.stack(
-        [np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta) * np.ones_like(phi)],
+        [
+            np.sin(theta) * np.cos(phi),
+            np.sin(theta) * np.sin(phi),
+            np.cos(theta) * np.ones_like(phi),
+        ],
         axis=-1,
     )
 
@@ -64,7 +68,9 @@ def _random_materials(rng, n):
     m[:3] = [0.0, 1.0, 1e6]
     kind = rng.integers(0, 3, n)
     n_re = np.where(kind == 0, rng.uniform(0.1, 2.0, n), rng.uniform(1.0, 3.0, n))
-    n_im = np.where(kind == 0, rng.uniform(2.0, 10.0, n), np.where(kind == 1, 0.0, rng.uniform(0, 0.5, n)))
+    n_im = np.where(
+        kind == 0, rng.uniform(2.0, 10.0, n), np.where(kind == 1, 0.0, rng.uniform(0, 0.5, n))
+    )
     return Material(n=n_re + 1j * n_im, m=m)
 
 
@@ -207,7 +213,7 @@ def _lobe_integral(mat, theta_in, n_phi=32, n_w=16):
 def test_large_m_reproduces_mirror(m, n_index):
     for theta in np.deg2rad([10.0, 45.0, 70.0]):
         mat = Material(n=n_index, m=m)
-        I, k_in, k_spec, xi = _lobe_integral(mat, theta)
+        integral, k_in, k_spec, xi = _lobe_integral(mat, theta)
         F = np.asarray(
             facet_mueller_in_beam_frames(
                 np.real(n_index), np.imag(n_index), k_in, k_spec, Z, xi, default_frame(k_spec, Z)
@@ -215,7 +221,7 @@ def test_large_m_reproduces_mirror(m, n_index):
         )
         # Fresnel varies across the lobe (width ~1/sqrt(m) <= 3e-3 rad) and the remainder is
         # O(1e-6) here: 1e-3 of the mirror's M00
-        np.testing.assert_allclose(I, F, atol=1e-3 * F[0, 0])
+        np.testing.assert_allclose(integral, F, atol=1e-3 * F[0, 0])
 
 
 def test_m0_near_lambertian():
@@ -305,8 +311,8 @@ def test_float32_matches_float64():
     """Float32 vs float64, 2000 random geometries and materials (m <= 1e4).
 
     Single term: relative error per element (floor 1e-30 /sr: far lobe tails at m ~ 1e4 fall
-    below float32's normal range), measured 4.1e-5; float32 rounding of directions (1e-7) amplified by the lobe exponent m
-    (1 - h.n ~ 1/m): ~ m * 1e-7 * |h - n| <~ 1e-4 at m = 1e4.
+    below float32's normal range), measured 4.1e-5; float32 rounding of directions (1e-7)
+    amplified by the lobe exponent m (1 - h.n ~ 1/m): ~ m * 1e-7 * |h - n| <~ 1e-4 at m = 1e4.
     Core total (single + remainder): the remainder's deficit D(m, mu) is a Catmull-Rom blend of
     table nodes spanning many decades, so where D ~ 1e-9 sits next to nodes of 1e-2 float32
     leaves ~1e-9 absolute, i.e. a large *relative* error of a negligible value (measured 8.7e-3
@@ -334,7 +340,9 @@ def test_jvp_matches_central_differences():
     def f(p):
         th_i, th_o, ph_o, log_m, n_re, n_im = p
         ki = jnp.stack([jnp.sin(th_i), 0.0 * th_i, jnp.cos(th_i)])
-        ko = jnp.stack([jnp.sin(th_o) * jnp.cos(ph_o), jnp.sin(th_o) * jnp.sin(ph_o), jnp.cos(th_o)])
+        ko = jnp.stack(
+            [jnp.sin(th_o) * jnp.cos(ph_o), jnp.sin(th_o) * jnp.sin(ph_o), jnp.cos(th_o)]
+        )
         mat = Material(n=n_re + 1j * n_im, m=jnp.exp(log_m))
         return mueller_brdf(ki, ko, jnp.asarray(Z), mat, terms=CORE).ravel()
 
@@ -362,14 +370,18 @@ def test_vmap_equals_loop_and_broadcasting():
     ms = np.array([0.0, 0.5, 10.0, 1e3, 1e5, 1e6])
     ns = np.array([1.5, 0.94 + 6.42j, 1.0, 2.6, 0.54 + 2.23j, 1.46])
     batched = np.asarray(mueller_brdf(ki, ko, Z, Material(n=ns, m=ms), terms=CORE))
-    vm = jax.jit(jax.vmap(  # jitted: the vmapped trace in one program, not op by op
-        lambda a, b, m, n: mueller_brdf(a, b, jnp.asarray(Z), Material(n=n, m=m), terms=CORE)
-    ))
+    vm = jax.jit(
+        jax.vmap(  # jitted: the vmapped trace in one program, not op by op
+            lambda a, b, m, n: mueller_brdf(a, b, jnp.asarray(Z), Material(n=n, m=m), terms=CORE)
+        )
+    )
     vmapped = np.asarray(vm(jnp.asarray(ki), jnp.asarray(ko), jnp.asarray(ms), jnp.asarray(ns)))
-    loop = np.stack([
-        np.asarray(mueller_brdf(ki[i], ko[i], Z, Material(n=ns[i], m=ms[i]), terms=CORE))
-        for i in range(6)
-    ])
+    loop = np.stack(
+        [
+            np.asarray(mueller_brdf(ki[i], ko[i], Z, Material(n=ns[i], m=ms[i]), terms=CORE))
+            for i in range(6)
+        ]
+    )
     np.testing.assert_allclose(batched, loop, rtol=1e-12, atol=0)
     np.testing.assert_allclose(vmapped, loop, rtol=1e-12, atol=0)
     # broadcasting: (3, 1, 3) x (1, 4, 3) -> (3, 4, 4, 4)
@@ -385,7 +397,8 @@ def test_vmap_equals_loop_and_broadcasting():
     assert _brdf_core._cache_size() == n0
     np.testing.assert_allclose(np.asarray(out26)[:, :4], np.asarray(out)[:2], rtol=1e-13)
     np.testing.assert_allclose(
-        np.asarray(out[1, 2]), np.asarray(mueller_brdf(ki[1], ko[2], Z, Material(n=1.5, m=10.0), terms=CORE)),
+        np.asarray(out[1, 2]),
+        np.asarray(mueller_brdf(ki[1], ko[2], Z, Material(n=1.5, m=10.0), terms=CORE)),
         rtol=1e-12,
     )
 
@@ -397,7 +410,13 @@ def test_eager_bucket_sizes():
     from ppr._brdf import eager_bucket
 
     assert [eager_bucket(n) for n in (1, 8, 9, 17, 100, 4096, 4097)] == [
-        8, 8, 10, 20, 112, 4096, 5120
+        8,
+        8,
+        10,
+        20,
+        112,
+        4096,
+        5120,
     ]
     assert eager_bucket(0) is None
     sizes = [eager_bucket(n) for n in range(1, 100_000)]
@@ -446,7 +465,10 @@ def test_export():
         (dict(k_in=[0.0, 0.0, 1.01]), "k_in"),
         (dict(frame_in=[0.0, 0.0, 1.0]), "frame_in"),
         (dict(frame_out=[1.0, 1.0, 0.0]), "frame_out"),
-        (dict(k_in=np.zeros((2, 3)) + [0, 0, 1.0], k_out=np.zeros((3, 3)) + [0, 0, 1.0]), "broadcast"),
+        (
+            dict(k_in=np.zeros((2, 3)) + [0, 0, 1.0], k_out=np.zeros((3, 3)) + [0, 0, 1.0]),
+            "broadcast",
+        ),
     ],
 )
 def test_bad_directions_raise_naming_argument(kwargs, name):
@@ -559,8 +581,9 @@ def test_one_material_fast_paths_match_per_element(dtype, tol):
     ki = _random_upper(rng, n, min_cos=1e-4).astype(dtype)
     ko = _random_upper(rng, n, min_cos=1e-4).astype(dtype)
     cdt = np.complex64 if dtype == np.float32 else np.complex128
-    f = jax.jit(lambda ki, ko, mat: mueller_brdf(ki, ko, Z.astype(dtype), mat,
-                                                 terms=("single", "multiple")))
+    f = jax.jit(
+        lambda ki, ko, mat: mueller_brdf(ki, ko, Z.astype(dtype), mat, terms=("single", "multiple"))
+    )
     for n_idx, m in ((0.94 + 6.42j, 300.0), (1.46 + 0j, 3.0), (2.67 + 0j, 0.3)):
         one = Material(n=jnp.asarray(n_idx, cdt), m=jnp.asarray(m, dtype))
         per = Material(n=jnp.full(n, n_idx, cdt), m=jnp.full(n, m, dtype))

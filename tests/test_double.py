@@ -166,7 +166,10 @@ def direction(theta_deg, phi_deg=0.0):
     return np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
 
 
-def frame_for(k_prop, seed_vec=np.array([0.2, 1.0, 0.1])):
+_FRAME_SEED = np.array([0.2, 1.0, 0.1])
+
+
+def frame_for(k_prop, seed_vec=_FRAME_SEED):
     """Some frame vector perpendicular to the beam direction (not aligned with anything)."""
     v = seed_vec - np.dot(seed_vec, k_prop) * k_prop
     return v / np.linalg.norm(v)
@@ -237,7 +240,7 @@ def _case_geometry(ti, to, po):
 @pytest.mark.optimized  # runs large batches (tests/compile_level.py)
 def test_matches_bruteforce_reference():
     geo = [_case_geometry(ti, to, po) for _, _, ti, to, po in CASES]
-    ks, kps, fis, fos = (np.stack(a) for a in zip(*geo))
+    ks, kps, fis, fos = (np.stack(a) for a in zip(*geo, strict=True))
     got = batched_term(
         [c[0] for c in CASES], [c[1] for c in CASES], ks, kps, fis, fos, order=REF_ORDER
     )
@@ -284,7 +287,7 @@ def test_backscatter_paths_reduce_to_paper_eqs_15_16():
         h2 = unit(k - d1)
         np.testing.assert_allclose(np.sum(h1 * h2, -1), 0.0, atol=1e-12)  # eq. 14
         kh1, kh2 = h1 @ k, h2 @ k
-        sq = lambda x: np.sqrt(n * n - x * x + 0j)  # noqa: E731
+        sq = lambda x, n=n: np.sqrt(n * n - x * x + 0j)  # noqa: E731
         rs2 = (sq(kh2) - kh1) / (sq(kh2) + kh1) * (sq(kh1) - kh2) / (sq(kh1) + kh2)
         rp2 = (
             (n * n * kh1 - sq(kh2))
@@ -391,11 +394,11 @@ def test_reciprocity(coherent):
     for ti, to, po in [(20, 50, 30), (60, 10, 150), (35, 36, 2), (75, 40, 270)]:
         k, kp = direction(ti, 10.0), direction(to, 10.0 + po)
         geo.append((k, kp, frame_for(-k, rng.normal(size=3)), frame_for(kp, rng.normal(size=3))))
-    ks, kps, fis, fos = (np.stack(a) for a in zip(*geo))
+    ks, kps, fis, fos = (np.stack(a) for a in zip(*geo, strict=True))
     ns, ms = [AL, TIO2, AL, SILICA], [2.0, 0.7, 5.0, 1.5]
     fwd = batched_term(ns, ms, ks, kps, fis, fos, coherent=coherent)
     rev = batched_term(ns, ms, kps, ks, fos, fis, coherent=coherent)
-    for a, b in zip(fwd, rev):
+    for a, b in zip(fwd, rev, strict=True):
         # the two halves of the quadrature swap roles: equal up to rounding
         np.testing.assert_allclose(b, D @ a.T @ D, rtol=1e-9, atol=1e-12 * abs(a[0, 0]))
 
@@ -579,7 +582,10 @@ def test_stiff_cases_finite_values_and_gradients_and_float32_matches_float64():
     th_r, ph_r = np.deg2rad(rng.uniform(0, 80, nb)), np.deg2rad(rng.uniform(0, 360, nb))
     k_r = np.stack([direction(t, p) for t, p in np.rad2deg(np.stack([th_r, ph_r], 1))])
     kp_r = np.stack(
-        [direction(t, p) for t, p in zip(rng.uniform(0, 80, nb), rng.uniform(0, 360, nb))]
+        [
+            direction(t, p)
+            for t, p in zip(rng.uniform(0, 80, nb), rng.uniform(0, 360, nb), strict=True)
+        ]
     )
     kp_r[:4] = k_r[:4]
     th, ph = np.concatenate([th, th_r]), np.concatenate([ph, ph_r])
@@ -647,9 +653,17 @@ def test_full_brdf_reciprocity_and_realizability():
     D = _mueller_reciprocal_D()
     rng = np.random.default_rng(9)
     nb = 12
-    k = np.stack([direction(t, p) for t, p in zip(rng.uniform(0, 80, nb), rng.uniform(0, 360, nb))])
+    k = np.stack(
+        [
+            direction(t, p)
+            for t, p in zip(rng.uniform(0, 80, nb), rng.uniform(0, 360, nb), strict=True)
+        ]
+    )
     kp = np.stack(
-        [direction(t, p) for t, p in zip(rng.uniform(0, 80, nb), rng.uniform(0, 360, nb))]
+        [
+            direction(t, p)
+            for t, p in zip(rng.uniform(0, 80, nb), rng.uniform(0, 360, nb), strict=True)
+        ]
     )
     kp[:3] = k[:3]
     fi = np.stack([frame_for(-a, rng.normal(size=3)) for a in k])
@@ -657,7 +671,7 @@ def test_full_brdf_reciprocity_and_realizability():
     mat = Material(n=np.array([AL, TIO2, SILICA] * 4), m=np.array([0.5, 2.0, 8.0, 40.0] * 3))
     fwd = _full(None, k, kp, mat, jx(fi), jx(fo))
     rev = _full(None, kp, k, mat, jx(fo), jx(fi))
-    for a, b in zip(fwd, rev):
+    for a, b in zip(fwd, rev, strict=True):
         np.testing.assert_allclose(b, D @ a.T @ D, rtol=1e-8, atol=1e-10 * abs(a[0, 0]))
         assert cloude_min_eig(a) >= -1e-10 * a[0, 0]
 
@@ -734,7 +748,7 @@ def test_auto_rule_skips_only_where_negligible():
     kp = np.stack(
         [
             direction(np.clip(t + d, 0, 85), a)
-            for t, d, a in zip(ti, rng.uniform(-20, 20, nb), rng.uniform(-15, 15, nb))
+            for t, d, a in zip(ti, rng.uniform(-20, 20, nb), rng.uniform(-15, 15, nb), strict=True)
         ]
     )
     kp[:6] = k[:6]
