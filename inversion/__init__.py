@@ -27,6 +27,7 @@ from ._database import (
     load_spec,
     make_signature_fn,
     spec_from_dict,
+    store_differences,
 )
 from ._grid import (
     AttitudeGrid,
@@ -101,6 +102,7 @@ __all__ = [
     "load_spec",
     "make_signature_fn",
     "spec_from_dict",
+    "store_differences",
     "AttitudeGrid",
     "covering_radius",
     "fibonacci_grid",

@@ -37,6 +37,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -69,15 +70,33 @@ class ShapeSpec(StrictModel):
     symmetry: str = "none"
     params: dict[str, float | int] = {}  # ppr.shapes parameters (model "ppr" only)
 
+    @pydantic.field_validator("symmetry")
+    @classmethod
+    def _symmetry(cls, v):
+        from ._grid import symmetry_group
+
+        symmetry_group(v)  # raises ValueError naming the group
+        return v
+
 
 class GridSpec(StrictModel):
-    kind: str = "hopf"
+    kind: Literal["hopf", "fibonacci"] = "hopf"
     size: int = pydantic.Field(2, ge=1)  # Hopf nside, or number of Fibonacci points
     reduce_symmetry: bool = True
 
 
 class SensorSpec(StrictModel):
     channels: str = "full"
+
+    @pydantic.field_validator("channels")
+    @classmethod
+    def _channels(cls, v):
+        from ._noise import PRESETS
+
+        if v not in PRESETS:
+            raise ValueError(f"unknown channel preset; known: {', '.join(sorted(PRESETS))}")
+        return v
+
     n_bins: int = pydantic.Field(64, ge=2)
     bin_width_m: float = pydantic.Field(0.01, gt=0)
     pulse_fwhm_s: float = pydantic.Field(100e-12, gt=0)
@@ -87,14 +106,14 @@ class DatabaseSpec(StrictModel):
     """Typed database description (``configs/databases/*.toml``)."""
 
     name: str = "database"
-    model: str = "synthetic"
+    model: Literal["synthetic", "ppr"] = "synthetic"
     shapes: tuple[ShapeSpec, ...]
     materials: tuple[str, ...]
     finishes: dict[str, float]
     grid: GridSpec = GridSpec()
     sensor: SensorSpec = SensorSpec()
     chunk_rows: int = pydantic.Field(256, ge=1)
-    compute_dtype: str = "float32"
+    compute_dtype: Literal["float32", "float64"] = "float32"
 
     @pydantic.field_validator("shapes", "materials")
     @classmethod
@@ -113,12 +132,29 @@ class DatabaseSpec(StrictModel):
                 raise ValueError(f"finish {k!r}: Blinn-Phong m must lie in [0, 1e6], got {m}")
         return v
 
-    @pydantic.field_validator("compute_dtype")
-    @classmethod
-    def _dtype(cls, v):
-        if v not in ("float32", "float64"):
-            raise ValueError("must be 'float32' or 'float64'")
-        return v
+    @pydantic.model_validator(mode="after")
+    def _synthetic_names(self):
+        if self.model != "synthetic":
+            return self  # model "ppr": checked by make_signature_fn (needs the library)
+        from ._synthetic import SYNTHETIC_MATERIALS, SYNTHETIC_SHAPES
+
+        for i, m in enumerate(self.materials):
+            if m not in SYNTHETIC_MATERIALS:
+                raise ValueError(
+                    f"materials[{i}] = {m!r}: not a material of model 'synthetic' (known: "
+                    f"{', '.join(sorted(SYNTHETIC_MATERIALS))})"
+                )
+        for i, sh in enumerate(self.shapes):
+            if sh.name not in SYNTHETIC_SHAPES:
+                raise ValueError(
+                    f"shapes[{i}].name = {sh.name!r}: not a shape of model 'synthetic' (known: "
+                    f"{', '.join(sorted(SYNTHETIC_SHAPES))})"
+                )
+            if sh.params:
+                raise ValueError(
+                    f"shapes[{i}].params = {sh.params!r}: shape parameters need model = 'ppr'"
+                )
+        return self
 
     def canonical(self) -> str:
         return json.dumps(self.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
@@ -166,13 +202,13 @@ def enumerate_rows(
 
 
 def make_signature_fn(spec: DatabaseSpec):
-    """The signature function a spec names (``model = "synthetic"`` or ``"ppr"``)."""
+    """The signature function a spec names (``model = "synthetic"`` or ``"ppr"``).
+
+    Names the model does not know raise ``ValueError`` naming the field as written in the
+    spec (``materials[1] = 'unobtainium': ...``)."""
     mm = MeasurementModel.preset(spec.sensor.channels)
     if spec.model == "synthetic":
         from ._synthetic import SyntheticSignatures
-
-        if any(s.params for s in spec.shapes):
-            raise ValueError("shape params are only supported with model = 'ppr'")
 
         return SyntheticSignatures(
             [s.name for s in spec.shapes],
@@ -183,11 +219,29 @@ def make_signature_fn(spec: DatabaseSpec):
             bin_width_m=spec.sensor.bin_width_m,
             pulse_fwhm_s=spec.sensor.pulse_fwhm_s,
         )
-    if spec.model == "ppr":
-        from ._ppr_adapter import PprSignatures
+    from ._ppr_adapter import PprSignatures
 
+    _check_ppr_names(spec)
+    try:
         return PprSignatures.from_spec(spec, mm)
-    raise ValueError(f"DatabaseSpec.model must be 'synthetic' or 'ppr', got {spec.model!r}")
+    except ValueError as err:
+        raise ValueError(f"model = 'ppr': {err}") from None
+
+
+def _check_ppr_names(spec: DatabaseSpec) -> None:
+    import ppr
+
+    for i, s in enumerate(spec.shapes):
+        try:
+            ppr.shapes.by_name(s.name, **dict(s.params))
+        except ValueError as err:
+            params = f", params = {dict(s.params)!r}" if s.params else ""
+            raise ValueError(f"shapes[{i}] (name = {s.name!r}{params}): {err}") from None
+    for i, m in enumerate(spec.materials):
+        try:
+            ppr.load_material(m, 532e-9)
+        except (KeyError, ValueError) as err:
+            raise ValueError(f"materials[{i}] = {m!r}: {str(err).strip(chr(39))}") from None
 
 
 # ----------------------------------------------------------------------------- device helpers
@@ -272,14 +326,8 @@ def _marker_path(path: Path, i: int) -> Path:
     return path / "_chunks" / f"{i:06d}.json"
 
 
-def init_database(spec: DatabaseSpec, path: str | Path, signature_fn=None) -> zarr.Group:
-    """Create (or reopen and check) the store for ``spec``; returns the zarr group.
-
-    Safe to call from several processes after one of them has created the store. Reopening a
-    store built from a different spec or sensor raises ``ValueError`` naming the differences.
-    """
-    path = Path(path)
-    signature_fn = make_signature_fn(spec) if signature_fn is None else signature_fn
+def _store_attrs(spec: DatabaseSpec, signature_fn) -> tuple[dict, list, dict]:
+    """Group attributes of the store ``spec`` builds, its grids and rows."""
     sensor = canonical_sensor(signature_fn.sensor)
     grids = grids_for(spec)
     rows = enumerate_rows(spec, grids)
@@ -300,6 +348,20 @@ def init_database(spec: DatabaseSpec, path: str | Path, signature_fn=None) -> za
         "chunk_rows": spec.chunk_rows,
         "n_chunks": -(-n // spec.chunk_rows),
     }
+    return attrs, grids, rows
+
+
+def init_database(spec: DatabaseSpec, path: str | Path, signature_fn=None) -> zarr.Group:
+    """Create (or reopen and check) the store for ``spec``; returns the zarr group.
+
+    Safe to call from several processes after one of them has created the store. Reopening a
+    store built from a different spec or sensor raises ``ValueError`` naming the differences.
+    """
+    path = Path(path)
+    signature_fn = make_signature_fn(spec) if signature_fn is None else signature_fn
+    attrs, _, rows = _store_attrs(spec, signature_fn)
+    sensor = json.dumps(attrs["sensor"])
+    n = attrs["n_rows"]
     if (path / "zarr.json").exists():
         group = zarr.open_group(str(path), mode="r+")
         old = dict(group.attrs)
@@ -333,16 +395,45 @@ def init_database(spec: DatabaseSpec, path: str | Path, signature_fn=None) -> za
     return group
 
 
-def _check_same(old: dict, new: dict, path: Path) -> None:
+_COMPARED = ("ppr_database", "spec", "sensor", "n_rows", "chunk_rows")
+
+
+def _differences(old: dict, new: dict) -> list[str]:
+    """What differs between stored and requested attributes, spec fields one by one."""
     diffs = []
-    for key in ("ppr_database", "spec", "sensor", "n_rows", "chunk_rows"):
-        if json.dumps(old.get(key), sort_keys=True) != json.dumps(new.get(key), sort_keys=True):
-            diffs.append(f"{key}: stored {old.get(key)!r} != requested {new.get(key)!r}")
+    for key in _COMPARED:
+        a, b = old.get(key), new.get(key)
+        if key == "spec" and isinstance(a, dict) and isinstance(b, dict):
+            for k in sorted(set(a) | set(b)):
+                if json.dumps(a.get(k), sort_keys=True) != json.dumps(b.get(k), sort_keys=True):
+                    diffs.append(f"{k}: stored {a.get(k)!r} != requested {b.get(k)!r}")
+        elif json.dumps(a, sort_keys=True) != json.dumps(b, sort_keys=True):
+            diffs.append(f"{key}: stored {a!r} != requested {b!r}")
+    return diffs
+
+
+def _check_same(old: dict, new: dict, path: Path) -> None:
+    diffs = _differences(old, new)
     if diffs:
         raise ValueError(
             f"database at {path} was built with other settings; refusing to mix them "
             f"(use a new path): " + "; ".join(diffs)
         )
+
+
+def store_differences(spec: DatabaseSpec, path: str | Path, signature_fn=None) -> list[str] | None:
+    """How the store at ``path`` differs from what ``spec`` builds: ``[]`` if it is a store of
+    this spec (complete or not), a list of ``"field: stored ... != requested ..."`` if its
+    settings differ, ``None`` if ``path`` is not an initialized signature database."""
+    path = Path(path)
+    try:
+        old = dict(zarr.open_group(str(path), mode="r").attrs)
+    except Exception:  # noqa: BLE001 - anything unreadable is not a database
+        return None
+    if not old.get("initialized"):
+        return None
+    signature_fn = make_signature_fn(spec) if signature_fn is None else signature_fn
+    return _differences(old, _store_attrs(spec, signature_fn)[0])
 
 
 def _read_chunk(group, i: int, cr: int, n: int):
@@ -507,6 +598,8 @@ class TemplateBank:
 def load_database(path: str | Path, verify: bool = True) -> TemplateBank:
     """Read a complete database into a :class:`TemplateBank` (checking every chunk)."""
     path = Path(path)
+    if not path.exists():
+        raise ValueError(f"database {path} does not exist")
     if not (path / "zarr.json").exists():
         raise ValueError(f"{path} is not a signature database (no zarr.json)")
     group = zarr.open_group(str(path), mode="r")

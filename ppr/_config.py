@@ -26,9 +26,9 @@ class StrictModel(pydantic.BaseModel):
     model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
-def _find_nan(obj: Any, path: str = "") -> str | None:
+def _find_nan(obj: Any, path: str = "") -> tuple[str, float] | None:
     if isinstance(obj, float) and not math.isfinite(obj):
-        return path or "<root>"
+        return path or "<root>", obj
     if isinstance(obj, dict):
         for k, v in obj.items():
             p = _find_nan(v, f"{path}.{k}" if path else str(k))
@@ -42,15 +42,96 @@ def _find_nan(obj: Any, path: str = "") -> str | None:
     return None
 
 
-def format_validation_error(err: pydantic.ValidationError, source: str) -> str:
-    parts = []
+_TYPE_WORDS = {
+    "string_type": "a string",
+    "dict_type": "a table",
+    "model_type": "a table",
+    "model_attributes_type": "a table",
+    "list_type": "a list",
+    "tuple_type": "a list",
+    "float_type": "a number",
+    "float_parsing": "a number",
+    "int_type": "an integer",
+    "int_parsing": "an integer",
+    "int_from_float": "an integer",
+    "bool_type": "true or false",
+    "bool_parsing": "true or false",
+}
+
+
+def _user_path(loc: tuple, data: Any, prefix: str = "", missing: bool = False) -> str:
+    """A pydantic error location as the user writes the field (``shapes[0].symmetry``),
+    skipping the tags pydantic adds for union members (``Range``, ``list[...]``, ``str``).
+    ``missing``: the last part names a key absent from the data."""
+    path, node = prefix, data
+    for i, part in enumerate(loc):
+        last = i == len(loc) - 1
+        if isinstance(part, int) and isinstance(node, list | tuple) and part < len(node):
+            path, node = f"{path}[{part}]", node[part]
+        elif (
+            isinstance(part, str) and isinstance(node, dict) and (part in node or missing and last)
+        ):
+            path = f"{path}.{part}" if path else part
+            node = node.get(part)
+    return path
+
+
+def _type_mismatch(e: dict) -> bool:
+    """The input is not even of the member's type (the user meant another union member)."""
+    if e["type"] in _TYPE_WORDS:
+        return True
+    return e["type"] == "literal_error" and isinstance(e.get("input"), dict | list)
+
+
+def _message(e: dict) -> str:
+    if e["type"] == "extra_forbidden":
+        return "unknown key"
+    if e["type"] == "missing":
+        return "required field missing"
+    if e["type"] in _TYPE_WORDS:
+        return f"expected {_TYPE_WORDS[e['type']]}"
+    if e["type"] == "too_short" and hasattr(e.get("input"), "__len__") and not e["input"]:
+        return "must not be empty"
+    msg = str(e["msg"]).replace(" after validation", "").replace("Input should be", "must be")
+    for head in ("Value error, ", "Assertion failed, "):
+        if msg.startswith(head):
+            msg = msg[len(head) :]
+    return msg.replace("valid dictionary", "table")
+
+
+def format_validation_error(
+    err: pydantic.ValidationError, source: str, data: Any = None, prefix: str = ""
+) -> str:
+    """One line naming ``source``, each bad field as the user wrote it (``data``: the
+    validated input; ``prefix``: the path of ``data`` in the file) and its value.
+
+    Errors of the members of a union are merged: messages at one field are joined with
+    "or", and an error at a field is dropped when another names a field inside it (the
+    user wrote a table or list, so the member that failed deeper is the one meant)."""
+    if data is None:
+        data = {}
+    items: dict[str, list] = {}
     for e in err.errors():
-        loc = ".".join(str(x) for x in e["loc"]) or "<root>"
-        val = e.get("input")
-        msg = e["msg"]
-        if e["type"] == "extra_forbidden":
-            msg = "unknown key"
-        parts.append(f"{loc} = {val!r}: {msg}")
+        path = _user_path(tuple(e["loc"]), data, prefix, e["type"] == "missing")
+        items.setdefault(path, [e.get("input"), []])[1].append(e)
+    paths = [
+        p for p in items if not any(q != p and q.startswith(p) and q[len(p)] in ".[" for q in items)
+    ]
+    parts = []
+    for p in paths:
+        value, errs = items[p]
+        meant = [e for e in errs if not _type_mismatch(e)] or errs
+        msgs = list(dict.fromkeys(_message(e) for e in meant))
+        if len(msgs) > 1 and all(m.startswith("expected ") for m in msgs):
+            text = "expected " + " or ".join(m.removeprefix("expected ") for m in msgs)
+        else:
+            text = " or ".join(msgs)
+        if not p:
+            parts.append(text)
+        elif isinstance(value, dict) or msgs == ["required field missing"]:
+            parts.append(f"{p}: {text}")  # a whole table (model checks) or nothing to show
+        else:
+            parts.append(f"{p} = {value!r}: {text}")
     return f"{source}: " + "; ".join(parts)
 
 
@@ -58,15 +139,20 @@ def validate_data(model: type[M], data: dict, source: str) -> M:
     """Validate a mapping against ``model``; raise ConfigError naming source/field/value."""
     bad = _find_nan(data)
     if bad is not None:
-        raise ConfigError(f"{source}: {bad} is not finite (NaN/inf are not allowed in configs)")
+        path, value = bad
+        raise ConfigError(
+            f"{source}: {path} = {value}: not finite (NaN/inf are not allowed in configs)"
+        )
     try:
         return model.model_validate(data)
     except pydantic.ValidationError as err:
-        raise ConfigError(format_validation_error(err, source)) from None
+        raise ConfigError(format_validation_error(err, source, data)) from None
 
 
 def read_toml(path: str | Path) -> dict:
     path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a folder, not a config file")
     if not path.is_file():
         raise ConfigError(f"{path}: no such config file")
     try:
@@ -95,6 +181,8 @@ def parse_override(text: str) -> tuple[str, Any]:
     if "=" not in text:
         raise ConfigError(f"override {text!r}: expected key=value")
     key, raw = text.split("=", 1)
+    if not key.strip() or any(not k.strip() for k in key.split(".")):
+        raise ConfigError(f"override {text!r}: empty key (expected key.sub=value)")
     try:
         value = tomllib.loads(f"v = {raw}")["v"]
     except tomllib.TOMLDecodeError:

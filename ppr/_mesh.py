@@ -22,6 +22,7 @@ compilation.
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Mapping, Sequence
 
 import equinox as eqx
@@ -248,6 +249,42 @@ def from_trimesh(tm, part: str = "default") -> Mesh:
     return Mesh(np.asarray(tm.vertices, np.float64), np.asarray(tm.faces), None, (part,))
 
 
+MESH_FORMATS = (".obj", ".stl", ".ply", ".off", ".glb", ".gltf")
+"""File formats :func:`load_mesh` reads (through trimesh)."""
+
+
+def part_key(name: str) -> str:
+    """A part name usable as a config key: letters, digits, ``_`` and ``-`` only (dots
+    would split ``--set materials.<part>=...`` into nested keys)."""
+    key = re.sub(r"[^A-Za-z0-9_-]+", "_", str(name)).strip("_")
+    return key or "part"
+
+
+def _read_scene(path: str):
+    import trimesh
+
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in MESH_FORMATS:
+        raise ValueError(
+            f"mesh file {path!r}: unsupported format {ext or '(no extension)'!r}; "
+            f"supported: {', '.join(MESH_FORMATS)}"
+        )
+    kind = ext[1:].upper()
+    try:
+        # process=False: trimesh's processing silently removes non-finite vertices with their
+        # faces and merges vertices; split_*: every OBJ object and group is its own geometry
+        return trimesh.load(
+            path, force="scene", process=False, split_objects=True, split_groups=True
+        )
+    except ImportError:  # trimesh guesses text encodings with optional modules
+        raise ValueError(
+            f"mesh file {path!r} is not a valid {kind} file (neither binary nor text {kind} "
+            "that trimesh can parse)"
+        ) from None
+    except Exception as exc:  # noqa: BLE001 - re-raised with the file name
+        raise ValueError(f"mesh file {path!r} is not a valid {kind} file: {exc}") from None
+
+
 def load_mesh(
     path: str | os.PathLike,
     *,
@@ -255,42 +292,79 @@ def load_mesh(
     on_degenerate: str = "error",
     part_names: Mapping[str, str] | None = None,
 ) -> Mesh:
-    """Load any mesh format trimesh reads (OBJ, STL, PLY, GLB, ...) as a :class:`Mesh`.
+    """Load a mesh file (OBJ, STL, PLY, OFF, GLB, glTF; :data:`MESH_FORMATS`) as a
+    :class:`Mesh`.
 
-    Each geometry of a multi-part file (OBJ groups/materials, GLB nodes) becomes a part named
-    after the geometry (or, if it has one, its visual material's name); ``part_names`` can
-    rename parts (``{"file name": "part name"}``). ``scale`` converts file units to metres.
-    Degenerate/duplicate faces are handled per :func:`check_mesh`.
+    Every object of the file becomes a part: OBJ objects (``o``) and groups (``g``, split
+    further by material when an object uses several), GLB/glTF scene nodes (two nodes
+    instancing one geometry are two parts). Parts are named after the object, made usable
+    as config keys by :func:`part_key` (a single-object file such as an STL is named after
+    the file, without extension: ``box.stl`` -> ``box``); clashing names get ``_2``,
+    ``_3``, ... ``part_names`` renames parts (``{"name in the file or its key": "part"}``;
+    naming an object the file does not have is an error; mapping two objects to one part
+    merges them on purpose). ``scale`` converts file units to metres.
+
+    Nothing is dropped or merged silently: the file is read without trimesh's processing;
+    non-finite vertices are an error naming the file, the object and the count; objects
+    that hold no triangles (lines, points) are an error; degenerate and duplicate faces are
+    handled per :func:`check_mesh`.
     """
     import trimesh
 
     path = os.fspath(path)
     if not os.path.exists(path):
         raise ValueError(f"mesh file not found: {path!r}")
-    try:
-        scene = trimesh.load(path, force="scene")
-    except Exception as exc:  # noqa: BLE001 - re-raised with the file name
-        raise ValueError(f"could not read mesh file {path!r}: {exc}") from exc
-    pieces = []
+    scene = _read_scene(path)
+    base = os.path.basename(path)
+    stem = os.path.splitext(base)[0]
+    pieces: list[tuple[str, str, np.ndarray, np.ndarray]] = []  # (raw, key, vertices, faces)
+    used: set[str] = set()
     for node in scene.graph.nodes_geometry:
         transform, geom_name = scene.graph[node]
         geom = scene.geometry[geom_name]
-        if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
+        raw = str(node)
+        if not isinstance(geom, trimesh.Trimesh):
+            raise ValueError(
+                f"mesh file {path!r}: object {raw!r} holds a {type(geom).__name__}, not "
+                "triangles; remove it from the file"
+            )
+        if len(geom.faces) == 0:
             continue
-        g = geom.copy()
-        g.apply_transform(transform)
-        name = geom_name
-        mat = getattr(getattr(g, "visual", None), "material", None)
-        if mat is not None and getattr(mat, "name", None):
-            name = mat.name
-        if part_names:
-            name = part_names.get(name, name)
-        pieces.append(
-            Mesh(np.asarray(g.vertices, np.float64) * scale, np.asarray(g.faces), None, (name,))
-        )
+        v = np.asarray(geom.vertices, np.float64)
+        f = np.asarray(geom.faces, np.int64)
+        bad = ~np.isfinite(v).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            n_faces = int(bad[f].any(axis=1).sum())
+            raise ValueError(
+                f"mesh file {path!r}: {int(bad.sum())} non-finite (NaN/inf) vertices in object "
+                f"{raw!r}, used by {n_faces} of its {len(f)} faces (first: vertex {i} = "
+                f"{v[i].tolist()}); fix the file"
+            )
+        t = np.asarray(transform, np.float64)
+        v = v @ t[:3, :3].T + t[:3, 3]
+        key = part_key(stem if raw == base else raw)  # trimesh names lone objects by file
+        k, n = key, 1
+        while k in used:
+            n += 1
+            k = f"{key}_{n}"
+        used.add(k)
+        pieces.append((raw, k, v * scale, f))
     if not pieces:
         raise ValueError(f"mesh file {path!r} contains no triangles")
-    return check_mesh(concatenate(pieces), on_degenerate, name=f"mesh file {path!r}")
+    if part_names:
+        known = {raw for raw, _, _, _ in pieces} | {k for _, k, _, _ in pieces}
+        unknown = sorted(set(part_names) - known)
+        if unknown:
+            raise ValueError(
+                f"part_names.{unknown[0]}: mesh file {path!r} has no object {unknown[0]!r} "
+                f"(objects: {', '.join(k for _, k, _, _ in pieces)})"
+            )
+    meshes = []
+    for raw, key, v, f in pieces:
+        name = (part_names or {}).get(raw, (part_names or {}).get(key, key))
+        meshes.append(Mesh(v, f, None, (part_key(name),)))
+    return check_mesh(concatenate(meshes), on_degenerate, name=f"mesh file {path!r}")
 
 
 class MeshArrays(eqx.Module):

@@ -323,6 +323,53 @@ class Scene(eqx.Module):
 Vec3 = Annotated[list[float], pydantic.Field(min_length=3, max_length=3)]
 
 
+def check_sensor_fields(
+    line_of_sight,
+    polarization_reference,
+    receiver_direction=None,
+    bistatic_angle_urad=0.0,
+    bistatic_azimuth_deg=0.0,
+) -> None:
+    """The sensor geometry of a config (same field names as configs/sensors/*.toml);
+    ``ValueError`` naming the fields and values that :meth:`Sensor.make` would reject."""
+    los = np.asarray(line_of_sight, np.float64)
+    ref = np.asarray(polarization_reference, np.float64)
+    for name, v in (("line_of_sight", los), ("polarization_reference", ref)):
+        if np.linalg.norm(v) == 0:
+            raise ValueError(f"{name} = {v.tolist()}: must be non-zero")
+    d = los / np.linalg.norm(los)
+    r = ref / np.linalg.norm(ref)
+    if np.linalg.norm(r - np.dot(r, d) * d) < 1e-6:
+        raise ValueError(
+            f"polarization_reference = {ref.tolist()} is parallel to line_of_sight = "
+            f"{los.tolist()}; it needs a component perpendicular to the beam"
+        )
+    if receiver_direction is not None:
+        rd = np.asarray(receiver_direction, np.float64)
+        if np.linalg.norm(rd) == 0:
+            raise ValueError(f"receiver_direction = {rd.tolist()}: must be non-zero")
+        if bistatic_angle_urad != 0.0:
+            raise ValueError(
+                f"give either bistatic_angle_urad (= {bistatic_angle_urad}) or "
+                f"receiver_direction (= {rd.tolist()}), not both"
+            )
+    try:
+        Sensor.make(
+            los,
+            ref,
+            bistatic_angle=bistatic_angle_urad * 1e-6,
+            bistatic_azimuth=math.radians(bistatic_azimuth_deg),
+            receiver_dir=receiver_direction,
+        )
+    except ValueError as err:
+        msg = (
+            str(err)
+            .replace("receiver_dir ", "receiver_direction ")
+            .replace("x_ref", "polarization_reference")
+        )
+        raise ValueError(msg) from None
+
+
 class PulseConfig(StrictModel):
     fwhm_ps: float = pydantic.Field(gt=0)
     jitter_ps: float = pydantic.Field(default=0.0, ge=0)
@@ -346,6 +393,17 @@ class SensorConfig(StrictModel):
     reference_range_km: float = pydantic.Field(default=1000.0, ge=0)
     pulse: PulseConfig
     bins: BinsConfig
+
+    @pydantic.model_validator(mode="after")
+    def _geometry(self):
+        check_sensor_fields(
+            self.line_of_sight,
+            self.polarization_reference,
+            self.receiver_direction,
+            self.bistatic_angle_urad,
+            self.bistatic_azimuth_deg,
+        )
+        return self
 
 
 class ShapeConfig(StrictModel):
@@ -388,6 +446,11 @@ class SceneConfig(StrictModel):
     materials: dict[str, str | InlineMaterial]
     pose: PoseConfig = PoseConfig()
     visibility: VisibilityConfig = VisibilityConfig()
+
+    @pydantic.field_validator("mesh", mode="before")
+    @classmethod
+    def _mesh_path(cls, v):
+        return {"path": v} if isinstance(v, str) else v  # mesh = "file" is [mesh] path = "file"
 
     @pydantic.model_validator(mode="after")
     def _one_geometry(self):

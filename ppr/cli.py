@@ -18,15 +18,15 @@ import json
 import os
 import shutil
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 import numpy as np
 import pydantic
 
+from . import _outputs
 from ._config import ConfigError, StrictModel, load_toml_model, parse_override
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -38,57 +38,9 @@ class CLIError(Exception):
 
 
 # ============================================================================ output folder
-class Outputs:
-    """Files one command writes into ``out``: refuses to replace existing ones unless
-    ``overwrite``; files are written into a private temporary folder inside ``out`` and moved
-    into place only when the command succeeds (no partial results)."""
-
-    def __init__(self, out: str | Path, names: Sequence[str], overwrite: bool):
-        self.out = Path(out)
-        self.names = list(names)
-        existing = [n for n in self.names if (self.out / n).exists()]
-        if existing and not overwrite:
-            raise CLIError(
-                f"{self.out / existing[0]} already exists (and {len(existing) - 1} more outputs); "
-                "pass --overwrite to replace, or choose another --out"
-            )
-        self.out.mkdir(parents=True, exist_ok=True)
-        self._tmp = Path(tempfile.mkdtemp(prefix=".ppr-tmp-", dir=self.out))
-        self.written: list[Path] = []
-
-    def path(self, name: str) -> Path:
-        if name not in self.names:  # pragma: no cover - programming error
-            raise KeyError(f"output {name!r} not declared")
-        return self._tmp / name
-
-    def commit(self) -> list[Path]:
-        for name in self.names:
-            src = self._tmp / name
-            if not src.exists():
-                continue
-            dst = self.out / name
-            if dst.is_dir():
-                shutil.rmtree(dst)
-            elif dst.exists():
-                dst.unlink()
-            os.replace(src, dst)
-            self.written.append(dst)
-        shutil.rmtree(self._tmp, ignore_errors=True)
-        return self.written
-
-    def discard(self) -> None:
-        shutil.rmtree(self._tmp, ignore_errors=True)
-
-
-@contextlib.contextmanager
-def outputs(out, names, overwrite):
-    o = Outputs(out, names, overwrite)
-    try:
-        yield o
-    except BaseException:
-        o.discard()
-        raise
-    o.commit()
+# Outputs are staged, validated and swapped in as a whole (ppr/_outputs.py).
+Outputs = _outputs.Outputs
+outputs = _outputs.outputs
 
 
 def _jsonable(obj: Any) -> Any:
@@ -119,6 +71,12 @@ def write_json(path: Path, data: dict) -> None:
 
 # ================================================================================ configs
 Vec3 = tuple[float, float, float]
+PositiveFloat = Annotated[float, pydantic.Field(gt=0.0)]
+# random seeds: NumPy's generators take non-negative integers only
+Seed = Annotated[int, pydantic.Field(ge=0)]
+
+_T = TypeVar("_T")
+NonEmpty = Annotated[list[_T], pydantic.Field(min_length=1)]  # lists the user must not empty
 
 
 def resolve_material(spec: Any, wavelength: float, field: str, cfg_path: Path):
@@ -148,7 +106,18 @@ def resolve_material(spec: Any, wavelength: float, field: str, cfg_path: Path):
         raise ConfigError(f"{cfg_path}: {field} = {spec!r}: {str(err).strip(chr(39))}") from None
 
 
-Terms = Literal["auto", "all"] | list[Literal["single", "double", "multiple"]]
+def _distinct(v: list) -> list:
+    dup = sorted({x for x in v if v.count(x) > 1})
+    if dup:
+        raise ValueError(f"{dup[0]!r} is listed twice")
+    return v
+
+
+TermName = Literal["single", "double", "multiple"]
+Terms = (
+    Literal["auto", "all"]
+    | Annotated[list[TermName], pydantic.Field(min_length=1), pydantic.AfterValidator(_distinct)]
+)
 
 
 def _terms_arg(terms):
@@ -172,10 +141,15 @@ class BrdfConfig(StrictModel):
     material: str | dict[str, Any]
     wavelength_nm: float = pydantic.Field(532.0, gt=0.0)
     terms: Terms = "auto"
-    incidence_deg: list[Annotated[float, pydantic.Field(ge=0.0, lt=90.0)]] = [0.0, 30.0, 60.0]
-    bistatic_deg: Range | list[Annotated[float, pydantic.Field(ge=0.0, le=179.0)]] = Range(
-        start=0.0, stop=10.0, num=41
-    )
+    incidence_deg: Annotated[
+        list[Annotated[float, pydantic.Field(ge=0.0, lt=90.0)]], pydantic.Field(min_length=1)
+    ] = [0.0, 30.0, 60.0]
+    bistatic_deg: (
+        Range
+        | Annotated[
+            list[Annotated[float, pydantic.Field(ge=0.0, le=179.0)]], pydantic.Field(min_length=1)
+        ]
+    ) = Range(start=0.0, stop=10.0, num=41)
     plane: Literal["in", "cross"] = "in"
     dtype: Literal["float32", "float64"] = "float32"
 
@@ -196,6 +170,17 @@ class ViewConfig(StrictModel):
     polarization_reference: Vec3 = (-0.5, 0.866, 0.0)
     bistatic_angle_urad: float = pydantic.Field(0.0, ge=0.0, lt=1.5e6)
     bistatic_azimuth_deg: float = 0.0
+
+    @pydantic.model_validator(mode="after")
+    def _geometry(self):
+        _scene_schema().check_sensor_fields(
+            self.line_of_sight,
+            self.polarization_reference,
+            None,
+            self.bistatic_angle_urad,
+            self.bistatic_azimuth_deg,
+        )
+        return self
 
 
 class RenderConfig(StrictModel):
@@ -325,11 +310,11 @@ def cmd_brdf(args) -> int:
     cfg_path = _config_path(args, "brdf.toml")
     cfg = load_toml_model(BrdfConfig, cfg_path, _overrides(args))
     names = ["brdf.npz", "brdf.json", "brdf.png"]
+    _maybe_x64(cfg.dtype)
+    mat = resolve_material(cfg.material, cfg.wavelength_nm * 1e-9, "material", cfg_path)
     with outputs(args.out, names, args.overwrite) as out:
-        _maybe_x64(cfg.dtype)
         from ._image import evaluate_mueller
 
-        mat = resolve_material(cfg.material, cfg.wavelength_nm * 1e-9, "material", cfg_path)
         bis = (
             cfg.bistatic_deg.values()
             if isinstance(cfg.bistatic_deg, Range)
@@ -436,9 +421,7 @@ def _sub_model(model, data, cfg_path: Path, field: str):
     except pydantic.ValidationError as err:
         from ._config import format_validation_error
 
-        msg = format_validation_error(err, str(cfg_path))
-        head, _, rest = msg.partition(": ")
-        raise ConfigError(f"{head}: {field}.{rest}") from None
+        raise ConfigError(format_validation_error(err, str(cfg_path), data, field)) from None
 
 
 def image_inputs(cfg: ImageConfig, cfg_path: Path):
@@ -450,6 +433,8 @@ def image_inputs(cfg: ImageConfig, cfg_path: Path):
     smooth = cfg.render.shading == "smooth"
     if cfg.scene is not None:
         spath = _resolve_path(cfg.scene, cfg_path)
+        if not spath.is_file():
+            raise ConfigError(f"{cfg_path}: scene = {cfg.scene!r}: no such scene file ({spath})")
         scene = sc.load_scene(spath)
         mesh = part_mesh_from_ppr_mesh(scene.mesh, smooth)
         return mesh, list(scene.materials), scene.sensor, np.asarray(scene.pose.quaternion)
@@ -527,12 +512,13 @@ def part_mesh_from_ppr_mesh(mesh, smooth: bool = False):
     )
 
 
-def run_image(cfg: ImageConfig, cfg_path: Path, progress: bool = False):
-    """Render the image a config describes (library entry used by the CLI and the demo)."""
+def run_image(cfg: ImageConfig, cfg_path: Path, progress: bool = False, inputs=None):
+    """Render the image a config describes (library entry used by the CLI and the demo);
+    ``inputs``: :func:`image_inputs` of the config if already resolved."""
     from . import _image
 
     _maybe_x64(cfg.render.dtype)
-    mesh, mats, sensor, quat = image_inputs(cfg, cfg_path)
+    mesh, mats, sensor, quat = image_inputs(cfg, cfg_path) if inputs is None else inputs
     try:
         return _image.render_mueller_image(
             mesh,
@@ -596,9 +582,11 @@ IMAGE_OUTPUTS = ["image.npz", "image.png", "image_mueller.png", "image.json"]
 def cmd_image(args) -> int:
     cfg_path = _config_path(args, "image.toml")
     cfg = load_toml_model(ImageConfig, cfg_path, _overrides(args))
+    _maybe_x64(cfg.render.dtype)
+    inputs = image_inputs(cfg, cfg_path)
     with outputs(args.out, IMAGE_OUTPUTS, args.overwrite) as out:
         t0 = time.perf_counter()
-        img = run_image(cfg, cfg_path, progress=_progress(args))
+        img = run_image(cfg, cfg_path, progress=_progress(args), inputs=inputs)
         write_image_outputs(img, cfg, cfg_path, out, seconds=time.perf_counter() - t0)
     _say(args, f"ppr image: wrote {', '.join(str(Path(args.out) / n) for n in IMAGE_OUTPUTS)}")
     return 0
@@ -612,13 +600,10 @@ def cmd_simulate(args) -> int:
     import ppr
 
     cfg_path = Path(args.config) if args.config else CONFIG_DIR / "scenes" / "cubesat3u_panels.toml"
+    states, terms = _simulate_flags(args)
+    _maybe_x64(args.dtype)
     scene = ppr.load_scene(cfg_path, _overrides(args))
-    states = [s.strip() for s in args.states.split(",") if s.strip()] if args.states else None
-    terms = None if args.terms == "all" else args.terms
-    if terms not in (None, "auto"):
-        terms = tuple(t.strip() for t in terms.split(","))
     with outputs(args.out, SIMULATE_OUTPUTS, args.overwrite) as out:
-        _maybe_x64(args.dtype)
         t0 = time.perf_counter()
         try:
             prof = ppr.simulate(
@@ -673,6 +658,30 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+def _simulate_flags(args) -> tuple[list[str] | None, Any]:
+    """``--states`` and ``--terms`` checked before anything runs."""
+    from ._brdf import _resolve_terms
+    from ._pulse import STOKES_STATES
+
+    states = None
+    if args.states is not None:
+        states = [s.strip() for s in args.states.split(",")]
+        bad = [s for s in states if s not in STOKES_STATES]
+        if bad:
+            raise CLIError(
+                f"--states {args.states!r}: unknown state {bad[0]!r} (known: "
+                f"{', '.join(STOKES_STATES)}; comma-separated, e.g. H,V)"
+            )
+    terms = None if args.terms == "all" else args.terms
+    if terms not in (None, "auto"):
+        terms = tuple(t.strip() for t in terms.split(","))
+        try:
+            _resolve_terms(terms)
+        except ValueError as err:
+            raise CLIError(f"--terms {args.terms!r}: {str(err).removeprefix('terms: ')}") from None
+    return states, terms
+
+
 def _plot_profiles(path, arrays, kind, labels, title) -> None:
     import matplotlib
 
@@ -712,12 +721,21 @@ def _finite_or_inf(v: float | str) -> float:
 class NoiseConfig(StrictModel):
     """Noise of simulated observations (inversion.NoiseModel); "inf" switches a term off."""
 
-    snr: float | Literal["inf"] = 30.0
-    speckle_cells: float | Literal["inf"] = 50.0
+    snr: Annotated[float, pydantic.Field(gt=0.0)] | Literal["inf"] = 30.0
+    speckle_cells: Annotated[float, pydantic.Field(ge=1.0)] | Literal["inf"] = 50.0
     jitter_bins: float = pydantic.Field(0.2, ge=0.0)
     max_offset_bins: float = pydantic.Field(3.0, ge=0.0)
     gain_min: float = pydantic.Field(0.1, gt=0.0)
     gain_max: float = pydantic.Field(10.0, gt=0.0)
+
+    @pydantic.model_validator(mode="after")
+    def _gains(self):
+        if self.gain_min > self.gain_max:
+            raise ValueError(
+                f"gain_min = {self.gain_min} exceeds gain_max = {self.gain_max} (the gain is "
+                "drawn log-uniformly between them)"
+            )
+        return self
 
     def model(self):
         import inversion
@@ -732,6 +750,129 @@ class NoiseConfig(StrictModel):
         )
 
 
+DATABASE_STORE = "database.zarr"
+DATABASE_SUMMARY = "database.json"
+PARTIAL = ".partial"
+
+
+def _shards_ok(args) -> None:
+    if args.num_shards < 1 or not 0 <= args.shard_index < args.num_shards:
+        raise CLIError(
+            f"--shard-index {args.shard_index} --num-shards {args.num_shards}: need "
+            "num_shards >= 1 and 0 <= shard_index < num_shards"
+        )
+
+
+def database_target(spec, sig_fn, out: Path, overwrite: bool, say) -> Path:
+    """Where ``ppr database build`` builds (see DATABASE_HELP): the existing store itself to
+    repair missing or corrupt chunks of the same settings, else ``database.zarr.partial``
+    (fresh builds and ``--overwrite``), committed over the old store only once complete."""
+    import inversion
+
+    final, partial = out / DATABASE_STORE, out / (DATABASE_STORE + PARTIAL)
+    if final.exists() and not overwrite:
+        diffs = inversion.store_differences(spec, final, sig_fn)
+        keep = "the old one is kept until the new one is complete"
+        if diffs is None:
+            raise CLIError(
+                f"{final} exists and is not a signature database; pass --overwrite to replace "
+                f"it ({keep}), or choose another --out"
+            )
+        if diffs:
+            raise CLIError(
+                f"{final} was built with other settings ({'; '.join(diffs)}); pass --overwrite "
+                f"to replace it ({keep}), or choose another --out"
+            )
+        status = inversion.chunk_status(final, verify=True)
+        if not status["missing"] and not status["corrupt"]:
+            raise CLIError(
+                f"{final} already exists and is complete (every chunk matches its checksum); "
+                "pass --overwrite to rebuild, or choose another --out"
+            )
+        say(
+            f"ppr database build: {final}: recomputing {len(status['corrupt'])} corrupt and "
+            f"{len(status['missing'])} missing chunks"
+        )
+        return final
+    if partial.exists():
+        diffs = inversion.store_differences(spec, partial, sig_fn)
+        if diffs is None or diffs:
+            what = "is not a signature database" if diffs is None else (
+                "was started with other settings (" + "; ".join(diffs) + ")"
+            )
+            if not overwrite:
+                raise CLIError(
+                    f"{partial}: an unfinished build that {what}; pass --overwrite to discard "
+                    "it, or choose another --out"
+                )
+            shutil.rmtree(partial)  # an unfinished build, never a result
+        else:
+            say(f"ppr database build: resuming {partial} (only missing chunks are computed)")
+    return partial
+
+
+def _rebuild_command(db: Path) -> str:
+    """The ``ppr database build`` command that built ``db`` (from its database.json)."""
+    import shlex
+
+    folder = db.parent
+    cmd = ["ppr", "database", "build"]
+    try:
+        info = json.loads((folder / DATABASE_SUMMARY).read_text())
+        cmd += ["-c", info["config_file"]]
+        for key, value in (info.get("overrides") or {}).items():
+            cmd += ["--set", f"{key}={json.dumps(value)}"]
+    except (OSError, ValueError, KeyError, TypeError):
+        cmd += ["-c", "<its database config>"]
+    cmd += ["-o", str(folder)]
+    return " ".join(shlex.quote(c) if not c.startswith("<") else c for c in cmd)
+
+
+def database_error_hint(db: Path, err: Exception) -> str:
+    """A load error of ``db`` with the command that finishes or repairs it."""
+    import inversion
+
+    msg = _one_line(err)
+    if isinstance(err, inversion.CorruptChunkError | inversion.IncompleteDatabaseError):
+        msg = msg.split("; rerun build_database")[0]
+        return f"{msg}; rerun `{_rebuild_command(db)}` to recompute them"
+    partial = db.with_name(db.name + PARTIAL)
+    if not db.exists() and partial.exists():
+        return (
+            f"{db} does not exist; an unfinished build is at {partial}: rerun "
+            f"`{_rebuild_command(db)}` to finish it"
+        )
+    return msg
+
+
+def _database_summary(args, cfg_path, db, report, status) -> dict:
+    return {
+        "command": "database build",
+        "config_file": str(Path(cfg_path).resolve()),
+        "overrides": _overrides(args),
+        "path": str(db),
+        "n_rows": report.n_rows,
+        "n_chunks": report.n_chunks,
+        "computed_chunks": len(report.computed),
+        "skipped_chunks": len(report.skipped),
+        "recomputed_corrupt": report.recomputed_corrupt,
+        "missing_chunks": len(status["missing"]),
+        "complete": not status["missing"],
+        "seconds": report.seconds,
+        "rows_per_second": report.rows_per_second,
+        "n_devices": report.n_devices,
+        "shard": [args.shard_index, args.num_shards],
+    }
+
+
+def _validate_store(path: Path) -> None:
+    import inversion
+
+    status = inversion.chunk_status(path, verify=False)
+    if status["missing"]:  # pragma: no cover - the command checks before committing
+        raise RuntimeError(f"{path}: {len(status['missing'])} chunks missing; not committed")
+
+
 def cmd_database_build(args) -> int:
     import inversion
 
@@ -739,69 +880,62 @@ def cmd_database_build(args) -> int:
         Path(args.config) if args.config else CONFIG_DIR / "databases" / "synthetic_small.toml"
     )
     spec = inversion.load_spec(cfg_path, _overrides(args))
-    out = Path(args.out)
-    db = out / "database.zarr"
-    summary_path = out / "database.json"
-    if db.exists():
-        try:
-            status = inversion.chunk_status(db, verify=False)
-            complete = not status["missing"]
-        except Exception:  # noqa: BLE001 - unreadable: treat as a foreign result
-            complete = True
-        if args.overwrite:
-            shutil.rmtree(db)
-            summary_path.unlink(missing_ok=True)
-        elif complete and args.num_shards == 1:
-            raise CLIError(
-                f"{db} already exists and is complete; pass --overwrite to rebuild, or choose "
-                "another --out"
-            )
-        else:
-            _say(args, f"ppr database build: resuming {db} (only missing chunks are computed)")
-    out.mkdir(parents=True, exist_ok=True)
+    _shards_ok(args)
+    try:
+        sig_fn = inversion.make_signature_fn(spec)
+    except ValueError as err:
+        raise ConfigError(f"{cfg_path}: {_one_line(err)}") from None
+    out = _outputs.check_out_folder(args.out)
+    _outputs.recover(out)
+    target = database_target(spec, sig_fn, out, args.overwrite, lambda m: _say(args, m))
+    made = [p for p in (out, *out.parents) if not p.exists()]
+    args._interrupt_note = f"rerun the same command to resume {target}"
     try:
         report = inversion.build_database(
             spec,
-            db,
+            target,
+            sig_fn,
             progress=_progress(args),
             shard_index=args.shard_index,
             num_shards=args.num_shards,
         )
-    except inversion.IncompleteDatabaseError as err:  # pragma: no cover - defensive
-        raise CLIError(str(err)) from None
-    except ValueError as err:
-        if "spec" in str(err) or "differ" in str(err):
-            raise CLIError(
-                f"{db}: {err} (pass --overwrite to rebuild with the new config)"
-            ) from None
+    except BaseException:
+        _drop_empty_build(target, made)
         raise
-    status = inversion.chunk_status(db, verify=False)
-    write_json(
-        summary_path,
-        {
-            "command": "database build",
-            "config_file": str(cfg_path),
-            "overrides": _overrides(args),
-            "path": str(db),
-            "n_rows": report.n_rows,
-            "n_chunks": report.n_chunks,
-            "computed_chunks": len(report.computed),
-            "skipped_chunks": len(report.skipped),
-            "recomputed_corrupt": report.recomputed_corrupt,
-            "missing_chunks": len(status["missing"]),
-            "complete": not status["missing"],
-            "seconds": report.seconds,
-            "rows_per_second": report.rows_per_second,
-            "n_devices": report.n_devices,
-            "shard": [args.shard_index, args.num_shards],
-        },
-    )
+    status = inversion.chunk_status(target, verify=False)  # the build verified every chunk
+    final = out / DATABASE_STORE
+    if status["missing"]:  # other shards still building
+        _say(
+            args,
+            f"ppr database build: shard {args.shard_index}/{args.num_shards} done "
+            f"({len(report.computed)} chunks computed); {len(status['missing'])} chunks of other "
+            f"shards missing in {target}: the builder that finishes last moves it to {final}",
+        )
+        return 0
+    summary = _database_summary(args, cfg_path, final, report, status)
+    names = [DATABASE_SUMMARY] if target == final else [DATABASE_STORE, DATABASE_SUMMARY]
+    with outputs(out, names, overwrite=True, validators={DATABASE_STORE: _validate_store}) as o:
+        if target != final:
+            o.adopt(DATABASE_STORE, target)
+        write_json(o.path(DATABASE_SUMMARY), summary)
     _say(
         args,
-        f"ppr database build: {db} ({report.n_rows} rows, {len(report.computed)} chunks "
+        f"ppr database build: {final} ({report.n_rows} rows, {len(report.computed)} chunks "
         f"computed, {len(report.skipped)} already done)",
     )
     return 0
+
+
+def _drop_empty_build(target: Path, made: list[Path]) -> None:
+    """After a failed build: remove a staged store without one finished chunk, and the
+    folders made for it (a store with finished chunks is kept for resuming)."""
+    if target.name.endswith(PARTIAL) and target.is_dir():
+        chunks = target / "_chunks"
+        if not (chunks.is_dir() and any(chunks.glob("*.json"))):
+            shutil.rmtree(target, ignore_errors=True)
+    for p in made:  # innermost first
+        with contextlib.suppress(OSError):
+            p.rmdir()
 
 
 class ReportConfig(StrictModel):
@@ -809,10 +943,10 @@ class ReportConfig(StrictModel):
 
     database: str
     database_path: str | None = None
-    snrs: list[Annotated[float, pydantic.Field(gt=0.0)]] = [10.0, 30.0, 100.0, 300.0]
-    grid_sizes: list[Annotated[int, pydantic.Field(ge=1, le=16)]] = [1, 2, 3]
+    snrs: NonEmpty[PositiveFloat] = [10.0, 30.0, 100.0, 300.0]
+    grid_sizes: NonEmpty[Annotated[int, pydantic.Field(ge=1, le=16)]] = [1, 2, 3]
     n_obs: int = pydantic.Field(32, ge=1)
-    weight_kinds: list[Literal["uniform", "channel", "range", "fisher"]] = [
+    weight_kinds: NonEmpty[Literal["uniform", "channel", "range", "fisher"]] = [
         "uniform",
         "channel",
         "range",
@@ -821,9 +955,16 @@ class ReportConfig(StrictModel):
     speckle_cells: float = pydantic.Field(50.0, ge=1.0)
     jitter_bins: float = pydantic.Field(0.2, ge=0.0)
     max_offset_bins: float = pydantic.Field(4.0, ge=0.0)
-    gain_range: tuple[float, float] = (0.1, 10.0)
-    seed: int = 0
+    gain_range: tuple[PositiveFloat, PositiveFloat] = (0.1, 10.0)
+    seed: Seed = 0
     top_k: int = pydantic.Field(5, ge=1)
+
+    @pydantic.field_validator("gain_range")
+    @classmethod
+    def _gain_order(cls, v):
+        if v[0] > v[1]:
+            raise ValueError("must be [low, high] with low <= high")
+        return v
 
 
 REPORT_OUTPUTS = [
@@ -844,18 +985,18 @@ def cmd_report(args) -> int:
     cfg_path = _config_path(args, "report.toml")
     cfg = load_toml_model(ReportConfig, cfg_path, _overrides(args))
     spec_path = _resolve_path(cfg.database, cfg_path)
-    spec = inversion.load_spec(spec_path)
+    try:
+        spec = inversion.load_spec(spec_path)
+        inversion.make_signature_fn(spec)  # names the model knows
+    except ValueError as err:
+        raise ConfigError(f"{cfg_path}: database = {cfg.database!r}: {_one_line(err)}") from None
     bank = None
     if cfg.database_path is not None:
-        dbp = _resolve_path(cfg.database_path, cfg_path)
-        try:
-            bank = inversion.load_database(dbp)
-        except ValueError as err:
-            raise ConfigError(f"{cfg_path}: database_path = {cfg.database_path!r}: {err}") from None
+        bank = load_bank(cfg.database_path, cfg_path, "database_path")
     with outputs(args.out, REPORT_OUTPUTS, args.overwrite) as out:
         inversion.evaluate(
             spec,
-            out._tmp,
+            out.folder,
             snrs=tuple(cfg.snrs),
             grid_sizes=tuple(cfg.grid_sizes),
             n_obs=cfg.n_obs,
@@ -882,11 +1023,53 @@ class ClassifyConfig(StrictModel):
     top_k: int = pydantic.Field(5, ge=1, le=1000)
     max_shift_bins: int | None = pydantic.Field(None, ge=0)
     n_simulated: int = pydantic.Field(16, ge=1, le=100_000)
-    seed: int = 0
+    seed: Seed = 0
     noise: NoiseConfig = NoiseConfig()
 
 
 CLASSIFY_OUTPUTS = ["classify.json", "classify.npz", "classify.png"]
+
+
+def load_bank(value: str, cfg_path: Path, field: str):
+    """``inversion.load_database`` of the config's ``field = value``, with errors naming them
+    and, for unfinished or corrupt databases, the ``ppr database build`` command that
+    completes them."""
+    import inversion
+
+    dbp = _resolve_path(value, cfg_path)
+    try:
+        return inversion.load_database(dbp)
+    except (ValueError, OSError) as err:
+        raise ConfigError(f"{cfg_path}: {field} = {value!r}: {database_error_hint(dbp, err)}") from None
+
+
+def read_observations(cfg, cfg_path: Path, bank) -> tuple[np.ndarray, str]:
+    """Observations ``(N, channels, bins)`` from an .npz file, checked against the bank."""
+    path = _resolve_path(cfg.observations, cfg_path)
+    where = f"{cfg_path}: observations = {cfg.observations!r}"
+    if not path.is_file():
+        raise ConfigError(f"{where}: no such file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "data" not in z.files:
+                raise ConfigError(f"{where}: no 'data' array (it has {', '.join(z.files)})")
+            data = np.asarray(z["data"], np.float64)
+            sensor = str(z["sensor"]) if "sensor" in z.files else bank.sensor
+    except ConfigError:
+        raise
+    except (OSError, ValueError, EOFError):
+        raise ConfigError(f"{where}: not a NumPy .npz file of arrays") from None
+    if data.ndim == 2:
+        data = data[None]
+    want = (bank.n_channels, bank.n_bins)
+    if data.ndim != 3 or data.shape[1:] != want or len(data) == 0:
+        raise ConfigError(
+            f"{where}: data has shape {data.shape}; this database needs (N, {want[0]} channels, "
+            f"{want[1]} bins) or ({want[0]}, {want[1]})"
+        )
+    if not np.all(np.isfinite(data)):
+        raise ConfigError(f"{where}: data holds {int((~np.isfinite(data)).sum())} NaN/inf values")
+    return data, sensor
 
 
 def cmd_classify(args) -> int:
@@ -897,10 +1080,17 @@ def cmd_classify(args) -> int:
     cfg_path = _config_path(args, "classify.toml")
     cfg = load_toml_model(ClassifyConfig, cfg_path, _overrides(args))
     dbp = _resolve_path(cfg.database, cfg_path)
-    try:
-        bank = inversion.load_database(dbp)
-    except (ValueError, FileNotFoundError) as err:
-        raise ConfigError(f"{cfg_path}: database = {cfg.database!r}: {_one_line(err)}") from None
+    bank = load_bank(cfg.database, cfg_path, "database")
+    if cfg.max_shift_bins is not None and cfg.max_shift_bins > bank.n_bins - 1:
+        raise ConfigError(
+            f"{cfg_path}: max_shift_bins = {cfg.max_shift_bins}: at most n_bins - 1 = "
+            f"{bank.n_bins - 1} for this database"
+        )
+    noise = cfg.noise.model()
+    data = None
+    if cfg.observations != "simulate":
+        data, sensor = read_observations(cfg, cfg_path, bank)
+    _outputs.refuse_existing(args.out, CLASSIFY_OUTPUTS, args.overwrite)
     truth = None
     if cfg.observations == "simulate":
         import zarr
@@ -925,7 +1115,6 @@ def cmd_classify(args) -> int:
             ),
         }
         clean = np.asarray(sig_fn({k: jnp.asarray(v) for k, v in truth.items()}), np.float64)
-        noise = cfg.noise.model()
         data = np.stack(
             [
                 np.asarray(inversion.observe(c, noise, seed=cfg.seed + i, sensor=bank.sensor).data)
@@ -933,19 +1122,6 @@ def cmd_classify(args) -> int:
             ]
         )
         sensor = bank.sensor
-    else:
-        path = _resolve_path(cfg.observations, cfg_path)
-        if not path.is_file():
-            raise ConfigError(f"{cfg_path}: observations = {cfg.observations!r}: no such file")
-        with np.load(path) as z:
-            if "data" not in z.files:
-                raise ConfigError(
-                    f"{cfg_path}: observations = {cfg.observations!r}: no 'data' array"
-                )
-            data = np.asarray(z["data"], np.float64)
-            sensor = str(z["sensor"]) if "sensor" in z.files else bank.sensor
-        if data.ndim == 2:
-            data = data[None]
     obs = [inversion.Observation(data=d, sensor=sensor) for d in data]
     with outputs(args.out, CLASSIFY_OUTPUTS, args.overwrite) as out:
         w = inversion.design_weights(bank, cfg.weights, cfg.attribute)
@@ -1404,51 +1580,59 @@ DEMO_KEYS = ("brdf", "double", "pulse", "image")
 
 
 def cmd_demo(args) -> int:
-    out = Path(args.out)
     only = DEMO_KEYS if not args.only else tuple(k.strip() for k in args.only.split(","))
     bad = [k for k in only if k not in DEMO_KEYS]
     if bad:
         raise CLIError(
             f"--only {args.only!r}: unknown step {bad[0]!r} (steps: {', '.join(DEMO_KEYS)})"
         )
-    out.mkdir(parents=True, exist_ok=True)
-    done: dict[str, float] = {}
-    skipped: list[str] = []
-    t_all = time.perf_counter()
-    for key, label, module, names in DEMO_STEPS:
-        if key not in only or label in done:
-            continue
-        fn = _find(module, names)
-        if fn is None:
-            continue
-        _say(args, f"ppr demo: {label} ...")
-        t0 = time.perf_counter()
-        fn(out)
-        done[label] = time.perf_counter() - t0
-    for key, label, _, _ in DEMO_STEPS:
-        if key in only and label not in done and label not in skipped:
-            skipped.append(label)
-    if "image" in only:
-        _say(args, "ppr demo: Mueller image of the example satellite ...")
-        t0 = time.perf_counter()
-        cfg_path = CONFIG_DIR / "cli" / "image.toml"
+    if not 4 <= args.pixels <= 2048:
+        raise CLIError(f"--pixels {args.pixels}: the image size must lie in [4, 2048] pixels")
+    cfg_path = CONFIG_DIR / "cli" / "image.toml"
+    cfg = inputs = None
+    if "image" in only:  # validate the image's config before drawing anything
         cfg = load_toml_model(
             ImageConfig, cfg_path, {"render.n_pixels": args.pixels, **_overrides(args)}
         )
-        img = run_image(cfg, cfg_path, progress=_progress(args))
-        with outputs(out, IMAGE_OUTPUTS, overwrite=True) as demo_out:
-            write_image_outputs(img, cfg, cfg_path, demo_out, seconds=time.perf_counter() - t0)
-        done["Mueller image"] = time.perf_counter() - t0
-    for label in skipped:
-        _say(args, f"ppr demo: skipped {label} (not available in this build)")
-    summary = {
-        "steps_seconds": done,
-        "skipped": skipped,
-        "total_seconds": time.perf_counter() - t_all,
-    }
-    write_json(out / "demo.json", summary)
-    pngs = sorted(p.name for p in out.glob("*.png"))
-    _say(args, f"ppr demo: {len(pngs)} figures in {out} ({summary['total_seconds']:.0f} s)")
+        _maybe_x64(cfg.render.dtype)
+        inputs = image_inputs(cfg, cfg_path)
+    done: dict[str, float] = {}
+    skipped: list[str] = []
+    t_all = time.perf_counter()
+    # every figure is staged and the whole set replaces the old one at the end
+    with outputs(args.out, None, overwrite=True) as staged:
+        out = staged.folder
+        for key, label, module, names in DEMO_STEPS:
+            if key not in only or label in done:
+                continue
+            fn = _find(module, names)
+            if fn is None:
+                continue
+            _say(args, f"ppr demo: {label} ...")
+            t0 = time.perf_counter()
+            fn(out)
+            done[label] = time.perf_counter() - t0
+        for key, label, _, _ in DEMO_STEPS:
+            if key in only and label not in done and label not in skipped:
+                skipped.append(label)
+        if cfg is not None:
+            _say(args, "ppr demo: Mueller image of the example satellite ...")
+            t0 = time.perf_counter()
+            img = run_image(cfg, cfg_path, progress=_progress(args), inputs=inputs)
+            write_image_outputs(img, cfg, cfg_path, staged, seconds=time.perf_counter() - t0)
+            done["Mueller image"] = time.perf_counter() - t0
+        for label in skipped:
+            _say(args, f"ppr demo: skipped {label} (not available in this build)")
+        summary = {
+            "steps_seconds": done,
+            "skipped": skipped,
+            "total_seconds": time.perf_counter() - t_all,
+        }
+        write_json(out / "demo.json", summary)
+        pngs = sorted(p.name for p in out.glob("*.png"))
+    _say(
+        args, f"ppr demo: {len(pngs)} figures in {args.out} ({summary['total_seconds']:.0f} s)"
+    )
     return 0
 
 
@@ -1781,21 +1965,62 @@ def _one_line(err: BaseException) -> str:
     return " ".join(part.strip() for part in msg.splitlines() if part.strip())
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that outputs are rolled back as on Ctrl-C."""
+
+
+@contextlib.contextmanager
+def _sigterm_raises():
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _command_name(args) -> str:
+    sub = getattr(args, "database_command", None)
+    return f"{args.command} {sub}" if sub else str(args.command)
+
+
+USER_ERRORS = (ConfigError, CLIError, ValueError, pydantic.ValidationError)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``ppr`` command. Returns 0 on success; raises ``SystemExit(2)`` with
-    a one-line message on stderr for config/usage errors."""
+    a one-line message on stderr for config/usage errors, ``SystemExit(130)`` on Ctrl-C
+    (``143`` on SIGTERM) after rolling back the outputs being written."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
         (getattr(args, "_sub", None) or parser).print_help(sys.stderr)
         raise SystemExit(2)
     enable_compile_cache()
+    name = _command_name(args)
     try:
-        return int(args.func(args) or 0)
-    except (ConfigError, CLIError, ValueError, pydantic.ValidationError) as err:
+        with _sigterm_raises():
+            return int(args.func(args) or 0)
+    except KeyboardInterrupt as err:
         if args.debug:
             raise
-        print(f"ppr {args.command}: error: {_one_line(err)}", file=sys.stderr)
+        what = "terminated" if isinstance(err, Terminated) else "interrupted"
+        note = getattr(args, "_interrupt_note", None) or "previous outputs were left as they were"
+        print(f"ppr {name}: {what}; {note}", file=sys.stderr)
+        raise SystemExit(143 if isinstance(err, Terminated) else 130) from None
+    except USER_ERRORS as err:
+        if args.debug:
+            raise
+        print(f"ppr {name}: error: {_one_line(err)}", file=sys.stderr)
         raise SystemExit(2) from None
 
 

@@ -31,9 +31,9 @@ def test_valid_config_and_override(tmp_path):
     "text, needle",
     [
         ('name = "a"\n[pulse]\nfwhm_ps = 100.0\ncolour = 3\n', "pulse.colour = 3: unknown key"),
-        ('name = "a"\n[pulse]\nfwhm_ps = nan\n', "pulse.fwhm_ps is not finite"),
-        ('name = "a"\n[pulse]\nfwhm_ps = "fast"\n', "pulse.fwhm_ps = 'fast'"),
-        ('name = "a"\n', "pulse = "),
+        ('name = "a"\n[pulse]\nfwhm_ps = nan\n', "pulse.fwhm_ps = nan: not finite"),
+        ('name = "a"\n[pulse]\nfwhm_ps = "fast"\n', "pulse.fwhm_ps = 'fast': expected a number"),
+        ('name = "a"\n', "pulse: required field missing"),
     ],
 )
 def test_errors_name_file_field_value(tmp_path, text, needle):

@@ -169,8 +169,11 @@ part_names = { bus = "body" }
 body = { n_real = 1.5, m = 10.0 }
 """
     p = _write(tmp_path, text)
-    with pytest.raises(ConfigError, match=r"no material for mesh parts"):
-        ppr.load_scene(p)  # an STL geometry is named after the file, "bus.stl"
-    p = _write(tmp_path, text.replace("{ bus = ", '{ "bus.stl" = '))
-    sc = ppr.load_scene(p)
+    sc = ppr.load_scene(p)  # an STL's one part is named after the file without extension
+    assert sc.mesh.parts == ("body",)
     assert sc.mesh.to_trimesh().area == pytest.approx(0.06e6, rel=1e-6)
+    p = _write(tmp_path, text.replace("{ bus = ", '{ "bus.stl" = '))  # the name in the file
+    assert ppr.load_scene(p).mesh.parts == ("body",)
+    p = _write(tmp_path, text.replace("{ bus = ", "{ bsu = "))
+    with pytest.raises(ConfigError, match=r"part_names.bsu: .* has no object 'bsu'"):
+        ppr.load_scene(p)
