@@ -168,10 +168,11 @@ def load_toml_model(model: type[M], path: str | Path, overrides: dict | None = N
     for key, value in (overrides or {}).items():
         node = data
         *head, last = key.split(".")
-        for k in head:
+        for i, k in enumerate(head):
             node = node.setdefault(k, {})
             if not isinstance(node, dict):
-                raise ConfigError(f"{path}: override {key!r}: {k!r} is not a table")
+                where = ".".join(head[: i + 1])
+                raise ConfigError(f"{path}: override {key!r}: {where!r} is {node!r}, not a table")
         node[last] = value
     return validate_data(model, data, str(path))
 
@@ -179,10 +180,10 @@ def load_toml_model(model: type[M], path: str | Path, overrides: dict | None = N
 def parse_override(text: str) -> tuple[str, Any]:
     """Parse a command-line override ``key.sub=value`` (value parsed as a TOML value)."""
     if "=" not in text:
-        raise ConfigError(f"override {text!r}: expected key=value")
+        raise ConfigError(f"--set {text!r}: expected key=value")
     key, raw = text.split("=", 1)
     if not key.strip() or any(not k.strip() for k in key.split(".")):
-        raise ConfigError(f"override {text!r}: empty key (expected key.sub=value)")
+        raise ConfigError(f"--set {text!r}: empty key (expected key.sub=value)")
     try:
         value = tomllib.loads(f"v = {raw}")["v"]
     except tomllib.TOMLDecodeError:

@@ -360,10 +360,16 @@ def load_mesh(
                 f"part_names.{unknown[0]}: mesh file {path!r} has no object {unknown[0]!r} "
                 f"(objects: {', '.join(k for _, k, _, _ in pieces)})"
             )
+        for k, name in part_names.items():
+            if part_key(name) != name:
+                raise ValueError(
+                    f"part_names.{k} = {name!r}: a part name may hold letters, digits, '_' "
+                    f"and '-' only (it is a config key), e.g. {part_key(name)!r}"
+                )
     meshes = []
     for raw, key, v, f in pieces:
         name = (part_names or {}).get(raw, (part_names or {}).get(key, key))
-        meshes.append(Mesh(v, f, None, (part_key(name),)))
+        meshes.append(Mesh(v, f, None, (name,)))
     return check_mesh(concatenate(meshes), on_degenerate, name=f"mesh file {path!r}")
 
 

@@ -1040,7 +1040,8 @@ def load_bank(value: str, cfg_path: Path, field: str):
     try:
         return inversion.load_database(dbp)
     except (ValueError, OSError) as err:
-        raise ConfigError(f"{cfg_path}: {field} = {value!r}: {database_error_hint(dbp, err)}") from None
+        hint = database_error_hint(dbp, err)
+        raise ConfigError(f"{cfg_path}: {field} = {value!r}: {hint}") from None
 
 
 def read_observations(cfg, cfg_path: Path, bank) -> tuple[np.ndarray, str]:

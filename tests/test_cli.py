@@ -470,3 +470,243 @@ def test_invert_end_to_end(tmp_path, capsys):
         capsys.readouterr()
         assert run("invert", "-q", "-c", bad, "-o", tmp_path / "bad") == 2
         assert msg in error_line(capsys)
+
+
+# ------------------------------------------------------- bad inputs, interruptions (issue 28)
+NAN_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv nan 0 0\nf 1 2 3\nf 1 3 4\nf 1 2 4\nf 2 3 5\n"
+CORRUPT_STL = b"solid x\nfacet normal 0 0 1\n outer loop\n vertex 0 0 \xff\xfe junk"
+BRDF_OK = 'material = "gold"\nterms = ["single"]\nincidence_deg = [10.0]\nbistatic_deg = [0.0]\n'
+IMG_OK = 'mesh = "example"\n[materials]\ndefault = "aluminium"\n'
+CLS = 'database = "{db}"\nn_simulated = 2\n'
+
+# (command, config text or None for the command's default, extra arguments, what the one
+# line must name besides the config file: the field as written and the bad value). Every
+# case must fail before any computation and leave no --out folder.
+BAD_INPUTS = [
+    ("brdf", BRDF_OK, ["--set", "incidence_deg=[]"], ["incidence_deg = []", "must not be empty"]),
+    (
+        "brdf",
+        BRDF_OK,
+        ["--set", "bistatic_deg={start=0.0,stop=1.0,num=0}"],
+        ["bistatic_deg.num = 0"],
+    ),
+    ("brdf", BRDF_OK, ["--set", "terms=[]"], ["terms = []", "must not be empty"]),
+    ("brdf", BRDF_OK, ["--set", 'terms=["single","single"]'], ["terms = ", "listed twice"]),
+    ("brdf", BRDF_OK, ["--set", "material=3"], ["material = 3", "a string or a table"]),
+    ("brdf", BRDF_OK, ["--set", "wavelength_nm=inf"], ["wavelength_nm = inf", "not finite"]),
+    ("brdf", BRDF_OK, ["--set", "=3"], ["--set '=3'", "empty key"]),
+    (
+        "image",
+        IMG_OK
+        + "[view]\nline_of_sight = [0.0, 0.0, -1.0]\npolarization_reference = [0.0, 0.0, 2.0]\n",
+        [],
+        ["view: polarization_reference = [0.0, 0.0, 2.0]", "line_of_sight"],
+    ),
+    (
+        "image",
+        'mesh = "nan.obj"\n[materials]\ndefault = "gold"\n',
+        [],
+        ["mesh = 'nan.obj'", "non-finite"],
+    ),
+    (
+        "image",
+        'mesh = "bad.stl"\n[materials]\ndefault = "gold"\n',
+        [],
+        ["bad.stl", "not a valid STL"],
+    ),
+    (
+        "image",
+        'mesh = "x.3ds"\n[materials]\ndefault = "gold"\n',
+        [],
+        ["x.3ds", "unsupported format"],
+    ),
+    ("image", 'scene = "nope.toml"\n', [], ["scene = 'nope.toml'", "no such scene file"]),
+    (
+        "image",
+        IMG_OK,
+        ["--set", "materials.default.x=1"],
+        ["override 'materials.default.x'", "'materials.default' is 'aluminium', not a table"],
+    ),
+    (
+        "simulate",
+        'sensor = "default"\nmesh = "nan.obj"\n[materials]\nnan = "gold"\n',
+        [],
+        ["mesh", "nan.obj", "non-finite"],
+    ),
+    ("simulate", None, ["--states", "H,Q"], ["--states 'H,Q'", "'Q'"]),
+    ("simulate", None, ["--terms", "single,quad"], ["--terms 'single,quad'", "'quad'"]),
+    (
+        "database build",
+        SMALL_DB,
+        ["--set", 'materials=["aluminium", "unobtainium"]'],
+        ["materials[1] = 'unobtainium'"],
+    ),
+    ("database build", SMALL_DB, ["--set", 'model="foo"'], ["model = 'foo'"]),
+    ("database build", SMALL_DB, ["--set", 'sensor.channels="foo"'], ["sensor.channels = 'foo'"]),
+    (
+        "database build",
+        SMALL_DB.replace('symmetry = "octahedral"', 'symmetry = "weird"'),
+        [],
+        ["shapes[0].symmetry = 'weird'"],
+    ),
+    ("database build", SMALL_DB, ["--num-shards", "0"], ["--num-shards 0"]),
+    ("classify", CLS + "[noise]\nsnr = 0.0\n", [], ["noise.snr = 0.0"]),
+    ("classify", CLS + "seed = -1\n", [], ["seed = -1"]),
+    ("classify", CLS + "[noise]\ngain_min = 10.0\ngain_max = 0.1\n", [], ["gain_min = 10.0"]),
+    ("classify", CLS + "max_shift_bins = 1000\n", [], ["max_shift_bins = 1000"]),
+    ("classify", CLS + 'observations = "bad.stl"\n', [], ["observations = 'bad.stl'", ".npz"]),
+    (
+        "classify",
+        'database = "nowhere.zarr"\n',
+        [],
+        ["database = 'nowhere.zarr'", "does not exist"],
+    ),
+    ("report", 'database = "{spec}"\nsnrs = []\n', [], ["snrs = []", "must not be empty"]),
+    ("report", 'database = "{spec}"\ngain_range = [10.0, 0.1]\n', [], ["gain_range = [10.0, 0.1]"]),
+    ("report", 'database = "nope.toml"\n', [], ["database = 'nope.toml'", "no such config file"]),
+    ("demo", None, ["--only", "image", "--pixels", "2"], ["--pixels 2"]),
+]
+
+
+@pytest.mark.parametrize(
+    "command, text, extra, needles",
+    BAD_INPUTS,
+    ids=[f"{c[0]}-{i}" for i, c in enumerate(BAD_INPUTS)],
+)
+def test_bad_input_is_one_line_exit_2(tiny_db, tmp_path, capsys, command, text, extra, needles):
+    spec, db = tiny_db
+    (tmp_path / "nan.obj").write_text(NAN_OBJ)
+    (tmp_path / "bad.stl").write_bytes(CORRUPT_STL)
+    (tmp_path / "x.3ds").write_bytes(b"3ds")
+    argv = command.split()
+    if text is not None:
+        cfg = _write(tmp_path / "cfg.toml", text.format(db=db / "database.zarr", spec=spec))
+        argv += ["-c", cfg]
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert run(*argv, "-q", "-o", out, *extra) == 2
+    line = error_line(capsys)
+    assert line.startswith(f"ppr {command}: error: ") and "Traceback" not in line
+    if text is not None and not any(n.startswith("--") for n in needles):
+        assert str(cfg) in line, line
+    for needle in needles:
+        assert needle in line, (needle, line)
+    assert not out.exists()
+
+
+def test_out_is_a_file(tmp_path, capsys):
+    cfg = _write(tmp_path / "b.toml", BRDF_OK)
+    (tmp_path / "taken").write_text("a file")
+    assert run("brdf", "-q", "-c", cfg, "-o", tmp_path / "taken") == 2
+    line = error_line(capsys)
+    assert f"--out {tmp_path / 'taken'}: is an existing file" in line
+    assert (tmp_path / "taken").read_text() == "a file"
+
+
+def test_ctrl_c_and_sigterm_keep_previous_outputs(tmp_path, capsys, monkeypatch):
+    import signal
+    import time
+
+    from ppr import _image
+
+    cfg = _write(tmp_path / "b.toml", BRDF_OK)
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in ("brdf.npz", "brdf.json", "brdf.png"):
+        (out / name).write_text(f"previous {name}")
+
+    def ctrl_c(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    def sigterm(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler raises first
+
+    for fake, code, word in ((ctrl_c, 130, "interrupted"), (sigterm, 143, "terminated")):
+        monkeypatch.setattr(_image, "evaluate_mueller", fake)
+        capsys.readouterr()
+        assert run("brdf", "-q", "-c", cfg, "-o", out, "--overwrite") == code
+        assert error_line(capsys) == f"ppr brdf: {word}; previous outputs were left as they were"
+        assert sorted(os.listdir(out)) == ["brdf.json", "brdf.npz", "brdf.png"]
+        assert (out / "brdf.npz").read_text() == "previous brdf.npz"
+    assert signal.getsignal(signal.SIGTERM) is not None  # restored, not left raising
+
+
+def store_bytes(path: Path, skip: str = "\0") -> dict[str, bytes]:
+    return {
+        str(p.relative_to(path)): p.read_bytes()
+        for p in sorted(path.rglob("*"))
+        if p.is_file() and not str(p.relative_to(path)).startswith(skip)
+    }
+
+
+def test_failed_or_interrupted_overwrite_keeps_the_database(tiny_db, tmp_path, capsys, monkeypatch):
+    import shutil
+
+    import inversion._database as D
+
+    spec, built = tiny_db
+    out = tmp_path / "db"
+    shutil.copytree(built, out)
+    before = store_bytes(out)
+    # a typo with --overwrite: refused before anything is touched (issue 28, item 1)
+    bad = 'materials=["unobtainium"]'
+    assert run("database", "build", "-q", "-c", spec, "-o", out, "--overwrite", "--set", bad) == 2
+    assert store_bytes(out) == before
+    # --overwrite with new settings builds beside the old store; interrupted, the old stays
+    new = ["--set", 'materials=["white_paint", "aluminium"]']
+    real, calls = D.evaluate_rows, []
+
+    def interrupted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(D, "evaluate_rows", interrupted)
+    capsys.readouterr()
+    assert run("database", "build", "-q", "-c", spec, "-o", out, "--overwrite", *new) == 130
+    assert "interrupted; rerun the same command to resume" in error_line(capsys)
+    assert store_bytes(out, skip="database.zarr.partial") == before
+    assert (out / "database.zarr.partial" / "_chunks" / "000000.json").is_file()
+    monkeypatch.setattr(D, "evaluate_rows", real)
+    # rerun: resumes the staged build, then swaps it in whole
+    assert run("database", "build", "-q", "-c", spec, "-o", out, "--overwrite", *new) == 0
+    assert sorted(os.listdir(out)) == ["database.json", "database.zarr"]
+    summary = json.loads((out / "database.json").read_text())
+    assert summary["complete"] and summary["skipped_chunks"] == 1
+    assert summary["computed_chunks"] == summary["n_chunks"] - 1
+    import inversion
+
+    assert inversion.load_database(out / "database.zarr").names["materials"] == [
+        "white_paint",
+        "aluminium",
+    ]
+
+
+def test_corrupt_chunk_is_repaired_by_the_command_classify_names(tiny_db, tmp_path, capsys):
+    import shlex
+    import shutil
+
+    spec, built = tiny_db
+    out = tmp_path / "db"
+    shutil.copytree(built, out)
+    store = out / "database.zarr"
+    reference = store_bytes(store)
+    chunk = sorted(p for p in (store / "signatures" / "c").rglob("*") if p.is_file())[1]
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(data))
+    cfg = _write(tmp_path / "c.toml", f'database = "{store}"\n')
+    capsys.readouterr()
+    assert run("classify", "-q", "-c", cfg, "-o", tmp_path / "cls") == 2
+    line = error_line(capsys)
+    assert "chunks [1] do not match their checksums" in line
+    advice = line.split("rerun `")[1].split("`")[0]
+    assert advice == f"ppr database build -c {Path(spec).resolve()} -o {out}"
+    assert run(*shlex.split(advice)[1:], "-q") == 0  # the advice works as written
+    assert store_bytes(store) == reference  # equal to the uninterrupted build, byte for byte
+    assert json.loads((out / "database.json").read_text())["recomputed_corrupt"] == [1]
+    capsys.readouterr()
+    assert run(*shlex.split(advice)[1:], "-q") == 2  # now complete: refused
+    assert "already exists and is complete" in error_line(capsys)

@@ -213,8 +213,8 @@ def test_bad_inputs(reference, tmp_path):
         spec_from_dict(dict(SPEC, grid={"kind": "hopf", "size": 0}))
     with pytest.raises(ValueError, match="not a signature database"):
         load_database(tmp_path)
-    with pytest.raises(ValueError, match="unknown synthetic shape"):
-        bank_in_memory(spec_from_dict(dict(SPEC, shapes=[{"name": "torus"}])))
+    with pytest.raises(ConfigError, match=r"shapes\[0\].name = 'torus': not a shape of model"):
+        spec_from_dict(dict(SPEC, shapes=[{"name": "torus"}]))
 
 
 @pytest.mark.parametrize("name", ["synthetic_small", "ppr_cubesat"])

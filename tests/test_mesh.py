@@ -186,6 +186,81 @@ def test_load_errors(tmp_path):
     assert ppr.load_mesh(bad, on_degenerate="drop").n_faces == 1
 
 
+TWO_OBJECTS = """o first
+v 0 0 0
+v 1 0 0
+v 0 1 0
+f 1 2 3
+o second.panel
+v 0 0 1
+v 1 0 1
+v 0 1 1
+f 4 5 6
+o second_panel
+v 0 0 2
+v 1 0 2
+v 0 1 2
+f 7 8 9
+"""
+
+
+def test_load_never_drops_nonfinite_vertices(tmp_path):
+    # trimesh's processing removes a NaN/inf vertex with its faces (3 of 4 faces would
+    # survive here); the loader reads without it and names the file, the object and counts
+    for bad in ("nan", "inf"):
+        path = tmp_path / f"{bad}.obj"
+        path.write_text(
+            f"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv {bad} 0 0\nf 1 2 3\nf 1 3 4\nf 1 2 4\nf 2 3 5\n"
+        )
+        with pytest.raises(ValueError) as e:
+            ppr.load_mesh(path)
+        msg = str(e.value)
+        assert str(path) in msg and "1 non-finite" in msg and "used by 1 of its 4 faces" in msg
+
+
+def test_load_objects_become_parts_named_as_keys(tmp_path):
+    path = tmp_path / "two.obj"
+    path.write_text(TWO_OBJECTS)
+    m = ppr.load_mesh(path)
+    # three objects, three parts; dots would split --set keys, so they become "_"; the
+    # clash that makes with the third object's name gets a suffix instead of a merge
+    assert sorted(m.parts) == ["first", "second_panel", "second_panel_2"]
+    assert np.bincount(np.asarray(m.material_ids)).tolist() == [1, 1, 1]
+    with pytest.raises(ValueError, match="part_names.frist: .* has no object 'frist'"):
+        ppr.load_mesh(path, part_names={"frist": "body"})
+    renamed = ppr.load_mesh(path, part_names={"second.panel": "wing", "first": "body"})
+    assert sorted(renamed.parts) == ["body", "second_panel", "wing"]
+    # a GLB scene whose two nodes instance one geometry: two parts, both placed
+    scene = trimesh.Scene()
+    box = shapes.cubesat(1).to_trimesh()
+    scene.add_geometry(box, geom_name="unit", node_name="left")
+    scene.add_geometry(
+        box,
+        geom_name="unit",
+        node_name="right",
+        transform=trimesh.transformations.translation_matrix([1, 0, 0]),
+    )
+    scene.export(tmp_path / "pair.glb")
+    g = ppr.load_mesh(tmp_path / "pair.glb")
+    assert sorted(g.parts) == ["left", "right"] and g.n_faces == 24
+    x = np.asarray(g.vertices)[:, 0]
+    assert x.min() == pytest.approx(-0.05) and x.max() == pytest.approx(1.05)
+    # a lone object is named after the file, without its extension
+    box.export(tmp_path / "bus.v2.stl")
+    assert ppr.load_mesh(tmp_path / "bus.v2.stl").parts == ("bus_v2",)
+
+
+def test_load_unreadable_files(tmp_path):
+    stl = tmp_path / "broken.stl"
+    stl.write_bytes(b"solid x\nfacet normal 0 0 1\n outer loop\n vertex 0 0 \xff\xfe junk")
+    with pytest.raises(ValueError, match=r"broken.stl' is not a valid STL file"):
+        ppr.load_mesh(stl)
+    xyz = tmp_path / "points.xyz"
+    xyz.write_text("0 0 0\n")
+    with pytest.raises(ValueError, match=r"unsupported format '.xyz'; supported: .obj"):
+        ppr.load_mesh(xyz)
+
+
 # ----------------------------------------------------------------------------- pose
 
 
