@@ -384,7 +384,7 @@ class BinsConfig(StrictModel):
 class SensorConfig(StrictModel):
     """``configs/sensors/*.toml``."""
 
-    wavelength_nm: float = pydantic.Field(gt=0)
+    wavelength_nm: float = pydantic.Field(gt=0, lt=1e6)  # nanometres
     line_of_sight: Vec3 = [0.0, 0.0, -1.0]
     polarization_reference: Vec3 = [1.0, 0.0, 0.0]
     bistatic_angle_urad: float = pydantic.Field(default=0.0, ge=0, lt=1.5e6)
@@ -468,9 +468,9 @@ def _material_from_config(spec, wavelength: float, where: str) -> Material:
         from ._library import load_material  # noqa: PLC0415 - optional until the library lands
     except ImportError as exc:  # pragma: no cover - depends on the material library
         raise ConfigError(f"{where}: material {spec!r} needs ppr.load_material ({exc})") from None
-    name, _, finish = spec.partition("/")
+    name, slash, finish = spec.partition("/")
     try:
-        return load_material(name, wavelength, finish=finish or None)
+        return load_material(name, wavelength, finish=finish if slash else None)
     except (KeyError, ValueError) as exc:
         raise ConfigError(f"{where} = {spec!r}: {exc}") from None
 

@@ -5,8 +5,12 @@ keys are errors), applies ``--set key.sub=value`` overrides, runs the library fu
 writes its outputs (arrays ``.npz``/``.zarr``, a JSON summary, PNG plots) into ``--out``.
 
 Exit status: 0 on success; 2 for a bad config, a bad override, an input the library rejects
-or an output that exists (``--overwrite`` replaces it). Errors are one line on stderr naming
-the file, the field and the bad value (``--debug`` shows the traceback instead).
+or an output that exists (``--overwrite`` replaces it); 130 on Ctrl-C, 143 on SIGTERM. Errors
+are one line on stderr naming the file, the field as the user wrote it and the bad value
+(``--debug`` shows the traceback instead). Configs are checked whole before any computation.
+
+Outputs are staged, validated and swapped into ``--out`` as a whole (:mod:`ppr._outputs`):
+a failed, interrupted or killed run leaves the previous result as it was.
 """
 
 from __future__ import annotations
@@ -96,14 +100,17 @@ def resolve_material(spec: Any, wavelength: float, field: str, cfg_path: Path):
         )
     import ppr
 
-    name, _, finish = spec.partition("/")
+    name, slash, finish = spec.partition("/")
     load = getattr(ppr, "load_material", None)
     if load is None:  # pragma: no cover - library always present once issue 2 landed
         return sc._material_from_config(spec, wavelength, f"{cfg_path}: {field}")
     try:
-        return load(name, wavelength, finish or None)
+        return load(name, wavelength, finish if slash else None)
     except (ValueError, KeyError) as err:
-        raise ConfigError(f"{cfg_path}: {field} = {spec!r}: {str(err).strip(chr(39))}") from None
+        msg = str(err).strip(chr(39))
+        if "wavelength" in msg:
+            msg = f"at wavelength_nm = {wavelength * 1e9:g}: {msg}"
+        raise ConfigError(f"{cfg_path}: {field} = {spec!r}: {msg}") from None
 
 
 def _distinct(v: list) -> list:
@@ -139,7 +146,7 @@ class BrdfConfig(StrictModel):
     """``ppr brdf``: a Mueller BRDF sweep over incidence and bistatic angle."""
 
     material: str | dict[str, Any]
-    wavelength_nm: float = pydantic.Field(532.0, gt=0.0)
+    wavelength_nm: float = pydantic.Field(532.0, gt=0.0, lt=1e6)  # nanometres
     terms: Terms = "auto"
     incidence_deg: Annotated[
         list[Annotated[float, pydantic.Field(ge=0.0, lt=90.0)]], pydantic.Field(min_length=1)
@@ -165,7 +172,7 @@ class BrdfConfig(StrictModel):
 class ViewConfig(StrictModel):
     """Sensor geometry of an image (same fields and meaning as configs/sensors/*.toml)."""
 
-    wavelength_nm: float = pydantic.Field(532.0, gt=0.0)
+    wavelength_nm: float = pydantic.Field(532.0, gt=0.0, lt=1e6)  # nanometres
     line_of_sight: Vec3 = (-0.8, -0.3, -0.52)
     polarization_reference: Vec3 = (-0.5, 0.866, 0.0)
     bistatic_angle_urad: float = pydantic.Field(0.0, ge=0.0, lt=1.5e6)
@@ -763,10 +770,11 @@ def _shards_ok(args) -> None:
         )
 
 
-def database_target(spec, sig_fn, out: Path, overwrite: bool, say) -> Path:
+def database_target(spec, sig_fn, out: Path, overwrite: bool, say, shards: int = 1) -> Path | None:
     """Where ``ppr database build`` builds (see DATABASE_HELP): the existing store itself to
     repair missing or corrupt chunks of the same settings, else ``database.zarr.partial``
-    (fresh builds and ``--overwrite``), committed over the old store only once complete."""
+    (fresh builds and ``--overwrite``), committed over the old store only once complete.
+    ``None``: a worker of a sharded build finds the database complete (nothing to do)."""
     import inversion
 
     final, partial = out / DATABASE_STORE, out / (DATABASE_STORE + PARTIAL)
@@ -784,6 +792,9 @@ def database_target(spec, sig_fn, out: Path, overwrite: bool, say) -> Path:
                 f"to replace it ({keep}), or choose another --out"
             )
         status = inversion.chunk_status(final, verify=True)
+        if not status["missing"] and not status["corrupt"] and shards > 1:
+            say(f"ppr database build: {final} is complete; nothing to do for this shard")
+            return None
         if not status["missing"] and not status["corrupt"]:
             raise CLIError(
                 f"{final} already exists and is complete (every chunk matches its checksum); "
@@ -868,6 +879,8 @@ def _database_summary(args, cfg_path, db, report, status) -> dict:
 def _validate_store(path: Path) -> None:
     import inversion
 
+    if not path.is_dir():
+        raise FileNotFoundError(f"{path} does not exist")
     status = inversion.chunk_status(path, verify=False)
     if status["missing"]:  # pragma: no cover - the command checks before committing
         raise RuntimeError(f"{path}: {len(status['missing'])} chunks missing; not committed")
@@ -887,7 +900,11 @@ def cmd_database_build(args) -> int:
         raise ConfigError(f"{cfg_path}: {_one_line(err)}") from None
     out = _outputs.check_out_folder(args.out)
     _outputs.recover(out)
-    target = database_target(spec, sig_fn, out, args.overwrite, lambda m: _say(args, m))
+    target = database_target(
+        spec, sig_fn, out, args.overwrite, lambda m: _say(args, m), args.num_shards
+    )
+    if target is None:
+        return 0
     made = [p for p in (out, *out.parents) if not p.exists()]
     args._interrupt_note = f"rerun the same command to resume {target}"
     try:
@@ -914,10 +931,18 @@ def cmd_database_build(args) -> int:
         return 0
     summary = _database_summary(args, cfg_path, final, report, status)
     names = [DATABASE_SUMMARY] if target == final else [DATABASE_STORE, DATABASE_SUMMARY]
-    with outputs(out, names, overwrite=True, validators={DATABASE_STORE: _validate_store}) as o:
-        if target != final:
-            o.adopt(DATABASE_STORE, target)
-        write_json(o.path(DATABASE_SUMMARY), summary)
+    try:
+        with outputs(
+            out, names, overwrite=True, validators={DATABASE_STORE: _validate_store}
+        ) as o:
+            if target != final:
+                o.adopt(DATABASE_STORE, target)
+            write_json(o.path(DATABASE_SUMMARY), summary)
+    except FileNotFoundError:
+        if target.exists() or not final.exists():
+            raise
+        _say(args, f"ppr database build: another builder moved {target} to {final} first")
+        return 0
     _say(
         args,
         f"ppr database build: {final} ({report.n_rows} rows, {len(report.computed)} chunks "
@@ -1730,16 +1755,21 @@ visibility per face), simulate.json (energies, mean range, rms depth), simulate.
 
 DATABASE_HELP = """\
 Build a signature database (shapes x attitudes x materials x finishes) chunk by chunk into
---out/database.zarr (zarr v3, resumable: rerunning after an interruption computes only the
-missing chunks; a complete database is not rebuilt unless --overwrite). Summary:
---out/database.json (rows, chunks, rows per second).
+--out/database.zarr (zarr v3). The build runs in --out/database.zarr.partial and is moved to
+database.zarr only when every chunk is done and verified: rerunning the same command after
+an interruption computes only the missing chunks; with --overwrite the old database stays
+in place (and a config error deletes nothing) until the new one is complete. On an existing
+database.zarr of the same settings the command verifies every chunk's checksum and
+recomputes missing or corrupt chunks in place; a complete, valid one is not rebuilt unless
+--overwrite. Summary: --out/database.json (rows, chunks, rows per second).
 
 Config (configs/databases/*.toml): name; model ("synthetic" stand-in or "ppr"); materials
 (library names); [finishes] name = Blinn-Phong exponent m; [[shapes]] name, symmetry;
 [grid] kind ("hopf"), size (nside: angular resolution), reduce_symmetry; [sensor] channels
 (full, stokes, copol, circular), n_bins, bin_width_m (metres), pulse_fwhm_s (seconds);
 chunk_rows; compute_dtype. Several hosts: run with --shard-index i --num-shards N against
-one shared --out (see docs/distributed_builds.md)."""
+one shared --out (see docs/distributed_builds.md); the builder that finds every chunk done
+when it finishes moves the database into place and writes database.json."""
 
 CLASSIFY_HELP = """\
 Classify observations against a built database: weighted inner product maximized over the
@@ -1795,13 +1825,21 @@ attitude_vs_resolution.png, confusion_{shape,material,finish}.png."""
 
 DEMO_HELP = """\
 Write every demo figure into --out: the BRDF figures, the double-bounce (enhancement peak)
-figures, the pulse figures and a Mueller image of the example satellite. Figures that exist
-are regenerated in place (the demo always overwrites its own figures). Steps whose library
-part is not present in this build are listed as skipped."""
+figures, the pulse figures and a Mueller image of the example satellite. The figures are
+staged and replace their previous versions together at the end (the demo always overwrites
+its own figures; other files in --out are kept). Steps whose library part is not present in
+this build are listed as skipped."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """Usage errors as one line (``ppr simulate: error: ...``), exit status 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="ppr",
         description="Pulse Polarization Ranging: polarized microfacet BRDF, pulse synthesis and "
         "inversion. Every command reads a TOML config (see configs/), accepts --set overrides "
