@@ -1367,7 +1367,7 @@ def cmd_invert(args) -> int:
                 f"{cfg_path}: mirror_symmetry = {cfg.mirror_symmetry!r}: the scene's mesh has "
                 f"no mirror plane with normal {normal.tolist()} through the body origin"
             )
-    with outputs(args.out, INVERT_OUTPUTS, args.overwrite) as out:
+    with outputs(args.out, INVERT_OUTPUTS, args.overwrite, optional=["invert_corner.png"]) as out:
         t0 = time.perf_counter()
         try:
             fit = inversion.refine(

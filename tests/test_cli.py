@@ -655,15 +655,21 @@ def test_failed_or_interrupted_overwrite_keeps_the_database(tiny_db, tmp_path, c
     assert store_bytes(out) == before
     # --overwrite with new settings builds beside the old store; interrupted, the old stays
     new = ["--set", 'materials=["white_paint", "aluminium"]']
-    real, calls = D.evaluate_rows, []
+    real, calls, stop = D.evaluate_rows, [], [1]
 
     def interrupted(*args, **kwargs):
         calls.append(1)
-        if len(calls) == 2:
+        if len(calls) == stop[0]:
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
     monkeypatch.setattr(D, "evaluate_rows", interrupted)
+    # a fresh build interrupted before its first chunk leaves no folder behind
+    fresh = tmp_path / "fresh" / "db"
+    assert run("database", "build", "-q", "-c", spec, "-o", fresh, *new) == 130
+    assert not (tmp_path / "fresh").exists()
+    calls.clear()
+    stop[0] = 2
     capsys.readouterr()
     assert run("database", "build", "-q", "-c", spec, "-o", out, "--overwrite", *new) == 130
     assert "interrupted; rerun the same command to resume" in error_line(capsys)
