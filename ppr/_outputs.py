@@ -313,6 +313,9 @@ class Outputs:
         missing = [n for n in self.names if n not in present and n not in self.optional]
         if missing:
             raise RuntimeError(f"the command did not write its output {missing[0]!r}")
+        undeclared = [n for n in present if n not in self.names]
+        if undeclared:  # would be lost with the stage: a bug in the command's output list
+            raise RuntimeError(f"the command wrote {undeclared[0]!r}, not among its outputs")
         return [n for n in self.names if n in present]
 
     def commit(self) -> list[Path]:

@@ -1238,7 +1238,7 @@ class InvertObservation(StrictModel):
     source: str = "simulate"  # "simulate" (from the scene's pose and materials) or an .npz
     photons: float = pydantic.Field(2e4, gt=0.0)  # expected total signal counts (gain)
     range_offset_m: float = 0.003
-    seed: int = 0
+    seed: Seed = 0
 
 
 class InvertConfig(StrictModel):
