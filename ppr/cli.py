@@ -1845,7 +1845,9 @@ def build_parser() -> argparse.ArgumentParser:
         "inversion. Every command reads a TOML config (see configs/), accepts --set overrides "
         "and writes its results into --out.",
         formatter_class=_Formatter,
-        epilog="Exit status: 0 success; 2 bad config/override/input or existing output.",
+        epilog="Exit status: 0 success; 2 bad config/override/input or existing output; "
+        "130 interrupted (Ctrl-C), 143 terminated. A failed or interrupted run leaves the "
+        "previous outputs in --out as they were.",
     )
     parser.add_argument(
         "--debug", action="store_true", help="show tracebacks instead of one-line errors"
