@@ -18,8 +18,8 @@ point away from the surface (:mod:`ppr._conventions`). It is the sum of named te
 ``"double"``
     The double-bounce term of ``ppr/_double.py`` (quadrature over the first facet's normal),
     from the material-independent exact-backscatter tables of ``ppr/_double_table.py``
-    wherever the whole batch is within 1e-4 rad of backscatter (``"double:backscatter"``
-    forces the tables).
+    wherever the whole batch is within ``ppr.BACKSCATTER_PSI_MAX`` (1e-3 rad) of
+    backscatter (``"double:backscatter"`` forces the tables).
 
 ``"multiple"`` (:func:`multiple_scattering_term`)
     Depolarizing remainder of the explicit terms (PHYSICS.md section 5),
@@ -487,7 +487,7 @@ TERMS: dict[str, TermFn] = {
 """Term registry: name -> ``term(k_in, k_out, normal, material, frame_in, frame_out, *,
 wavelength) -> (..., 4, 4)`` (contract in docs/DESIGN.md). ``"double"`` uses the
 exact-backscatter table of :mod:`ppr._double_table` when every element of the batch is
-within ``PSI_MAX`` (1e-4 rad) of backscatter and the quadrature otherwise;
+within ``PSI_MAX`` (1e-3 rad) of backscatter and the quadrature otherwise;
 ``"double:backscatter"`` forces the table (inputs beyond ``PSI_MAX`` are an error): a
 caller that knows its geometry is monostatic (``ppr.render`` for a monostatic sensor) uses it
 to keep the quadrature out of the compiled program."""
@@ -692,7 +692,8 @@ def mueller_brdf(
       directions' batch shape).
     - `terms`: names from ``"single"``, ``"double"``, ``"multiple"`` (default: all implemented),
       or ``"auto"``; ``"double:backscatter"`` is the double term from the exact-backscatter
-      table only (bistatic angle <= 1e-4 rad, else an error; :data:`TERMS`).
+      table only (bistatic angle <= ``ppr.BACKSCATTER_PSI_MAX`` = 1e-3 rad, else an error;
+      :data:`TERMS`).
       ``"multiple"`` is always the remainder of the model's full set of explicit terms.
     - `frame_in`: x axis of the incident beam's Stokes frame (beam along ``-k_in``); default
       :func:`ppr._frames.default_frame` (the s direction ``normal x d``).
