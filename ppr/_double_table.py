@@ -19,11 +19,13 @@ facet of a mesh is then seen at exact backscatter ``k' = k``. There the double t
        M_inc(c, m; n) = sum_{q, j} g_q(t_j; n) Z_{q j}(c, m),
        Z_{q j} = <prefactor> sum_paths w l_j(t1) (G_inc U_q)       (4x4 each),
 
-   ``Z`` independent of the material. Its columns span only three 4x4 matrices (the path
-   azimuths about ``k`` enter through 1, cos 2alpha, cos^2 2alpha; the sine terms cancel in
-   the mirror-symmetric sum), so ``Z_{q j} = sum_r T_{j r}(c, m) V_{r q}`` with constant
-   ``V``: the table stores ``T`` (``K x 3`` per grid point; singular values measured at
-   build time, ``RANK_TOL``).
+   ``Z`` independent of the material. Stacked over grid points and nodes, its rows (4
+   products ``q`` x 16 Mueller elements) have a small numerical rank ``R`` (singular values
+   above ``RANK_TOL`` of the largest, measured at build time): ``R = 6`` in the shipped
+   table, three dominant singular values and three at 4e-6 to 9e-5 of the largest (the
+   table's ``info`` lists them). So ``Z_{q j} = sum_r T_{j r}(c, m) V_{r q}`` with constant
+   ``V`` (``R`` sets of four 4x4 matrices): the table stores ``T`` (``K x R`` per grid
+   point).
 4. At exact backscatter the reversed path's Jones matrix equals the forward one, so the
    coherent part is exactly ``2 M_inc`` (tested) and ``M = (1 + gamma(psi)) M_inc``.
 
@@ -47,10 +49,11 @@ power law in ``c``) and ``T / E`` is held. Above ``M_MAX = 200`` the term is 0: 
 M_MAX`` the double term at backscatter is below 1e-30 of the rest of the BRDF at incidence
 0-85 deg (tests/test_double_table.py::test_cut_above_m_max_is_negligible).
 
-Accuracy (bench/results/double_table.md, tests/test_double_table.py): against the quadrature
-at order (32, 128), max ``|M - M_ref| / M00(single + double)`` = 2.3e-4 at exact
-backscatter on random geometries (incidence 0-88 deg, m 0.02-150, aluminium, gold, TiO2,
-silica), 5.8e-4 at ``psi = PSI_MAX``; the default quadrature (3, 12) has 4.7e-2.
+Accuracy against the quadrature at order (32, 128), as ``|M - M_ref| / M00(single +
+double)`` on random geometries (incidence 0-88 deg, m 0.02-150, aluminium, gold, TiO2,
+silica) at exact backscatter and up to ``psi = PSI_MAX``, next to the default quadrature's:
+measured by bench/bench_double_table.py, table in bench/results/double_table.md; the bounds
+asserted are in tests/test_double_table.py.
 
 The table is built by ``scripts/double_backscatter_table.py`` from the quadrature of
 :mod:`ppr._double` at a high order (``BUILD_ORDER``); its error against that quadrature at a
