@@ -9,9 +9,12 @@ Channels
 
     for the range-resolved Mueller profile ``M(b)`` of the target (sensor frames, see
     :mod:`ppr._conventions`). State names: ``H V D A R L`` (horizontal, vertical, +45, -45,
-    right and left circular in Chipman's convention, ``S3 > 0`` is R). Channels are ordered
-    generator-major. ``MeasurementModel.preset("full")`` uses ``{H, V, D, R}`` for both PSG and
+    right and left circular), the names of ``ppr._pulse.STOKES_STATES``: ``R`` turns clockwise
+    for an observer looking toward the source (Chipman's, Born & Wolf's and Hecht's
+    right-circular), ppr's ``S3 = -1``; ``L`` is ``S3 = +1``. Channels are ordered
+    generator-major. ``MeasurementModel.preset("full")`` uses ``{H, V, D, L}`` for both PSG and
     PSA: 16 channels that determine the full Mueller matrix (the 16 x 16 system is invertible).
+    The presets' circular state is ``L`` (``S3 = +1``).
 
 Noise (``NoiseModel``)
     From a noise-free channel profile ``x`` (any units, ``x >= 0``) an observation is drawn as
@@ -60,15 +63,15 @@ STATES: dict[str, tuple[float, float, float, float]] = {
     "V": (1.0, -1.0, 0.0, 0.0),
     "D": (1.0, 0.0, 1.0, 0.0),
     "A": (1.0, 0.0, -1.0, 0.0),
-    "R": (1.0, 0.0, 0.0, 1.0),
-    "L": (1.0, 0.0, 0.0, -1.0),
+    "R": (1.0, 0.0, 0.0, -1.0),
+    "L": (1.0, 0.0, 0.0, 1.0),
 }
 
 PRESETS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
-    "full": (("H", "V", "D", "R"), ("H", "V", "D", "R")),
-    "stokes": (("H", "R"), ("H", "V", "D", "R")),
+    "full": (("H", "V", "D", "L"), ("H", "V", "D", "L")),
+    "stokes": (("H", "L"), ("H", "V", "D", "L")),
     "copol": (("H",), ("H", "V")),
-    "circular": (("R",), ("R", "L")),
+    "circular": (("L",), ("L", "R")),
 }
 
 
@@ -97,7 +100,9 @@ class MeasurementModel(eqx.Module):
 
     @classmethod
     def preset(cls, name: str) -> MeasurementModel:
-        """``"full"`` (16 channels), ``"stokes"`` (8), ``"copol"`` (2), ``"circular"`` (2)."""
+        """``"full"`` (16 channels: H, V, D, L transmitted and analyzed), ``"stokes"`` (8: H, L
+        transmitted; H, V, D, L analyzed), ``"copol"`` (2: H; H, V), ``"circular"`` (2: L;
+        L, R). Names: :data:`STATES`."""
         if name not in PRESETS:
             raise ValueError(f"unknown measurement preset {name!r}; known: {sorted(PRESETS)}")
         g, a = PRESETS[name]

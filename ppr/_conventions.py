@@ -40,11 +40,14 @@ Beam frames, Jones and Stokes
     ``exp(i(kz - wt))`` and S3 defined this way, S3 > 0 (e.g. Jones ``(1, i)/sqrt 2``) is a
     field that turns from ``x`` toward ``y``: right-handed about the propagation direction
     ``d`` (positive helicity), seen *counterclockwise* by a receiver looking back at the
-    source. Texts name this state differently (IEEE: right-hand circular; Born & Wolf and
-    Hecht, "clockwise looking at the source is right": left-circular), so ppr never relies on
-    the words, only on the sign of S3 as stated here (pinned by a 3D field computation in
-    ``tests/test_conventions.py``). Mueller matrices multiply Stokes column vectors from the
-    left: ``S_out = M @ S_in``; a chain of elements is ``M_N @ ... @ M_1``.
+    source. The state names ``"R"``/``"L"`` (``ppr._pulse.STOKES_STATES``, and the
+    measurement states of ``inversion``) follow Chipman, Born & Wolf and Hecht ("clockwise
+    looking at the source is right"): ``"R"`` is ``S3 = -1`` (Jones ``(1, -i)/sqrt 2``),
+    ``"L"`` is ``S3 = +1`` (IEEE's right-hand circular). Those texts attach ``S3 > 0`` to their
+    right-circular state, so their S3 is minus ppr's for the same field (pinned by 3D field
+    computations in ``tests/test_conventions.py``; docs/physics/conventions.md). Mueller
+    matrices multiply Stokes column vectors from the left: ``S_out = M @ S_in``; a chain of
+    elements is ``M_N @ ... @ M_1``.
 
     Rotating a beam's frame vector by angle ``a`` about ``d`` (counter-clockwise looking
     against ``d``, i.e. right-handed about ``d``) changes Stokes components by

@@ -75,11 +75,13 @@ STOKES_STATES = {
     "V": (1.0, -1.0, 0.0, 0.0),
     "D": (1.0, 0.0, 1.0, 0.0),
     "A": (1.0, 0.0, -1.0, 0.0),
-    "R": (1.0, 0.0, 0.0, 1.0),
-    "L": (1.0, 0.0, 0.0, -1.0),
+    "R": (1.0, 0.0, 0.0, -1.0),
+    "L": (1.0, 0.0, 0.0, 1.0),
 }
-"""Named transmitted states (sensor frame): horizontal (x), vertical, +45, -45, and circular
-with ``S3 = +1`` (``"R"``, right-circular in Chipman's convention) and ``S3 = -1``."""
+"""Named transmitted states (sensor frame): horizontal (x), vertical, +45, -45, right and left
+circular. ``"R"`` turns clockwise for an observer looking toward the source (right-circular in
+Chipman's, Born & Wolf's and Hecht's naming): ppr's ``S3 = -1``. ``"L"`` is ``S3 = +1``
+(IEEE's right-hand circular). See :mod:`ppr._conventions`."""
 
 
 # ----------------------------------------------------------------------------- closed form

@@ -1796,7 +1796,9 @@ sampling (emcee, vmapped log-probability) with priors from an MCMC config.
 Config fields (configs/cli/invert.toml):
   scene          scene config (mesh, sensor, pulse, bins; its pose and materials are the
                  truth of simulated observations and the reference for the starts)
-  channels       PSG/PSA preset: full (16), stokes (8), copol (2), circular (2)
+  channels       PSG/PSA preset (transmitted; analyzed): full (H,V,D,L; H,V,D,L), stokes
+                 (H,L; H,V,D,L), copol (H; H,V), circular (L; L,R). R/L: right/left
+                 circular, clockwise/counterclockwise seen looking into the beam
   brdf           "ppr" (ppr.mueller_brdf) or "glossy" (cheap polarizing stand-in)
   free           parameter groups to fit; solver "lm" | "dogleg" | "gauss_newton"
   n_starts, start_perturbation_deg (degrees), start_perturbation_frac (fraction)
@@ -1906,7 +1908,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="NAMES",
         default=None,
         help="transmitted states, comma-separated from H,V,D,A,R,L (Stokes profiles "
-        "(S, 4, bins)); default: the full Mueller profile (4, 4, bins)",
+        "(S, 4, bins); R/L: right/left circular, clockwise/counterclockwise seen looking "
+        "toward the laser, S3 = -1/+1); default: the full Mueller profile (4, 4, bins)",
     )
     p.add_argument(
         "--terms",

@@ -6,7 +6,8 @@ white-paint panel backs, 532 nm, 100 ps FWHM pulse with 20 ps jitter, 5 mm bins)
 full polarized BRDF and saves
 
 - ``pulse_stokes.png``: the received Stokes profiles ``S0..S3`` (sensor frame) for
-  transmitted H, V, +45 deg and right-circular (``S3 = +1``) states, against one-way range
+  transmitted H, V, +45 deg and right-circular (``"R"``: clockwise seen looking toward the
+  laser, ``S3 = -1``; :data:`ppr._pulse.STOKES_STATES`) states, against one-way range
   (bottom axis) and round-trip time (top axis);
 - ``pulse_depolarization.png``: the Mueller depolarization index per range bin and the
   degree of polarization of the return for each transmitted state, over the return profile.

@@ -209,8 +209,9 @@ for i in range(4):
 for ax in axes[-1]:
     ax.set_xlabel("range [m]")""",
     """md:## Stokes profiles and the degree of polarization
-For transmitted horizontal (H) and right-circular (R) light: the return's degree of
-polarization per range bin. Facets of different parts (body, panels) sit at different ranges,
+For transmitted horizontal (H) and right-circular (R: clockwise for an observer looking
+toward the laser, `S3 = -1` in ppr's Stokes sign; see `docs/physics/conventions.md`) light:
+the return's degree of polarization per range bin. Facets of different parts (body, panels) sit at different ranges,
 so the polarization changes along the pulse: that is the PPR signal.""",
     """st = ppr.simulate(scene, states=["H", "R"])
 S = np.asarray(st.data)                      # (2 states, 4 Stokes, bins)

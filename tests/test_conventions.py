@@ -150,3 +150,56 @@ def test_fresnel_normal_incidence_sign():
     rs, rp = fresnel_amplitudes(1.5, 1.0)
     assert complex(rs) == pytest.approx(-0.2, abs=1e-15)
     assert complex(rp) == pytest.approx(0.2, abs=1e-15)
+
+
+def _jones_of_stokes(S):
+    """A Jones vector whose Stokes vector (ppr's definitions, S0 = 1, fully polarized) is S,
+    inverted by hand: E_x = sqrt((1 + S1) / 2) real, E_x E_y^* = (S2 - i S3) / 2."""
+    ex = np.sqrt((1.0 + S[1]) / 2.0)
+    return np.array([ex, (S[2] + 1j * S[3]) / (2.0 * ex)])
+
+
+def _turns_seen_from_receiver(E, x, d, n_t=64):
+    """Net turns of the real field ``Re[(E_x x + E_y y) exp(-i w t)]`` (``y = d x x``; the
+    conventions' ``exp(i(kz - wt))`` at z = 0) over one period, as seen by an observer
+    downstream looking back toward the source (along ``-d``), in the observer's own screen
+    axes (``right`` any unit vector _|_ d, ``up`` with ``right x up`` pointing at the observer,
+    i.e. ``+d``): +1 counterclockwise, -1 clockwise. Also returns the angular velocity
+    ``(E x dE/dt) . d / |E|^2`` (analytic derivative) at every sample, in units of ``w``."""
+    y = np.cross(d, x)
+    amp = E[0] * x + E[1] * y  # complex 3-D amplitude
+    wt = np.linspace(0.0, 2.0 * np.pi, n_t + 1)
+    field = np.real(amp[None, :] * np.exp(-1j * wt)[:, None])
+    dfield = np.real(-1j * amp[None, :] * np.exp(-1j * wt)[:, None])  # d/d(wt)
+    right = random_frame(d)
+    up = np.cross(d, right)
+    ang = np.unwrap(np.arctan2(field @ up, field @ right))
+    omega = np.cross(field, dfield) @ d / np.sum(field * field, axis=-1)
+    return (ang[-1] - ang[0]) / (2.0 * np.pi), omega
+
+
+def test_named_circular_states_rotation_sense():
+    # "R" (right circular in Chipman's, Born & Wolf's and Hecht's naming): the field turns
+    # clockwise for an observer looking toward the source, i.e. left-handed about the
+    # propagation direction d: ppr's S3 = -1. "L" is the opposite (S3 = +1; IEEE's right-hand).
+    from inversion._noise import STATES
+    from ppr._pulse import STOKES_STATES
+
+    assert STATES == STOKES_STATES  # one naming in ppr and inversion
+    expect = {"R": -1, "L": +1}
+    for name, sense in expect.items():
+        S = np.asarray(STOKES_STATES[name], float)
+        E = _jones_of_stokes(S)
+        np.testing.assert_allclose(stokes_from_jones(E), S, atol=1e-15)  # inversion, rounding
+        for _ in range(3):  # any propagation direction and frame vector
+            d = random_unit()
+            turns, omega = _turns_seen_from_receiver(E, random_frame(d), d)
+            assert turns == pytest.approx(sense, abs=1e-12)  # one full turn per period
+            # circular: constant angular velocity +-w about d (exact, rounding only)
+            np.testing.assert_allclose(omega, sense, atol=1e-12)
+    # (1, -i)/sqrt 2 with exp(-i w t) (the convention's time factor): clockwise seen from the
+    # receiver, ppr's S3 = -1, "R"
+    E_r = np.array([1.0, -1j]) / np.sqrt(2.0)
+    np.testing.assert_allclose(stokes_from_jones(E_r), STOKES_STATES["R"], atol=1e-15)
+    d = random_unit()
+    assert _turns_seen_from_receiver(E_r, random_frame(d), d)[0] == pytest.approx(-1, abs=1e-12)

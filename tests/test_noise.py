@@ -22,7 +22,7 @@ def test_full_preset_determines_mueller():
     p = mm.channel_matrix().reshape(16, 16)
     assert mm.n_channels == 16
     # the 16 x 16 system is invertible: full Mueller matrix recoverable (condition number of
-    # the H,V,D,R PSG/PSA is modest; 1e-10 is float64 round-off times that)
+    # the H,V,D,L PSG/PSA is modest; 1e-10 is float64 round-off times that)
     rng = np.random.default_rng(0)
     m = rng.normal(size=(4, 4, 3))
     chans = np.asarray(measure(mm, jnp.asarray(m)))
