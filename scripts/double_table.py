@@ -1,8 +1,10 @@
 """Double-bounce tables: (1) the white albedo of single + double for the multiple-scattering
-remainder, (2) the measured "where does the double term matter" table behind terms="auto".
+remainder, (2) the measured "where does the double term matter" table behind terms="auto",
+(3) the energy of the coherent backscatter cone.
 
     .venv/bin/python scripts/double_table.py --albedo   # writes ppr/data/albedo_double_single.npz
     .venv/bin/python scripts/double_table.py --matter   # writes docs/double_bounce_table.md + PNG
+    .venv/bin/python scripts/double_table.py --cone     # prints the table of (3) (~8 min)
 
 (1) ``E_single + E_double`` on the grid of ``ppr/data/albedo_single.npz`` (same nodes):
 ``E_double(m, mu) = int M00_double(white, incoherent, default order) (k'.n) d omega'`` by the
@@ -17,13 +19,18 @@ its value is reported in the table's info string (the dropped part). The deficit
 ``D = D_single - E_double`` goes through ``ppr._albedo.build_table``. The double term's
 table uses the *runtime default order*, so that single + double + multiple closes the white
 furnace with the BRDF that is actually evaluated. The coherent backscatter peak is left out
-of E (gamma = 0): it adds about ``f_double(backscatter) (k.n) pi psi_h^2 / ln 2`` (~1e-4 at
-532 nm, d = 5 um), stated in ppr/_double.py.
+of E (gamma = 0); the albedo it adds is measured by (3).
 
 (2) Relative contribution of the double term to the full BRDF vs bistatic angle and m,
 maximized over incidence 0-80 deg and the bistatic azimuth, for aluminium, TiO2 paint
 and fused silica: ``r00 = M00_double / M00_total`` and ``dDI = |DI(total) - DI(total
 without double)|`` (depolarization index).
+
+(3) ``C = int (M00 - M00_incoherent) (k'.n) d omega'``, the directional albedo the coherent
+cone adds (``M - M_inc = gamma (M_coh - M_inc)``), against the double term's incoherent albedo
+``E``, for every finish of configs/materials.toml, the ideal white reflector, aluminium and TiO2
+paint, at 532 and 1064 nm and incidence 0-80 deg (float64; :func:`cone_energy`). Results and
+convergence: docs/physics/double_bounce.md ("What the cone does not do").
 """
 
 from __future__ import annotations
@@ -316,15 +323,180 @@ def measure_matter_table(out_dir):
     return m_rule
 
 
+CONE_ORDER = (8, 32)  # double-term quadrature order of --cone (checked against (16, 64))
+CONE_THETAS = (0.0, 30.0, 60.0, 80.0)
+CONE_MATERIALS = (None, "aluminium", "white_paint_tio2")  # None: the ideal white reflector
+CONE_WAVELENGTHS = (532e-9, 1064e-9)
+CONE_N_PSI, CONE_N_PHI, CONE_SPAN = 24, 16, 5.0  # polar rule about k: psi in [0, 5 psi_h]
+CONE_HV = (10, 5)  # half-vector rule (n_phi, n_w) of the albedo
+
+
+@functools.cache
+def _double00(order, white):
+    """M00 of the double term, coherent and incoherent, for rows of (k, k', n, m, d, lambda)
+    (normal +z): one jitted program per (order, white)."""
+
+    @jax.jit
+    def f(k, kp, n, m, d, lam):
+        z = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0]), k.shape)
+        mat = Material(n=n, m=m, corr_length=d, white=white)
+        fi, fo = default_frame(-k, z), default_frame(kp, z)
+        coh = double_bounce_term(k, kp, z, mat, fi, fo, wavelength=lam, order=order)
+        inc = double_bounce_term(k, kp, z, mat, fi, fo, order=order, coherent=False)
+        return coh[..., 0, 0], inc[..., 0, 0]
+
+    return f
+
+
+def _eval_double00(k, kp, n, m, d, lam, order, white):
+    """(coherent, incoherent) M00 for rows of inputs, in fixed-size chunks (one compilation)."""
+    f = _double00(order, white)
+    rows = [np.asarray(x) for x in (k, kp, n, m, d, lam)]
+    size = len(rows[0])
+    out = np.empty((2, size))
+    for s in range(0, size, CHUNK):
+        e = min(s + CHUNK, size)
+        pad = CHUNK - (e - s)
+        args = [jnp.asarray(np.concatenate([x[s:e], np.repeat(x[:1], pad, 0)])) for x in rows]
+        coh, inc = f(*args)
+        out[0, s:e] = np.asarray(coh)[: e - s]
+        out[1, s:e] = np.asarray(inc)[: e - s]
+    return out
+
+
+def cone_nodes(theta, psi_h, n_psi=CONE_N_PSI, n_phi=CONE_N_PHI, span=CONE_SPAN):
+    """Outgoing directions about ``k`` (incidence ``theta``, normal +z, ``k`` in the x-z
+    plane) and weights ``w`` with ``int g(k') d omega' ~= sum w g``: Gauss-Legendre in the
+    bistatic angle ``psi`` on ``[0, span psi_h]`` (``gamma < 1e-7`` beyond), the periodic
+    trapezoid rule in its azimuth."""
+    x, wx = np.polynomial.legendre.leggauss(n_psi)
+    top = min(span * psi_h, np.pi / 2)
+    psi, wpsi = 0.5 * top * (x + 1.0), 0.5 * top * wx * np.sin(0.5 * top * (x + 1.0))
+    phi = 2.0 * np.pi * np.arange(n_phi) / n_phi
+    k = np.array([np.sin(theta), 0.0, np.cos(theta)])
+    e1 = np.array([np.cos(theta), 0.0, -np.sin(theta)])
+    e2 = np.cross(k, e1)
+    P, F = np.meshgrid(psi, phi, indexing="ij")
+    kp = (
+        np.cos(P)[..., None] * k
+        + np.sin(P)[..., None] * (np.cos(F)[..., None] * e1 + np.sin(F)[..., None] * e2)
+    ).reshape(-1, 3)
+    w = (wpsi[:, None] * np.full(n_phi, 2.0 * np.pi / n_phi)[None, :]).reshape(-1)
+    return k, kp, w
+
+
+def cone_energy(cases, order=CONE_ORDER, hv=CONE_HV):
+    """Energy of the coherent backscatter cone and the double term's albedo.
+
+    ``cases``: tuples ``(m, d, n, lambda, theta, white)`` (``theta`` the incidence in rad).
+    Per case, ``C = int (M00 - M00_incoherent) (k'.n) d omega'`` by :func:`cone_nodes` (the
+    interference term ``gamma (M_coh - M_inc)`` lives inside ``~5 psi_h``),
+    ``E = int M00_incoherent (k'.n) d omega'`` by the half-vector rule of
+    :func:`ppr._albedo.albedo_nodes`, and the small-cone estimate
+    ``C0 = M00_inc(k, k) cos(theta) pi psi_h^2 / ln 2`` (``M_coh = 2 M_inc`` at ``psi = 0``).
+    All cases with the same ``white`` are evaluated in one chunked pass. Returns an array of
+    ``(C, E, C0)`` rows."""
+    out = np.zeros((len(cases), 3))
+    for white in (True, False):
+        idx = [i for i, c in enumerate(cases) if c[5] == white]
+        if not idx:
+            continue
+        parts, spans = [], []
+        for i in idx:
+            m, d, n, lam, theta, _ = cases[i]
+            k, kp, w = cone_nodes(theta, lam / (4.0 * d))
+            mu = max(np.cos(theta), 1e-9)
+            k_in, k_out, wt = _albedo.albedo_nodes(np.array([m]), np.array([mu]), *hv)
+            kk = np.concatenate([np.repeat(k[None], len(kp) + 1, 0)] + [k_in] * k_out.shape[-2])
+            kq = np.concatenate([kp, k[None], k_out.reshape(-1, 3)])
+            parts.append(
+                (
+                    kk,
+                    kq,
+                    np.full(len(kk), n, complex),
+                    np.full(len(kk), float(m)),
+                    np.full(len(kk), d),
+                    np.full(len(kk), lam),
+                )
+            )
+            spans.append((w, wt.reshape(-1), len(kp)))
+        cols = [np.concatenate([p[j] for p in parts]) for j in range(6)]
+        coh, inc = _eval_double00(*cols, order, white)
+        a = 0
+        for i, (w, wt, q) in zip(idx, spans, strict=True):
+            m, d, n, lam, theta, _ = cases[i]
+            kp_z = cols[1][a : a + q, 2]
+            c = float(np.sum(w * np.maximum(kp_z, 0.0) * (coh[a : a + q] - inc[a : a + q])))
+            e = float(np.sum(wt * inc[a + q + 1 : a + q + 1 + len(wt)]))
+            c0 = float(inc[a + q] * np.cos(theta) * np.pi * (lam / (4 * d)) ** 2 / np.log(2.0))
+            out[i] = (c, e, c0)
+            a += q + 1 + len(wt)
+    return out
+
+
+def measure_cone(order=CONE_ORDER, hv=CONE_HV):
+    """Print the coherent-cone energy relative to the double term's albedo for the library
+    finishes (``configs/materials.toml``), materials and both laser lines (float64)."""
+    from ppr._library import load_library, load_material
+
+    finishes = load_library().finishes
+    t0 = time.perf_counter()
+    keys, cases = [], []
+    for fname, fin in finishes.items():
+        for mat in CONE_MATERIALS:
+            for lam in CONE_WAVELENGTHS:
+                if mat is None:
+                    n, white, label = 1.0 + 0j, True, "ideal white"
+                else:
+                    n = complex(np.asarray(load_material(mat, lam, fname).n))
+                    white, label = False, mat
+                for t in CONE_THETAS:
+                    keys.append((fname, fin, label, lam, t))
+                    cases.append((fin.m, fin.corr_length, n, lam, np.deg2rad(t), white))
+    res = cone_energy(cases, order, hv)
+    lines = [
+        "| finish (m, d) | material | lambda [nm] | psi_h [deg] | "
+        + " | ".join(f"C/E at {t:g} deg" for t in CONE_THETAS)
+        + " | max C | max E |",
+        "|---|---|---|---|" + "---|" * len(CONE_THETAS) + "---|---|",
+    ]
+    dev = 0.0
+    nt = len(CONE_THETAS)
+    for a in range(0, len(keys), nt):
+        fname, fin, label, lam, _ = keys[a]
+        r = res[a : a + nt]
+        ratio = [c / e if e > 0 else 0.0 for c, e, _ in r]
+        for c, e, c0 in r:
+            if c > 1e-6 * e:  # C0 is the small-cone limit: compare where C is not negligible
+                dev = max(dev, abs(c0 / c - 1.0))
+        lines.append(
+            f"| {fname} ({fin.m:g}, {fin.corr_length * 1e6:g} um) | {label} | "
+            f"{lam * 1e9:.0f} | {np.rad2deg(lam / (4 * fin.corr_length)):.3g} | "
+            + " | ".join(f"{x:.1e}" for x in ratio)
+            + f" | {r[:, 0].max():.1e} | {r[:, 1].max():.2g} |"
+        )
+    print(
+        f"C: cone energy, E: double-term albedo (incoherent), both per unit incident flux; "
+        f"double-term order {order}, cone rule {CONE_N_PSI} x {CONE_N_PHI} on psi <= "
+        f"{CONE_SPAN:g} psi_h, half-vector rule {hv}; small-cone estimate C0 within "
+        f"{dev:.0%} of C where C > 1e-6 E; {time.perf_counter() - t0:.0f} s\n"
+    )
+    print("\n".join(lines))
+    return keys, res
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--albedo", action="store_true")
     ap.add_argument("--matter", action="store_true")
+    ap.add_argument("--cone", action="store_true")
     args = ap.parse_args(argv)
     if args.albedo:
         make_albedo()
     if args.matter:
         measure_matter_table(os.path.join(ROOT, "docs"))
+    if args.cone:
+        measure_cone()
 
 
 if __name__ == "__main__":
