@@ -55,7 +55,7 @@ reflection as Mueller matrices rotated between the beams' frames and each facet'
 plus an energy-conserving depolarizing remainder for light scattered more than once. This
 notebook shows (1) Mueller maps over the outgoing hemisphere, (2) how depolarization grows
 with roughness and bistatic angle, (3) the Lu-Chipman quantities along a bistatic sweep and
-(4) the coherent enhancement peak of the double bounce near exact backscatter. Conventions: `ppr._conventions`; physics notes: `PHYSICS.md`.""",
+(4) the coherent enhancement peak of the double bounce near exact backscatter. Conventions: `ppr._conventions`; physics notes: `docs/physics.md`.""",
     SETUP,
     """md:## Materials from the library
 `configs/materials.toml` holds sourced optical constants at 532 and 1064 nm and finish presets
@@ -151,23 +151,44 @@ for ax, (label, val) in zip(axes, [("M00 [1/sr]", lc.m00), ("diattenuation", lc.
 axes[0].set_yscale("log"); axes[0].legend(fontsize=8);""",
     """md:## 4. The enhancement peak of the double bounce
 Two-bounce paths and their reversed partners add in amplitude near exact backscatter
-(coherent backscatter): the co-polarized return of the double term rises up to 2x within a
-cone of about `lambda / (4 d)` (d: the material's correlation length), the cross-polarized
-channel much less. Transmitted H; co-pol = analyzer H, cross-pol = analyzer V.""",
-    """psi = np.radians(np.linspace(0.0, 5.0, 11 if SMALL else 101))
+(coherent backscatter). The model writes the double term as `(1 - gamma) M_inc + gamma M_coh`
+with the coherence `gamma(psi) = exp(-ln 2 |k_out - k_in|^2 / psi_h^2)`,
+`psi_h = lambda / (4 d)` (d: the material's correlation length). At exact backscatter every
+two-facet path is coplanar and its reversed partner has the same Jones matrix, so *every*
+channel of the double term (co- and cross-polarized, linear and circular) is exactly twice
+its incoherent part; away from `psi = 0` the factor follows `1 + gamma(psi)` in both channels
+(left). Right: the channels themselves. Their incoherent parts are of the same order here
+(the double bounce depolarizes) and vary with `psi` on the scale of the facet lobe, so a
+channel divided by its own value at 5 deg (where `gamma` is already below 1e-3) is not the
+enhancement factor. Transmitted H; co-pol = analyzer H, cross-pol = analyzer V (frame vector:
+the lab y axis, perpendicular to the plane of incidence).""",
+    """from ppr._double import coherence_factor, double_bounce_term  # no public name for the incoherent part
+psi = np.radians(np.linspace(0.0, 5.0, 11 if SMALL else 101))
 th = np.radians(30.0)
-k_in = np.array([np.sin(th), 0.0, np.cos(th)])
 k_out = np.stack([np.sin(th - psi), 0 * psi, np.cos(th - psi)], -1)
+k_in = np.broadcast_to(np.array([np.sin(th), 0.0, np.cos(th)]), k_out.shape)
+nrm, e = np.broadcast_to(normal, k_out.shape), np.broadcast_to(ey, k_out.shape)
 mat = ppr.load_material("aluminium", 532e-9, "rough")
-Md = np.asarray(brdf(k_in, k_out, normal, mat, frame_in=ey, frame_out=ey, terms=("double",)))
-co = 0.5 * (Md[:, 0, 0] + Md[:, 0, 1] + Md[:, 1, 0] + Md[:, 1, 1])
-cross = 0.5 * (Md[:, 0, 0] + Md[:, 0, 1] - Md[:, 1, 0] - Md[:, 1, 1])
-fig, ax = plt.subplots(figsize=(7, 3.6))
-ax.plot(np.degrees(psi), co / co[-1], label="co-pol (H -> H)")
-ax.plot(np.degrees(psi), cross / cross[-1], label="cross-pol (H -> V)")
-ax.set_xlabel("bistatic angle [deg]"); ax.set_ylabel("double term / its value at 5 deg")
-ax.set_title(f"{mat.name}, corr. length {float(mat.corr_length) * 1e6:g} um"); ax.legend();
-print("co-pol enhancement at 0 deg:", co[0] / co[-1], " cross-pol:", cross[0] / cross[-1])""",
+# the full double term and its incoherent part from one compiled program
+both = jax.jit(lambda *a: (double_bounce_term(*a, wavelength=532e-9), double_bounce_term(*a, coherent=False)))
+M_all, M_inc = (np.asarray(M) for M in both(k_in, k_out, nrm, mat, e, e))
+gamma = np.asarray(coherence_factor(k_in, k_out, 532e-9, mat.corr_length))
+def co(M): return 0.5 * (M[:, 0, 0] + M[:, 0, 1] + M[:, 1, 0] + M[:, 1, 1])
+def cross(M): return 0.5 * (M[:, 0, 0] + M[:, 0, 1] - M[:, 1, 0] - M[:, 1, 1])
+deg = np.degrees(psi)
+fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 3.6), constrained_layout=True)
+ax0.plot(deg, co(M_all) / co(M_inc), label="co-pol (H -> H)")
+ax0.plot(deg, cross(M_all) / cross(M_inc), "--", label="cross-pol (H -> V)")
+ax0.plot(deg, 1 + gamma, "k:", label="1 + gamma(psi)")
+ax0.set_ylabel("double term / its incoherent part")
+for f, lab, c in ((co, "co-pol", "C0"), (cross, "cross-pol", "C1")):
+    ax1.plot(deg, f(M_all), color=c, label=f"{lab}")
+    ax1.plot(deg, f(M_inc), "--", color=c, label=f"{lab}, incoherent part")
+ax1.set_ylabel("double term [1/sr]")
+for ax in (ax0, ax1):
+    ax.set_xlabel("bistatic angle [deg]"); ax.legend(fontsize=8)
+fig.suptitle(f"{mat.name}, corr. length {float(mat.corr_length) * 1e6:g} um, incidence 30 deg")
+print("enhancement at 0 deg: co-pol", co(M_all)[0] / co(M_inc)[0], " cross-pol", cross(M_all)[0] / cross(M_inc)[0])""",
 ]
 
 # ------------------------------------------------------------ 02 CubeSat simulation
