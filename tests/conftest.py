@@ -15,9 +15,26 @@ os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
 import jax  # noqa: E402
 import pytest  # noqa: E402
 from compile_level import DEFAULT, UNOPTIMIZED, apply  # noqa: E402
+from compile_log import CompileLog  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 apply(UNOPTIMIZED)
+
+# per-test compilation log, opt-in (tests/compile_log.py)
+_LOG = CompileLog(os.environ["PPR_TEST_COMPILE_LOG"]) if os.environ.get(
+    "PPR_TEST_COMPILE_LOG"
+) else None
+if _LOG is not None:
+    _LOG.install()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    if _LOG is not None:
+        _LOG.reset()
+    yield
+    if _LOG is not None:
+        _LOG.write(item.nodeid)
 
 
 _optimized = [False]  # the worker's current setting
