@@ -755,7 +755,12 @@ def mueller_brdf(
         if np.any(np.asarray(bad)):
             _prepare(*inputs, **static, errors=None)
         out = _brdf_core(
-            *prepared[:3], prepared[5], *prepared[3:5], wavelength, names=names, mono=mono
+            *prepared[:3],
+            prepared[5],
+            *prepared[3:5],
+            wavelength,
+            names=_double_branch_on_host(names, prepared[0], prepared[1], prepared[5].m),
+            mono=mono,
         )
         return out if size is None else _unpad_jit(out, batch=tuple(batch))
     else:
@@ -778,6 +783,36 @@ def _same_direction(k_in, k_out) -> bool:
         return False
     a, b = np.asarray(k_in), np.asarray(k_out)
     return a.shape == b.shape and a.dtype == b.dtype and bool(np.array_equal(a, b))
+
+
+def _double_branch_on_host(names: tuple[str, ...], k_in, k_out, m) -> tuple[str, ...]:
+    """``names`` with the double term's run-time decisions taken on the host, for concrete
+    (prepared) inputs: ``"double:auto"`` is dropped where no element needs it
+    (:func:`ppr._double.double_needed`), and ``"double"`` becomes the backscatter table
+    (``"double:backscatter"``) when every element is within ``PSI_MAX`` of backscatter, else
+    the quadrature (``"double:quadrature"``, internal). The same choices as the traced
+    ``lax.cond``s of :func:`ppr._double_table.double_term_dispatch` and
+    :func:`ppr._double.double_bounce_term_auto`, in NumPy on the same arrays, so the compiled
+    program holds only the branch this call takes (a ``lax.cond`` compiles both)."""
+    if "double" not in names and "double:auto" not in names:
+        return names
+    from ._double import AUTO_M_MAX, AUTO_PSI_MAX  # noqa: PLC0415
+    from ._double_table import PSI_MAX  # noqa: PLC0415
+
+    dk = np.asarray(k_out) - np.asarray(k_in)
+    q2 = dk[..., 0] * dk[..., 0] + dk[..., 1] * dk[..., 1] + dk[..., 2] * dk[..., 2]
+    near = bool(np.all(q2 <= (2.0 * math.sin(0.5 * PSI_MAX)) ** 2))
+    out = []
+    for t in names:
+        if t == "double:auto":
+            far = np.sum(dk * dk, axis=-1) > (2.0 * math.sin(0.5 * AUTO_PSI_MAX)) ** 2
+            if not np.any((np.asarray(m) < AUTO_M_MAX) | far):
+                continue
+            t = "double"
+        if t == "double":
+            t = "double:backscatter" if near else "double:quadrature"
+        out.append(t)
+    return tuple(out) if out else names
 
 
 EAGER_MIN_BUCKET = 8
@@ -935,11 +970,15 @@ def _brdf_core(
             k_in, k_out, normal, material, fi, fo, wavelength=wavelength
         ).astype(dt)
     for name in names:
-        if name == "double":
-            # frames passed as components (see double_term_dispatch)
+        if name in ("double", "double:quadrature"):
+            # frames passed as components (see double_term_dispatch); "double:quadrature":
+            # the branch decided on the host (_double_branch_on_host)
             from ._double_table import double_term_dispatch
 
-            t = double_term_dispatch(k_in, k_out, normal, material, fi, fo, wavelength=wavelength)
+            branch = "quadrature" if name == "double:quadrature" else None
+            t = double_term_dispatch(
+                k_in, k_out, normal, material, fi, fo, wavelength=wavelength, branch=branch
+            )
             out = t if out is None else out + t
         elif name not in ("single", "multiple", "double:backscatter"):
             fn = _double_auto_term if name == "double:auto" else TERMS[name]

@@ -589,18 +589,21 @@ def double_term_dispatch(
     frame_out: Float[ArrayLike, "*#batch 3"] | tuple[Array, Array, Array],
     *,
     wavelength: float | Float[ArrayLike, "..."] = 532e-9,
+    branch: str | None = None,
 ) -> Float[Array, "*batch 4 4"]:
     """The double term: the backscatter table where *every* element of the batch is within
     ``PSI_MAX`` of exact backscatter, else the quadrature of :mod:`ppr._double`.
 
     One ``lax.cond`` on the whole batch (under ``vmap`` with a batched predicate it becomes a
     select that evaluates both; ``ppr.render`` therefore decides once per sensor, see
-    ``ppr._pulse.facet_weights``). The frames may be SoA tuples of three arrays (as
-    ``mueller_brdf`` passes them: stacking them into ``(..., 3)`` arrays runs as a scalar
-    concatenate loop on XLA CPU, so only the quadrature branch does it)."""
+    ``ppr._pulse.facet_weights``). A compiled ``lax.cond`` holds both branches, so a caller
+    that knows the answer on the host passes ``branch`` (static: ``"table"`` or
+    ``"quadrature"``) and the program holds that branch only (``mueller_brdf`` does for
+    concrete inputs). The frames may be SoA tuples of three arrays (as ``mueller_brdf``
+    passes them: stacking them into ``(..., 3)`` arrays runs as a scalar concatenate loop on
+    XLA CPU, so only the quadrature branch does it)."""
     n = jnp.asarray(material.n)
     dt = D.float_dtype(k_in, k_out, normal, material.m, n)
-    near = jnp.all(near_backscatter(k_in, k_out))
 
     def arr(f):
         if isinstance(f, tuple | list):
@@ -616,4 +619,11 @@ def double_term_dispatch(
         args = (k_in, k_out, normal, material, arr(frame_in), arr(frame_out))
         return D.double_bounce_term(*args, wavelength=wavelength).astype(dt)
 
+    if branch == "table":
+        return table(None)
+    if branch == "quadrature":
+        return quadrature(None)
+    if branch is not None:
+        raise ValueError(f"branch={branch!r}: expected None, 'table' or 'quadrature'")
+    near = jnp.all(near_backscatter(k_in, k_out))
     return jax.lax.cond(near, table, quadrature, None)

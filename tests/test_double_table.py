@@ -201,6 +201,13 @@ def test_brdf_routing_and_errors():
     table = np.asarray(_table(k, k, nrm, mat, fi, fi))
     np.testing.assert_allclose(via_brdf, table, rtol=1e-9, atol=0)
     ax = unit(np.cross(k, rng.normal(size=k.shape)))
+    # k_out a different array within PSI_MAX (the general kernel; the branch is picked on the
+    # host for concrete inputs): the table, not the quadrature (which differs by ~1e-4 here)
+    kn = unit(np.cos(0.5 * T.PSI_MAX) * k + np.sin(0.5 * T.PSI_MAX) * ax)
+    fo = unit(np.cross(kn, np.cross(fi, kn)))
+    via_brdf = mueller_brdf(k, kn, nrm, mat, terms=("double",), frame_in=fi, frame_out=fo)
+    table = np.asarray(_table(k, kn, nrm, mat, fi, fo))
+    np.testing.assert_allclose(np.asarray(via_brdf), table, rtol=1e-9, atol=0)
     psi = 3.0 * T.PSI_MAX
     kp = unit(np.cos(psi) * k + np.sin(psi) * ax)
     kp = np.where(
