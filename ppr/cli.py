@@ -2002,6 +2002,11 @@ def enable_compile_cache() -> None:
     jax.config.update(
         "jax_compilation_cache_dir", os.environ.get("PPR_JAX_CACHE_DIR", str(default))
     )
+    # every program, not only those that took >= 1 s to compile (JAX's default): a command
+    # also compiles dozens of small programs (eager ops on concrete arrays, unpadding,
+    # parameter maps), 0.1-0.5 s each, which a warm run would otherwise compile again
+    if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 
 def _one_line(err: BaseException) -> str:

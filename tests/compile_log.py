@@ -2,8 +2,9 @@
 line per test to ``path``: wall and CPU seconds of the test (setup, call, teardown), the
 seconds spent tracing, lowering and compiling (JAX's ``jax.monitoring`` duration events,
 outermost events only), and every program compiled, with a fingerprint of its StableHLO module
-and compile level, so that a summary can find the programs several tests (or workers)
-compile (``bench/bench_test_compile.py``). Off by default: the hooks then cost nothing.
+(without locations, as in JAX's persistent-cache key) and compile level, so that a summary can
+find the programs several tests (or workers) compile (``bench/bench_test_compile.py``). Off by
+default: the hooks then cost nothing.
 
 Notebook kernels and subprocesses are separate processes: their compilation shows only in
 the wall time of the test that started them.
@@ -49,10 +50,12 @@ class CompileLog:
 
         @functools.wraps(original)
         def wrapped(backend, computation, devices, options, host_callbacks, *args, **kwargs):
-            from jax._src.interpreters import mlir
+            from jax._src import cache_key
 
             level = jax.config.read("jax_disable_most_optimizations")
-            h = hashlib.sha1(mlir.module_to_bytecode(computation))
+            # the module without debug info (locations), as JAX's persistent-cache key has it
+            ir = cache_key._canonicalize_ir(computation, cache_key.IgnoreCallbacks.NO)
+            h = hashlib.sha1(ir)
             h.update(b"O0" if level else b"O")
             self.local.hit = False
             t = time.perf_counter()

@@ -1,6 +1,8 @@
 """Test configuration: float64 references, warnings are errors (see pyproject)."""
 
 import os
+import shutil
+import tempfile
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 # Hermetic compilation: `ppr.cli.main` enables a persistent XLA cache in ~/.cache/ppr/jax
@@ -11,6 +13,22 @@ os.environ["PPR_JAX_CACHE"] = "0"
 # Compile unoptimized (tests/compile_level.py), here and in the subprocesses and notebook
 # kernels the tests start; tests marked `optimized` run with JAX's defaults.
 os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
+# One persistent compilation cache per test session, in a new temporary folder (hermetic: every
+# run starts empty, as a clean checkout does, and the folder is removed at the end), shared
+# through the environment by the xdist workers, the notebook kernels and the CLI subprocesses:
+# a program one of them compiled is read from disk by the others. JAX keys an entry on the
+# StableHLO module and the compile options, so unoptimized and optimized builds stay apart.
+# Every program is written (minimum compile time 0): most are small and compiled once per
+# process. PPR_TEST_JAX_CACHE=0 turns it off (each process then compiles everything).
+_SESSION_CACHE = None
+if os.environ.get("PPR_TEST_JAX_CACHE", "1") != "0":
+    if "PPR_TEST_JAX_CACHE_DIR" not in os.environ:  # the session's first process
+        _SESSION_CACHE = tempfile.mkdtemp(prefix="ppr-test-jax-cache-")
+        os.environ["PPR_TEST_JAX_CACHE_DIR"] = _SESSION_CACHE
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = os.environ["PPR_TEST_JAX_CACHE_DIR"]
+    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+else:
+    os.environ.pop("JAX_COMPILATION_CACHE_DIR", None)
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
@@ -26,6 +44,11 @@ _LOG = CompileLog(os.environ["PPR_TEST_COMPILE_LOG"]) if os.environ.get(
 ) else None
 if _LOG is not None:
     _LOG.install()
+
+
+def pytest_unconfigure(config):
+    if _SESSION_CACHE is not None:
+        shutil.rmtree(_SESSION_CACHE, ignore_errors=True)
 
 
 @pytest.hookimpl(hookwrapper=True)
