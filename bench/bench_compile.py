@@ -24,7 +24,8 @@ CPU time of the command, import time, load average. The machine is shared: wall 
 inflated by the load; CPU seconds, program counts and sizes are not (or much less).
 
 Writes ``bench/results/compile.json`` (all events; ``--only`` replaces that command's entry
-and keeps the others) and ``bench/results/compile.md`` (tables of every command in the json).
+and keeps the others) and ``bench/results/compile.md`` (tables of every command in the json);
+``--results NAME`` writes ``NAME.json`` / ``NAME.md`` instead (e.g. a before/after pair).
 """
 
 from __future__ import annotations
@@ -352,6 +353,7 @@ def main() -> None:
                     help="extra --set override of one command")
     ap.add_argument("--keep", action="store_true", help="keep the temporary folder")
     ap.add_argument("--no-write", action="store_true", help="print only")
+    ap.add_argument("--results", default="compile", help="results file stem (bench/results/)")
     args = ap.parse_args()
     names = list(COMMANDS) if args.only is None else args.only.split(",")
     for n in names:
@@ -362,7 +364,7 @@ def main() -> None:
         cmd, _, kv = s.partition(":")
         extra[cmd] += ["--set", kv]
     tmp = Path(tempfile.mkdtemp(prefix="ppr_bench_compile_"))
-    json_path = RESULTS / "compile.json"
+    json_path = RESULTS / f"{args.results}.json"
     stored = json.loads(json_path.read_text()) if json_path.exists() else {}
     try:
         db = None
@@ -394,7 +396,7 @@ def main() -> None:
         md = markdown({k: stored[k] for k in COMMANDS if k in stored})
         print(md)
         if not args.no_write:
-            (RESULTS / "compile.md").write_text(md)
+            (RESULTS / f"{args.results}.md").write_text(md)
     finally:
         if not args.keep:
             shutil.rmtree(tmp, ignore_errors=True)
