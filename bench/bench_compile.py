@@ -294,6 +294,8 @@ def markdown(all_results: dict) -> str:
         lines += ["", f"## {name}", "", f"`ppr {' '.join(r['argv'])}`; "
                   f"import {_f(r['cold']['import_wall'])} s; peak RSS "
                   f"{r['cold']['max_rss_mb']:.0f} MB (cold)", ""]
+        if r.get("note"):
+            lines[-1:-1] = ["", r["note"]]
         lines += [
             "| stage | cold wall / CPU s | cold jax wall / CPU s | cold programs | "
             "warm wall / CPU s | warm jax s | steady wall / CPU s | steady programs |",

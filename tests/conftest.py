@@ -13,15 +13,18 @@ os.environ["PPR_JAX_CACHE"] = "0"
 # Compile unoptimized (tests/compile_level.py), here and in the subprocesses and notebook
 # kernels the tests start; tests marked `optimized` run with JAX's defaults.
 os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
-# One persistent compilation cache per test session, in a new temporary folder (hermetic: every
-# run starts empty, as a clean checkout does, and the folder is removed at the end), shared
-# through the environment by the xdist workers, the notebook kernels and the CLI subprocesses:
-# a program one of them compiled is read from disk by the others. JAX keys an entry on the
-# StableHLO module and the compile options, so unoptimized and optimized builds stay apart.
-# Every program is written (minimum compile time 0): most are small and compiled once per
-# process. PPR_TEST_JAX_CACHE=0 turns it off (each process then compiles everything).
+# PPR_TEST_JAX_CACHE=1: one persistent compilation cache per test session, in a new temporary
+# folder (hermetic: every run starts empty, as a clean checkout does, and the folder is removed
+# at the end), shared through the environment by the xdist workers, the notebook kernels and the
+# CLI subprocesses, so that a program one of them compiled is read from disk by the others. JAX
+# keys an entry on the location-free StableHLO module and the compile options (unoptimized and
+# optimized builds stay apart); every program is written (minimum compile time 0). Off by
+# default: the repeats it answers are few and small in the modules measured (2 workers on
+# tests/test_double_table.py: 1 of 112 programs compiled by both, CPU 73.8 s off, 76.8 s on;
+# notebook 02 with the CLI's simulate and image tests: 52 of 77 programs read from the cache,
+# all small ones, CPU 37.7 s off, 35.5 s on; load 12-15): the costly programs differ in shape.
 _SESSION_CACHE = None
-if os.environ.get("PPR_TEST_JAX_CACHE", "1") != "0":
+if os.environ.get("PPR_TEST_JAX_CACHE", "0") == "1":
     if "PPR_TEST_JAX_CACHE_DIR" not in os.environ:  # the session's first process
         _SESSION_CACHE = tempfile.mkdtemp(prefix="ppr-test-jax-cache-")
         os.environ["PPR_TEST_JAX_CACHE_DIR"] = _SESSION_CACHE
