@@ -122,9 +122,11 @@ class MeshSymmetry:
         return tuple(symmetry_label(s, self.tol) for s in self.matrices)
 
     def quaternions(self) -> np.ndarray:
-        """``(G+, 4)`` scalar-first unit quaternions of the proper elements (first component
-        made positive), in the order of :attr:`rotations`."""
-        return np.stack([_matrix_to_quat(r) for r in self.rotations])
+        """``(G+, 4)`` scalar-first unit quaternions of the proper elements (``w >= 0``), in
+        the order of :attr:`rotations`."""
+        from ._pose import matrix_to_quat
+
+        return np.stack([matrix_to_quat(r) for r in self.rotations])
 
     def mirror_normals(self) -> np.ndarray:
         """``(k, 3)`` unit normals of the pure reflections (mirror planes through `centre`)."""
@@ -300,27 +302,6 @@ def _point_group(mats: np.ndarray, tol: float = 0.0) -> str:
     if n_max == 2:
         return "D2h" if has_inv else "D2d"
     return f"D{n_max}h" if horizontal else f"D{n_max}d"
-
-
-def _matrix_to_quat(r: np.ndarray) -> np.ndarray:
-    """Scalar-first unit quaternion of a proper rotation (Shepperd), first component >= 0."""
-    r = np.asarray(r, np.float64)
-    tr = np.trace(r)
-    cands = np.array([1 + tr, 1 + 2 * r[0, 0] - tr, 1 + 2 * r[1, 1] - tr, 1 + 2 * r[2, 2] - tr])
-    i = int(np.argmax(cands))
-    s = 2.0 * math.sqrt(max(cands[i], 0.0))
-    if i == 0:
-        q = [s / 4, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
-    elif i == 1:
-        q = [(r[2, 1] - r[1, 2]) / s, s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
-    elif i == 2:
-        q = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s]
-    else:
-        q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4]
-    q = np.asarray(q)
-    q = q / np.linalg.norm(q)
-    j = int(np.argmax(np.abs(q) > 1e-12))
-    return q if q[j] > 0 else -q
 
 
 def _sort_elements(mats: np.ndarray, residuals: np.ndarray | None = None, tol: float = 0.0):
