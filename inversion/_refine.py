@@ -1130,10 +1130,7 @@ def mode_check(
         raise ValueError("mode_check: modes must start with the fit itself (kind 'fit')")
     exact_rot = sym.quaternions()[sym.residuals[sym.determinants > 0] <= exact_tol]
 
-    def separation(qa, qb):
-        return mode_separation_deg(
-            qa, qb, sym, half_turn_exact=half_turn_exact, los=los, exact_tol=exact_tol
-        )
+    sep_kw = {"half_turn_exact": half_turn_exact, "los": los, "exact_tol": exact_tol}
 
     fits = [fit]
     for m in modes[1:]:
@@ -1157,7 +1154,8 @@ def mode_check(
     group = list(range(len(fits)))
     for j in range(1, len(fits)):
         for i in range(j):
-            if group[i] == i and separation(quats[i], quats[j]) <= min_separation_deg:
+            sep = mode_separation_deg(quats[i], quats[j], sym, **sep_kw)
+            if group[i] == i and sep <= min_separation_deg:
                 group[j] = i
                 break
     rep = {}
@@ -1181,7 +1179,7 @@ def mode_check(
                 mode=m,
                 fit=f,
                 delta_deviance=float(f.cost - fit.cost),
-                separation_deg=separation(q_fit, quats[j]),
+                separation_deg=mode_separation_deg(q_fit, quats[j], sym, **sep_kw),
                 los_separation_deg=float(los_sep),
                 duplicate_of=None if r == j else r,
                 weight=float(weights[j]),

@@ -307,21 +307,26 @@ def _point_group(mats: np.ndarray, tol: float = 0.0) -> str:
 def _sort_elements(mats: np.ndarray, residuals: np.ndarray | None = None, tol: float = 0.0):
     """Identity first, then proper rotations by (order, label), then improper ones."""
     atol = _angle_tol(tol)
-
-    def key(i):
-        s = mats[i]
+    rank = {"identity": 0, "rotation": 1, "inversion": 2, "mirror": 3, "rotoreflection": 4}
+    keys = []
+    for s in mats:
         kind, angle, _ = _classify(s, atol)
-        rank = {"identity": 0, "rotation": 1, "inversion": 2, "mirror": 3, "rotoreflection": 4}
         nk = _order(angle, atol) if angle > 0 else (1, 1)
-        return (rank[kind], -(nk[0] if nk else 10**6), symmetry_label(s, tol))
-
-    order = sorted(range(len(mats)), key=key)
+        keys.append((rank[kind], -(nk[0] if nk else 10**6), symmetry_label(s, tol)))
+    order = sorted(range(len(mats)), key=keys.__getitem__)
     if residuals is None:
         return mats[order]
     return mats[order], np.asarray(residuals)[order]
 
 
 # ----------------------------------------------------------------------------- geometry
+def _segment(vv, vd, dd):
+    """(squared distance, parameter) of a point ``v`` to the segment from the origin along
+    ``d``, from ``vv = v.v``, ``vd = v.d``, ``dd = d.d``."""
+    t = np.clip(vd / np.maximum(dd, 1e-300), 0.0, 1.0)
+    return vv - 2 * t * vd + t * t * dd, t
+
+
 class _Faces:
     """Per-face constants of the point-to-triangle distance (corner ``a``, edges ``e0``,
     ``e1``, unit normal, Gram entries)."""
@@ -353,13 +358,9 @@ class _Faces:
         w = (d00 * d21 - d01 * d20) * self.inv_den[idx]
         inside = (u >= 0) & (w >= 0) & (u + w <= 1) & (self.inv_den[idx] > 0)
 
-        def seg(vv, vd, dd):  # (squared distance, parameter) to a segment from the origin
-            t = np.clip(vd / np.maximum(dd, 1e-300), 0.0, 1.0)
-            return vv - 2 * t * vd + t * t * dd, t
-
-        s0, t0 = seg(vv, d20, d00)  # a -> b
-        s1, t1 = seg(vv, d21, d11)  # a -> c
-        s2, t2 = seg(vv - 2 * d20 + d00, d21 - d20 - d01 + d00, d11 - 2 * d01 + d00)  # b -> c
+        s0, t0 = _segment(vv, d20, d00)  # a -> b
+        s1, t1 = _segment(vv, d21, d11)  # a -> c
+        s2, t2 = _segment(vv - 2 * d20 + d00, d21 - d20 - d01 + d00, d11 - 2 * d01 + d00)  # b -> c
         edge = np.minimum(np.minimum(s0, s1), s2)
         dist = np.where(inside, np.abs(vn), np.sqrt(np.maximum(edge, 0.0)))
         if not points:
@@ -415,6 +416,36 @@ class _Surface:
             self.groups[int(p)] = (cKDTree(cen), _Faces(t), nrm, rmax, len(t))
         self.k = k
 
+    def _refine(self, part, idx, x, n, best, q, limit):
+        """Exact distances (in place in ``best``, closest points in ``q`` if not None) of
+        the points ``idx``: every face whose centroid lies within ``min(best, limit) +
+        rmax``, in chunks of at most ``_PAIRS`` point-face pairs."""
+        tree, faces, fn, rmax, _ = self.groups[part]
+        radius = np.minimum(best[idx], limit) + rmax
+        lists = tree.query_ball_point(x[idx], radius)
+        counts = np.fromiter((len(a) for a in lists), int, len(lists))
+        start = 0
+        while start < len(idx):
+            csum = np.cumsum(counts[start:])
+            stop = start + max(1, int(np.searchsorted(csum, self._PAIRS, side="right")))
+            rows = np.repeat(idx[start:stop], counts[start:stop])
+            if len(rows):
+                cols = np.concatenate([np.asarray(a, int) for a in lists[start:stop]])
+                r = faces.closest(x[rows], cols, q is not None)
+                dist = r[0] if q is not None else r
+                dist = np.where(np.einsum("ni,ni->n", fn[cols], n[rows]) > 0, dist, np.inf)
+                if q is not None:
+                    order = np.lexsort((dist, rows))
+                    rows_s, dist_s = rows[order], dist[order]
+                    first = np.r_[True, rows_s[1:] != rows_s[:-1]]
+                    better = dist_s[first] < best[rows_s[first]]
+                    tgt = rows_s[first][better]
+                    best[tgt] = dist_s[first][better]
+                    q[tgt] = r[1][order][first][better]
+                else:
+                    np.minimum.at(best, rows, dist)
+            start = stop
+
     def query(self, pts, nrm, parts, limit: float, exact: bool, points: bool = False):
         """Distance of each point to the compatible surface (and with ``points`` the closest
         points; ``inf`` and NaN where no compatible face lies within ``limit``).
@@ -441,43 +472,12 @@ class _Surface:
             best = d[np.arange(len(x)), j]
             q = res[1][np.arange(len(x)), j] if points else None
 
-            def refine(idx, x=x, n=n, best=best, q=q, tree=tree, faces=faces, fn=fn, rmax=rmax):
-                radius = np.minimum(best[idx], limit) + rmax
-                lists = tree.query_ball_point(x[idx], radius)
-                counts = np.fromiter((len(a) for a in lists), int, len(lists))
-                start = 0
-                while start < len(idx):  # chunks of at most _PAIRS point-face pairs
-                    stop = start + max(
-                        1,
-                        int(np.searchsorted(np.cumsum(counts[start:]), self._PAIRS, side="right")),
-                    )
-                    rows = np.repeat(idx[start:stop], counts[start:stop])
-                    if len(rows):
-                        cols = np.concatenate([np.asarray(a, int) for a in lists[start:stop]])
-                        r = faces.closest(x[rows], cols, points)
-                        dist = np.where(
-                            np.einsum("ni,ni->n", fn[cols], n[rows]) > 0,
-                            r[0] if points else r,
-                            np.inf,
-                        )
-                        if points:
-                            order = np.lexsort((dist, rows))
-                            rows_s, dist_s = rows[order], dist[order]
-                            first = np.r_[True, rows_s[1:] != rows_s[:-1]]
-                            better = dist_s[first] < best[rows_s[first]]
-                            tgt = rows_s[first][better]
-                            best[tgt] = dist_s[first][better]
-                            q[tgt] = r[1][order][first][better]
-                        else:
-                            np.minimum.at(best, rows, dist)
-                    start = stop
-
             if k < n_faces:
                 # a face outside the k nearest centroids is at least dd_k - rmax away
                 sure = best <= dd[:, -1] - rmax
                 over = np.flatnonzero(~sure & (best > limit))
                 if len(over):
-                    refine(over)
+                    self._refine(p, over, x, n, best, q, limit)
                     sure[over] = True
                 if exact:
                     done = best[sure]
@@ -489,7 +489,7 @@ class _Surface:
                         batch = batch[best[batch] > max(current, 1e-3 * limit)]
                         if len(batch) == 0:
                             break
-                        refine(batch)
+                        self._refine(p, batch, x, n, best, q, limit)
                         current = max(current, float(best[batch].max()))
             out[sel] = best
             if points:
@@ -717,6 +717,15 @@ def _classes(inv: np.ndarray, tol: float, p: float = 2.0) -> np.ndarray:
     return connected_components(g, directed=False)[1]
 
 
+def _span2(vs) -> bool:
+    """Whether the vectors ``vs`` span two directions (second singular value > 0.2)."""
+    if len(vs) < 2:
+        return False
+    m = np.asarray(vs)
+    sv = np.linalg.svd(m / np.linalg.norm(m, axis=1, keepdims=True), compute_uv=False)
+    return bool(sv[1] > 0.2)
+
+
 def _feature_candidates(pos, nrm, inv, tol, axis=None, max_candidates=20000) -> list:
     """Candidates mapping a reference (feature, feature pair, or the unique axis and a
     feature) onto every feature (pair) with the same invariants."""
@@ -735,33 +744,19 @@ def _feature_candidates(pos, nrm, inv, tol, axis=None, max_candidates=20000) -> 
         [v for v, ok in ((pos[i], r[i] > 0.05), (nrm[i], has_n[i])) if ok] for i in range(len(pos))
     ]
 
-    def span2(vs):
-        if len(vs) < 2:
-            return False
-        m = np.asarray(vs)
-        sv = np.linalg.svd(m / np.linalg.norm(m, axis=1, keepdims=True), compute_uv=False)
-        return sv[1] > 0.2
-
     usable = [i for i in range(len(pos)) if vecs[i]]
     if not usable:
         return []
     order = sorted(usable, key=lambda i: (count[i], -inv[i, 0], -r[i]))
     out = []
-
-    def members(i):
-        return np.asarray(tree.query_ball_point(full_inv[i], tol), int)
-
-    def pack(i):
-        return np.stack(vecs[i])
-
     if axis is not None:
         # symmetric top: every symmetry maps the axis to +-itself; one off-axis feature
-        b = next((i for i in order if span2([axis, *vecs[i]])), None)
+        b = next((i for i in order if _span2([axis, *vecs[i]])), None)
         if b is None or count[b] > max_candidates // 4:
             return []
-        u = np.concatenate([axis[None], pack(b)])
-        for j in members(b):
-            vj = pack(j)
+        u = np.concatenate([axis[None], np.stack(vecs[b])])
+        for j in tree.query_ball_point(full_inv[b], tol):
+            vj = np.stack(vecs[j])
             if len(vj) != len(vecs[b]):
                 continue
             for sa in (1.0, -1.0):
@@ -770,29 +765,31 @@ def _feature_candidates(pos, nrm, inv, tol, axis=None, max_candidates=20000) -> 
                     out.append(_procrustes(u, v, det))
         return out
     a = order[0]
-    if span2(vecs[a]):
-        u = pack(a)
-        for j in members(a):
+    if _span2(vecs[a]):
+        u = np.stack(vecs[a])
+        for j in tree.query_ball_point(full_inv[a], tol):
             if len(vecs[j]) == len(vecs[a]):
                 for det in (1, -1):
-                    out.append(_procrustes(u, pack(j), det))
+                    out.append(_procrustes(u, np.stack(vecs[j]), det))
         return out
     # a pair: the reference and the feature of the smallest class spanning two directions
-    b = next((i for i in order if i != a and span2([*vecs[a], *vecs[i]])), None)
+    b = next((i for i in order if i != a and _span2([*vecs[a], *vecs[i]])), None)
     if b is None or count[a] * count[b] > max_candidates:
         return []
-    u = np.concatenate([pack(a), pack(b)])
-    ma = [j for j in members(a) if len(vecs[j]) == len(vecs[a])]
-    mb = np.asarray([k for k in members(b) if len(vecs[k]) == len(vecs[b])], int)
+    u = np.concatenate([np.stack(vecs[a]), np.stack(vecs[b])])
+    ma = [j for j in tree.query_ball_point(full_inv[a], tol) if len(vecs[j]) == len(vecs[a])]
+    mb = np.asarray(
+        [k for k in tree.query_ball_point(full_inv[b], tol) if len(vecs[k]) == len(vecs[b])], int
+    )
     first_b = np.asarray([vecs[k][0] for k in mb]).reshape(-1, 3)
     ref = float(np.dot(vecs[a][0], vecs[b][0]))
     for j in ma:
-        vj = pack(j)
+        vj = np.stack(vecs[j])
         fit = np.abs(first_b @ vj[0] - ref) <= 4 * tol
         for k in mb[fit]:
             if k == j:
                 continue
-            v = np.concatenate([vj, pack(k)])
+            v = np.concatenate([vj, np.stack(vecs[k])])
             for det in (1, -1):
                 s = _procrustes(u, v, det)
                 if np.abs(u @ s.T - v).max() <= 8 * tol + 1e-9:
@@ -858,6 +855,19 @@ class _ElementSet:
         return d <= self.tol
 
 
+def _consider(mats, prep, thr, same, tested, accepted, residuals) -> None:
+    """Verify the untested candidates ``mats``; add the accepted ones (refined by ICP when
+    near) to ``accepted`` with their relative residuals."""
+    for s in _dedupe(mats, same):
+        if tested.contains(s)[0]:
+            continue
+        tested.add(s)
+        r, s = _residual(prep, s, thr)
+        if r <= thr and not accepted.contains(s)[0]:
+            accepted.add(s)
+            residuals.append(r / prep.size)
+
+
 # ----------------------------------------------------------------------------- entry point
 def mesh_symmetries(
     mesh,
@@ -899,18 +909,8 @@ def mesh_symmetries(
     accepted, residuals = _ElementSet(same), []
     tested = _ElementSet(same)
 
-    def consider(mats):
-        for s in _dedupe(mats, same):
-            if tested.contains(s)[0]:
-                continue
-            tested.add(s)
-            r, s = _residual(prep, s, thr)
-            if r <= thr and not accepted.contains(s)[0]:
-                accepted.add(s)
-                residuals.append(r / prep.size)
-
-    consider([np.eye(3)])
-    consider(_candidates(prep, tol))
+    _consider([np.eye(3)], prep, thr, same, tested, accepted, residuals)
+    _consider(_candidates(prep, tol), prep, thr, same, tested, accepted, residuals)
     closed = True
     for _ in range(8):  # closure under composition
         g = accepted.items
@@ -919,7 +919,7 @@ def mesh_symmetries(
         if len(new) == 0:
             break
         n_before = len(g)
-        consider(new)
+        _consider(new, prep, thr, same, tested, accepted, residuals)
         if len(accepted.items) == n_before:
             closed = False
             break
