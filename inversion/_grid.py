@@ -154,6 +154,19 @@ def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     )
 
 
+def quat_matrix(q) -> np.ndarray:
+    """Host (NumPy) rotation matrices ``(..., 3, 3)`` of quaternions ``(..., 4)`` (normalized
+    first), as :func:`ppr.quat_to_matrix` without a JAX dispatch per call."""
+    q = np.asarray(q, np.float64)
+    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
+    rows = (
+        (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+        (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+        (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
+    )
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+
 def axis_angle_quat(axis, angle) -> np.ndarray:
     axis = np.asarray(axis, dtype=np.float64)
     axis = axis / np.linalg.norm(axis)
@@ -197,7 +210,7 @@ _MESH_GROUPS: OrderedDict = OrderedDict()
 
 @functools.lru_cache(maxsize=64)
 def _named_symmetry(name: str) -> ppr.MeshSymmetry:
-    rot = np.asarray(ppr.quat_to_matrix(symmetry_group(name)), np.float64)
+    rot = quat_matrix(symmetry_group(name))
     mats = [rot]
     if body_mirror_normal(name) is not None:
         mats.append(np.einsum("ij,gjk->gik", np.diag([1.0, 1.0, -1.0]), rot))
@@ -241,7 +254,7 @@ def as_symmetry(symmetry, *, tol: float = 1e-6) -> ppr.MeshSymmetry:
             "symmetry must be a class name, a ppr.MeshSymmetry, a ppr.Mesh or (G, 4) "
             f"quaternions, got {type(symmetry).__name__} of shape {q.shape}"
         )
-    return ppr.MeshSymmetry.from_matrices(np.asarray(ppr.quat_to_matrix(q), np.float64))
+    return ppr.MeshSymmetry.from_matrices(quat_matrix(q))
 
 
 def mesh_has_mirror(mesh, normal, rtol: float = 1e-9) -> bool:

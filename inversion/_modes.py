@@ -37,7 +37,7 @@ import numpy as np
 
 import ppr
 
-from ._grid import as_symmetry, canonical_sign, geodesic_deg, quat_mul
+from ._grid import as_symmetry, canonical_sign, geodesic_deg, quat_matrix, quat_mul
 
 __all__ = ["Mode", "candidate_modes", "equivalent_attitudes"]
 
@@ -122,7 +122,7 @@ def _check_quat(q) -> np.ndarray:
 
 def _all_candidates(q, sym: ppr.MeshSymmetry, ops, los, exact_tol: float, half_turn_exact: bool):
     """Every (W, B) combination as a Mode, in priority order for the labels."""
-    r = np.asarray(ppr.quat_to_matrix(q), np.float64)
+    r = quat_matrix(q)
     labels = sym.labels
     out, plain = [], []  # plain: the body element is a plain mirror plane
     for b, lab, res, det in zip(sym.matrices, labels, sym.residuals, sym.determinants, strict=True):

@@ -886,10 +886,8 @@ def mirror_check(
     (:meth:`RefineResult.outside_bounds`), the mirror is refit from the same start with
     :func:`refine_bounded`, as one would the fit itself.
     """
-    import ppr
-
     from ._classifier import _describe, line_of_sight_error_deg
-    from ._grid import as_symmetry, body_mirror_normal, mirror_attitude
+    from ._grid import as_symmetry, body_mirror_normal, mirror_attitude, quat_matrix
 
     normal = body_mirror_normal(symmetry)
     if normal is None:
@@ -902,7 +900,7 @@ def mirror_check(
     # a mesh's mirror plane passes through its centre c: the image moves by R (sigma c - c)
     c = as_symmetry(symmetry).centre
     sigma = np.eye(3) - 2.0 * np.outer(normal, normal)
-    rot = np.asarray(ppr.quat_to_matrix(np.asarray(p.quaternion, np.float64)))
+    rot = quat_matrix(np.asarray(p.quaternion, np.float64))
     shift = float(rot[2] @ (sigma @ c - c))  # the line of sight is world +z
     mirror = _refit_from(
         model,
