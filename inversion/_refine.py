@@ -999,6 +999,10 @@ class ModeFit:
     def label(self) -> str:
         return self.mode.label
 
+    @property
+    def kind(self) -> str:
+        return self.mode.kind
+
     def to_dict(self) -> dict:
         return {
             **self.mode.to_dict(),

@@ -886,7 +886,10 @@ def mesh_symmetries(
     - `tol`: relative tolerance (fraction of the mesh's size, the largest distance of a
       vertex from the area centroid). The default accepts exact symmetries up to the
       rounding of vertex coordinates; a loose value (``1e-3``) also finds elements that the
-      mesh has only approximately.
+      mesh has only approximately. It is raised to at least ``8 eps |v|_max / size``
+      (``eps`` of the vertices' dtype, ``|v|_max`` their largest coordinate): float32
+      vertices far from the origin are not more precise than that; the tolerance used is
+      :attr:`MeshSymmetry.tol`.
     - `materials`: compare parts (a symmetry must map each face onto faces of the same part);
       ``False`` compares the geometry alone.
     - `n_samples`, `max_points`, `seed`: the verification points are `n_samples` seeded

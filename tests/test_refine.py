@@ -765,7 +765,7 @@ def test_mirror_check_finds_the_parity_ambiguity_and_its_breaking():
     import ppr
     from inversion._classifier import line_of_sight_error_deg
     from inversion._noise import MeasurementModel
-    from inversion._refine import PoissonCounts, SimulatorModel, mirror_check
+    from inversion._refine import PoissonCounts, SimulatorModel, mirror_check, mode_check
 
     scene = ppr.Scene(
         ppr.shapes.cubesat(3),
@@ -782,21 +782,31 @@ def test_mirror_check_finds_the_parity_ambiguity_and_its_breaking():
     q = np.array([0.86, 0.31, -0.22, 0.35])
     q /= np.linalg.norm(q)
     noise = PoissonCounts(background=1e-3)
-    checks = {}
-    for name, chm in (("block", block), ("full", full)):
-        model = SimulatorModel(scene, chm, dense=True, terms=("double",))
+    checks, modes = {}, {}
+
+    def fit_to(mesh, chm):
+        model = SimulatorModel(
+            eqx.tree_at(lambda s: s.mesh, scene, mesh), chm, dense=True, terms=("double",)
+        )
         truth = PhysicalParams(q, [4.0], [0.94 + 6.42j], range_offset=0.003, gain=1.0)
         x = np.asarray(model.expected(truth, model.prepare(truth)))
         truth = PhysicalParams(q, [4.0], [0.94 + 6.42j], range_offset=0.003, gain=1e7 / x.sum())
         data = np.maximum(np.asarray(model.expected(truth, model.prepare(truth))), 0.0)
-        # 5 steps from the truth, as the check below: one compilation for both
-        fit = refine(model, data, [truth], noise=noise, max_steps=5, rounds=1)
+        # 5 steps from the truth, as the checks below: one compilation for all
+        return model, data, refine(model, data, [truth], noise=noise, max_steps=5, rounds=1)
+
+    for name, chm in (("block", block), ("full", full)):
+        model, data, fit = fit_to(scene.mesh, chm)
         assert fit.cost < 1.0
         assert line_of_sight_error_deg(q, np.asarray(fit.params.quaternion), "dihedral:4")[0] < 0.1
         # a few steps only: with 16 channels the solver would walk from the image back to the
         # fit's own mode (the check then reports separation 0: no second mode either)
         checks[name] = mirror_check(
             model, data, fit, "dihedral:4", noise=noise, max_steps=5, rounds=1
+        )
+        # the same from the mesh's own group (D4h): one mirror image, refit and weighted
+        modes[name] = mode_check(
+            model, data, fit, ppr.mesh_symmetries(scene.mesh), noise=noise, max_steps=5, rounds=1
         )
 
     exact = checks["block"]
@@ -813,3 +823,35 @@ def test_mirror_check_finds_the_parity_ambiguity_and_its_breaking():
     assert broken.best is broken.fit
     with pytest.raises(ValueError, match="implies no mirror plane"):
         mirror_check(model, data, broken.fit, "cyclic:4", noise=noise)
+
+    # mode_check generalizes mirror_check: the same two modes and weights (its mirror start
+    # is another element's image, the same mode modulo the rotations)
+    for name, chk in checks.items():
+        mc = modes[name]
+        assert [m.label for m in mc.modes] == ["fit", "mirror image"], mc.summary()
+        img = mc.modes[1]
+        assert abs(img.delta_deviance - chk.delta_deviance) < 1e-6 * max(1.0, chk.delta_deviance)
+        assert abs(img.weight - chk.mirror_probability) < 1e-6
+        q_a, q_b = (np.asarray(r.params.quaternion) for r in (chk.mirror, img.fit))
+        assert line_of_sight_error_deg(q_a, q_b, mesh=scene.mesh)[0] < 0.05
+    assert modes["block"].ambiguous() and not modes["full"].ambiguous()
+    assert len(modes["block"].fits()) == 2 and modes["full"].best is modes["full"].fit
+
+    # a nearly symmetric CubeSat: its +x face widened by 2e-3 of the size (C2v about x, D4h
+    # to 2e-3). At the mesh's exact group only the mirror image is refit; at tol 1e-2 the
+    # near quarter and half turns are modes too, far from the fit and nearly as likely:
+    # the ambiguity a local fit and its Cramer-Rao bound cannot show
+    v = np.asarray(scene.mesh.vertices, np.float64).copy()
+    plus = v[:, 0] > 0
+    v[plus, 1] += np.sign(v[plus, 1]) * 2e-3 * 0.18
+    near = ppr.Mesh(v, scene.mesh.faces)
+    model, data, fit = fit_to(near, block)
+    exact = mode_check(model, data, fit, near, noise=noise, max_steps=5, rounds=1)
+    assert [m.kind for m in exact.modes] == ["fit", "mirror"], exact.summary()
+    loose = mode_check(
+        model, data, fit, ppr.mesh_symmetries(near, tol=1e-2), noise=noise, max_steps=5, rounds=1
+    )
+    nm = [m for m in loose.modes if m.kind == "near symmetry"]
+    assert nm and all(m.duplicate_of is None and m.separation_deg > 45.0 for m in nm)
+    # an approximate symmetry: a small but non-zero deviance excess, and a real weight
+    assert all(0.0 < m.delta_deviance < 10.0 and m.weight > 0.01 for m in nm), loose.summary()
