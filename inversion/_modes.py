@@ -231,7 +231,7 @@ def equivalent_attitudes(
     ]
     kept: list[Mode] = []
     for m in modes:
-        if all(geodesic_deg(m.quaternion, k.quaternion) > 1e-6 for k in kept):
+        if all(geodesic_deg(m.quaternion, k.quaternion) > 1e-3 for k in kept):
             kept.append(m)
     return kept
 

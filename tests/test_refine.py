@@ -761,9 +761,12 @@ def test_mirror_check_finds_the_parity_ambiguity_and_its_breaking():
     elements cannot tell the two apart: delta deviance 0, probability 1/2, and a second mode
     degrees away modulo the rotations, nowhere modulo the mirror. (2) The 16 PSG/PSA channels
     see the off-block elements the rough surface's double bounces give, and reject the
-    image."""
+    image. (3) inversion.mode_check from the mesh's own group (D4h) finds the same two modes
+    and weights. (4) Near symmetries of a nearly symmetric CubeSat are refit modes with
+    real weight (same compiled programs: the same face count and channels)."""
     import ppr
     from inversion._classifier import line_of_sight_error_deg
+    from inversion._modes import candidate_modes
     from inversion._noise import MeasurementModel
     from inversion._refine import PoissonCounts, SimulatorModel, mirror_check, mode_check
 
@@ -837,21 +840,30 @@ def test_mirror_check_finds_the_parity_ambiguity_and_its_breaking():
     assert modes["block"].ambiguous() and not modes["full"].ambiguous()
     assert len(modes["block"].fits()) == 2 and modes["full"].best is modes["full"].fit
 
-    # a nearly symmetric CubeSat: its +x face widened by 2e-3 of the size (C2v about x, D4h
-    # to 2e-3). At the mesh's exact group only the mirror image is refit; at tol 1e-2 the
-    # near quarter and half turns are modes too, far from the fit and nearly as likely:
-    # the ambiguity a local fit and its Cramer-Rao bound cannot show
+    # a nearly symmetric CubeSat: its +x face widened by 2e-4 of the size (C2v about x, D4h
+    # to 2e-4). At the mesh's exact group the near quarter and half turns are not even
+    # candidates; at tol 1e-2 they are refit: optima far from the fit whose deviance excess
+    # (~ (asymmetry x SNR)^2, tests/test_modes.py) is below 2 at 1e7 counts, so they keep
+    # real posterior weight: the ambiguity a local fit and its Cramer-Rao bound cannot show
     v = np.asarray(scene.mesh.vertices, np.float64).copy()
     plus = v[:, 0] > 0
-    v[plus, 1] += np.sign(v[plus, 1]) * 2e-3 * 0.18
+    v[plus, 1] += np.sign(v[plus, 1]) * 2e-4 * 0.18
     near = ppr.Mesh(v, scene.mesh.faces)
     model, data, fit = fit_to(near, block)
-    exact = mode_check(model, data, fit, near, noise=noise, max_steps=5, rounds=1)
-    assert [m.kind for m in exact.modes] == ["fit", "mirror"], exact.summary()
+    q_fit = np.asarray(fit.params.quaternion)
+    assert [m.kind for m in candidate_modes(q_fit, near)] == ["fit", "mirror"]
     loose = mode_check(
-        model, data, fit, ppr.mesh_symmetries(near, tol=1e-2), noise=noise, max_steps=5, rounds=1
+        model,
+        data,
+        fit,
+        ppr.mesh_symmetries(near, tol=1e-2),
+        mirror=False,
+        noise=noise,
+        max_steps=5,
+        rounds=1,
     )
-    nm = [m for m in loose.modes if m.kind == "near symmetry"]
-    assert nm and all(m.duplicate_of is None and m.separation_deg > 45.0 for m in nm)
-    # an approximate symmetry: a small but non-zero deviance excess, and a real weight
-    assert all(0.0 < m.delta_deviance < 10.0 and m.weight > 0.01 for m in nm), loose.summary()
+    nm = loose.modes[1:]
+    assert len(nm) == 3 and all(m.kind == "near symmetry" for m in nm), loose.summary()
+    assert all(m.duplicate_of is None and m.separation_deg > 45.0 for m in nm), loose.summary()
+    assert all(0.0 < m.delta_deviance < 2.0 and m.weight > 0.05 for m in nm), loose.summary()
+    assert loose.ambiguous()
