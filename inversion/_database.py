@@ -77,7 +77,8 @@ class ShapeSpec(StrictModel):
     def _symmetry(cls, v):
         from ._grid import symmetry_group
 
-        symmetry_group(v)  # raises ValueError naming the group
+        if v != "auto":
+            symmetry_group(v)  # raises ValueError naming the group
         return v
 
 
@@ -155,6 +156,11 @@ class DatabaseSpec(StrictModel):
             if sh.params:
                 raise ValueError(
                     f"shapes[{i}].params = {sh.params!r}: shape parameters need model = 'ppr'"
+                )
+            if sh.symmetry == "auto":
+                raise ValueError(
+                    f"shapes[{i}].symmetry = 'auto': the group of the shape's own mesh needs "
+                    "model = 'ppr' (model 'synthetic' has no mesh); name the class instead"
                 )
         return self
 

@@ -49,7 +49,7 @@ _WORLD_LABELS = {
 }
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class Mode:
     """One attitude equivalent or nearly equivalent to a fit's (:func:`candidate_modes`).
 

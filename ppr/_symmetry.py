@@ -59,7 +59,7 @@ _AXIS_NAMES = ("x", "y", "z")
 
 
 # ----------------------------------------------------------------------------- the result
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class MeshSymmetry:
     """The symmetry elements of a mesh (:func:`mesh_symmetries`), or of a named shape class.
 
