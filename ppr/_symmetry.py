@@ -513,6 +513,11 @@ class _Prepared:
     centroid_tree: object  # KD-tree on (face centroid, part) for the face-matching path
     face_keys: np.ndarray
     screen_faces: np.ndarray  # a few faces tried before matching all of them
+    verts: np.ndarray  # (V, 3) distinct vertex positions (relative to the centre)
+    vertex_tree: object  # KD-tree on them
+    face_verts: np.ndarray  # (F, 3) indices into verts
+    face_codes: np.ndarray  # sorted codes of the faces' vertex sets (with the part)
+    face_order: np.ndarray  # face index of each sorted code
 
 
 def _prepare(mesh, materials: bool, n_samples: int, seed: int, max_points: int) -> _Prepared:
@@ -559,6 +564,10 @@ def _prepare(mesh, materials: bool, n_samples: int, seed: int, max_points: int) 
     pp = np.concatenate([parts[f], np.repeat(parts[sub], 4)])
     screen = np.arange(_SCREEN_POINTS)
     keys = np.concatenate([cen, 1e3 * size * parts[:, None].astype(np.float64)], axis=1)
+    verts, face_verts = np.unique(tri.reshape(-1, 3), axis=0, return_inverse=True)
+    face_verts = face_verts.reshape(-1, 3)
+    codes = _face_codes(face_verts, parts, len(verts))
+    order = np.argsort(codes, kind="stable")
     return _Prepared(
         tri,
         normal,
@@ -574,31 +583,67 @@ def _prepare(mesh, materials: bool, n_samples: int, seed: int, max_points: int) 
         cKDTree(keys),
         keys,
         np.sort(rng.choice(len(tri), size=min(len(tri), 256), replace=False)),
+        verts,
+        cKDTree(verts),
+        face_verts,
+        codes[order],
+        order,
     )
+
+
+def _face_codes(face_verts: np.ndarray, parts: np.ndarray, n_verts: int) -> np.ndarray:
+    """One integer per face: its sorted vertex indices and its part (orientation-free)."""
+    f = np.sort(face_verts, axis=1).astype(np.int64)
+    n = np.int64(n_verts)
+    return ((f[:, 0] * n + f[:, 1]) * n + f[:, 2]) * np.int64(parts.max() + 1) + parts
+
+
+def _vertex_match_residual(prep: _Prepared, s: np.ndarray, thr: float) -> float:
+    """Largest vertex displacement if ``s`` permutes the distinct vertices (each moved within
+    ``thr`` of another, one to one) and thereby maps every face onto a face with the same
+    vertices, part and side; ``inf`` otherwise. A permutation of the faces maps the surface
+    onto itself both ways, so one direction suffices."""
+    d, j = prep.vertex_tree.query(prep.verts @ s.T, 1)
+    if d.max() > thr or len(np.unique(j)) != len(j):
+        return math.inf
+    codes = _face_codes(j[prep.face_verts], prep.parts, len(prep.verts))
+    pos = np.searchsorted(prep.face_codes, codes)
+    pos = np.minimum(pos, len(codes) - 1)
+    if not np.array_equal(prep.face_codes[pos], codes):
+        return math.inf
+    image = prep.face_order[pos]
+    if np.any(np.einsum("fi,fi->f", prep.normals @ s.T, prep.normals[image]) <= 0.5):
+        return math.inf
+    return float(d.max())
 
 
 def _face_match_residual(prep: _Prepared, s: np.ndarray, faces=None) -> float:
     """Largest vertex displacement if ``s`` maps every face (of ``faces``, default all) onto
-    a face of the same part and side (the nearest compatible centroid among four); ``inf``
-    if some face has no image."""
+    a face of the same part and side (the nearest compatible centroid, among the four
+    nearest where the nearest is not compatible); ``inf`` if some face has no image."""
     t = prep.tri if faces is None else prep.tri[faces]
-    nrm = prep.normals if faces is None else prep.normals[faces]
+    nrm = (prep.normals if faces is None else prep.normals[faces]) @ s.T
     part = prep.face_keys[:, 3:] if faces is None else prep.face_keys[faces, 3:]
     t = t @ s.T
     keys = np.concatenate([t.mean(axis=1), part], axis=1)
-    k = min(4, len(prep.tri))
-    dist, j = prep.centroid_tree.query(keys, k)
-    dist, j = dist.reshape(len(t), k), j.reshape(len(t), k)
-    side = np.einsum("fi,fki->fk", nrm @ s.T, prep.normals[j]) > 0.5
-    pick = np.argmin(np.where(side, dist, np.inf), axis=1)
-    if not np.all(side[np.arange(len(t)), pick]):
-        return math.inf
-    other = prep.tri[j[np.arange(len(t)), pick]]
+    _, j = prep.centroid_tree.query(keys, 1)
+    side = np.einsum("fi,fi->f", nrm, prep.normals[j]) > 0.5
+    if not side.all():  # back-to-back faces: look further
+        k = min(4, len(prep.tri))
+        bad = np.flatnonzero(~side)
+        dist, jj = prep.centroid_tree.query(keys[bad], k)
+        dist, jj = dist.reshape(len(bad), k), jj.reshape(len(bad), k)
+        ok = np.einsum("fi,fki->fk", nrm[bad], prep.normals[jj]) > 0.5
+        pick = np.argmin(np.where(ok, dist, np.inf), axis=1)
+        if not np.all(ok[np.arange(len(bad)), pick]):
+            return math.inf
+        j[bad] = jj[np.arange(len(bad)), pick]
+    other = prep.tri[j]
     best = np.full(len(t), np.inf)
     for perm in ((0, 1, 2), (1, 2, 0), (2, 0, 1), (0, 2, 1), (2, 1, 0), (1, 0, 2)):
-        d = np.linalg.norm(t - other[:, perm], axis=-1).max(axis=1)
+        d = np.einsum("fvi,fvi->fv", t - other[:, perm], t - other[:, perm]).max(axis=1)
         best = np.minimum(best, d)
-    return float(best.max())
+    return float(np.sqrt(best.max()))
 
 
 def _surface_residual(prep: _Prepared, s: np.ndarray, limit: float, idx=None, exact=False):
@@ -636,26 +681,26 @@ def _icp(prep: _Prepared, s: np.ndarray, reach: float, iters: int = 12) -> np.nd
     return s
 
 
-def _residual(prep: _Prepared, s: np.ndarray, thr: float) -> tuple[float, np.ndarray]:
-    """(absolute residual in metres, element): screened on a few surface points (an element
-    within ``max(10 tol, 0.02) size``, at most ``0.1 size``, is first refined by
-    :func:`_icp`), then face matching, then surface
-    distances from every verification point; the residual is ``inf`` when rejected."""
-    r = _surface_residual(prep, s, thr, prep.screen)
-    if r > thr:
-        reach = min(0.1, max(10 * thr / prep.size, 0.02)) * prep.size
-        if _surface_residual(prep, s, reach, prep.screen) > reach:
-            return math.inf, s
-        s = _icp(prep, s, reach)
-        if _surface_residual(prep, s, thr, prep.screen) > thr:
-            return math.inf, s
+def _verified(prep: _Prepared, s: np.ndarray, thr: float) -> float:
+    """Absolute residual (metres; ``inf`` when rejected) of an element that passed the
+    screen: a vertex permutation, else face matching, else surface distances from every
+    verification point."""
+    r = _vertex_match_residual(prep, s, thr)
+    if r <= thr:
+        return r
     few = prep.screen_faces
     if max(_face_match_residual(prep, s, few), _face_match_residual(prep, s.T, few)) <= thr:
         r = max(_face_match_residual(prep, s), _face_match_residual(prep, s.T))
         if r <= thr:
-            return r, s
+            return r
     r = _surface_residual(prep, s, thr, exact=True)
-    return (r if r <= thr else math.inf), s
+    return r if r <= thr else math.inf
+
+
+def _reach(prep: _Prepared, thr: float) -> float:
+    """Distance within which an approximate element is refined by :func:`_icp`:
+    ``max(10 tol, 0.02) size``, at most ``0.1 size``."""
+    return min(0.1, max(10 * thr / prep.size, 0.02)) * prep.size
 
 
 # ----------------------------------------------------------------------------- candidates
@@ -689,10 +734,19 @@ def _regions(prep: _Prepared, eps: float):
     cen = prep.tri.mean(axis=1)
     off = np.einsum("fi,fi->f", n, cen) / prep.size
     keys = np.concatenate([n, off[:, None], 1e3 * prep.parts[:, None]], axis=1)
-    pairs = cKDTree(keys).query_pairs(eps, output_type="ndarray")
-    f = len(keys)
-    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(f, f))
-    _, label = connected_components(g, directed=False)
+    # faces in one cell of side eps belong together; cells closer than eps (through the
+    # cell diagonal) are then joined: few pairs even when thousands of faces are coplanar
+    _, cell = np.unique(np.floor(keys / eps).astype(np.int64), axis=0, return_inverse=True)
+    cell = cell.ravel()
+    n_cells = cell.max() + 1
+    rep = np.zeros((n_cells, keys.shape[1]))
+    rep[cell] = keys
+    pairs = cKDTree(rep).query_pairs(
+        eps * (1 + 2 * math.sqrt(keys.shape[1])), output_type="ndarray"
+    )
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n_cells, n_cells))
+    _, cell_label = connected_components(g, directed=False)
+    label = cell_label[cell]
     k = label.max() + 1
     a = np.bincount(label, prep.areas, k)
     pos = (
@@ -856,14 +910,41 @@ class _ElementSet:
 
 
 def _consider(mats, prep, thr, same, tested, accepted, residuals) -> None:
-    """Verify the untested candidates ``mats``; add the accepted ones (refined by ICP when
-    near) to ``accepted`` with their relative residuals."""
+    """Verify the untested candidates ``mats`` and add the accepted ones to ``accepted`` with
+    their relative residuals. Candidates that pass the screen (a few surface points within
+    ``thr``) are verified first; then those within :func:`_reach` of a symmetry and not near
+    an accepted element are refined by :func:`_icp`, screened again and verified."""
+    near = []
     for s in _dedupe(mats, same):
         if tested.contains(s)[0]:
             continue
         tested.add(s)
-        r, s = _residual(prep, s, thr)
+        # most wrong candidates miss already on 16 points; the rest are screened on all
+        r = _surface_residual(prep, s, thr, prep.screen[:16])
+        if r <= thr:
+            r = _surface_residual(prep, s, thr, prep.screen)
+        if r > thr:
+            near.append(s)
+            continue
+        r = _verified(prep, s, thr)
         if r <= thr and not accepted.contains(s)[0]:
+            accepted.add(s)
+            residuals.append(r / prep.size)
+    reach = _reach(prep, thr)
+    for s in near:
+        # an element this close to an accepted one would be refined back onto it
+        if (
+            len(accepted.items)
+            and np.abs(accepted.items - s).max(axis=(1, 2)).min() < reach / prep.size
+        ):
+            continue
+        if _surface_residual(prep, s, reach, prep.screen) > reach:
+            continue
+        s = _icp(prep, s, reach)
+        if accepted.contains(s)[0] or _surface_residual(prep, s, thr, prep.screen) > thr:
+            continue
+        r = _verified(prep, s, thr)
+        if r <= thr:
             accepted.add(s)
             residuals.append(r / prep.size)
 
@@ -875,7 +956,7 @@ def mesh_symmetries(
     tol: float = 1e-6,
     materials: bool = True,
     n_samples: int = 512,
-    max_points: int = 16384,
+    max_points: int = 8192,
     seed: int = 0,
 ) -> MeshSymmetry:
     """The symmetry elements of a mesh, found from the mesh itself (see the module docstring).
