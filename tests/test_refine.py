@@ -807,10 +807,9 @@ def test_mirror_check_finds_the_parity_ambiguity_and_its_breaking():
         checks[name] = mirror_check(
             model, data, fit, "dihedral:4", noise=noise, max_steps=5, rounds=1
         )
-        # the same from the mesh's own group (D4h): one mirror image, refit and weighted
-        modes[name] = mode_check(
-            model, data, fit, ppr.mesh_symmetries(scene.mesh), noise=noise, max_steps=5, rounds=1
-        )
+        if name == "block":  # the same from the mesh's own group (D4h): refit and weighted
+            group = ppr.mesh_symmetries(scene.mesh)
+            modes[name] = mode_check(model, data, fit, group, noise=noise, max_steps=5, rounds=1)
 
     exact = checks["block"]
     q_fit, q_mir = (np.asarray(r.params.quaternion) for r in (exact.fit, exact.mirror))
@@ -829,16 +828,14 @@ def test_mirror_check_finds_the_parity_ambiguity_and_its_breaking():
 
     # mode_check generalizes mirror_check: the same two modes and weights (its mirror start
     # is another element's image, the same mode modulo the rotations)
-    for name, chk in checks.items():
-        mc = modes[name]
-        assert [m.label for m in mc.modes] == ["fit", "mirror image"], mc.summary()
-        img = mc.modes[1]
-        assert abs(img.delta_deviance - chk.delta_deviance) < 1e-6 * max(1.0, chk.delta_deviance)
-        assert abs(img.weight - chk.mirror_probability) < 1e-6
-        q_a, q_b = (np.asarray(r.params.quaternion) for r in (chk.mirror, img.fit))
-        assert line_of_sight_error_deg(q_a, q_b, mesh=scene.mesh)[0] < 0.05
-    assert modes["block"].ambiguous() and not modes["full"].ambiguous()
-    assert len(modes["block"].fits()) == 2 and modes["full"].best is modes["full"].fit
+    mc = modes["block"]
+    assert [m.label for m in mc.modes] == ["fit", "mirror image"], mc.summary()
+    img = mc.modes[1]
+    assert abs(img.delta_deviance - exact.delta_deviance) < 1e-6
+    assert abs(img.weight - exact.mirror_probability) < 1e-6
+    q_a, q_b = (np.asarray(r.params.quaternion) for r in (exact.mirror, img.fit))
+    assert line_of_sight_error_deg(q_a, q_b, mesh=scene.mesh)[0] < 0.05
+    assert mc.ambiguous() and len(mc.fits()) == 2
 
     # a nearly symmetric CubeSat: its +x face widened by 2e-4 of the size (C2v about x, D4h
     # to 2e-4). At the mesh's exact group the near quarter and half turns are not even
@@ -852,18 +849,11 @@ def test_mirror_check_finds_the_parity_ambiguity_and_its_breaking():
     model, data, fit = fit_to(near, block)
     q_fit = np.asarray(fit.params.quaternion)
     assert [m.kind for m in candidate_modes(q_fit, near)] == ["fit", "mirror"]
-    loose = mode_check(
-        model,
-        data,
-        fit,
-        ppr.mesh_symmetries(near, tol=1e-2),
-        mirror=False,
-        noise=noise,
-        max_steps=5,
-        rounds=1,
-    )
-    nm = loose.modes[1:]
-    assert len(nm) == 3 and all(m.kind == "near symmetry" for m in nm), loose.summary()
-    assert all(m.duplicate_of is None and m.separation_deg > 45.0 for m in nm), loose.summary()
-    assert all(0.0 < m.delta_deviance < 2.0 and m.weight > 0.05 for m in nm), loose.summary()
-    assert loose.ambiguous()
+    cands = candidate_modes(q_fit, ppr.mesh_symmetries(near, tol=1e-2), mirror=False)
+    assert [m.kind for m in cands] == ["fit"] + ["near symmetry"] * 3
+    # refit the fit and the first near mode (the half turn about body y): one more solve
+    loose = mode_check(model, data, fit, near, modes=cands[:2], noise=noise, max_steps=5, rounds=1)
+    nm = loose.modes[1]
+    assert nm.label.startswith("near symmetry: C2 about body y"), loose.summary()
+    assert nm.duplicate_of is None and nm.separation_deg > 45.0, loose.summary()
+    assert 0.0 < nm.delta_deviance < 2.0 and nm.weight > 0.1 and loose.ambiguous(), loose.summary()
