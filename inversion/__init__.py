@@ -31,6 +31,7 @@ from ._database import (
 )
 from ._grid import (
     AttitudeGrid,
+    as_symmetry,
     body_mirror_normal,
     covering_radius,
     fibonacci_grid,
@@ -51,6 +52,9 @@ from ._mcmc import (
     sample_modes,
     sample_posterior,
 )
+
+# equivalent and near-equivalent attitudes (issue 26)
+from ._modes import Mode, candidate_modes, equivalent_attitudes, mode_separation_deg
 from ._noise import (
     MeasurementModel,
     NoiseModel,
@@ -65,6 +69,8 @@ from ._refine import (
     CramerRao,
     GaussianNoise,
     MirrorCheck,
+    ModeCheck,
+    ModeFit,
     PhysicalBounds,
     PoissonCounts,
     PoissonNoise,
@@ -72,6 +78,7 @@ from ._refine import (
     SimulatorModel,
     cramer_rao,
     mirror_check,
+    mode_check,
     refine,
     refine_bounded,
 )
@@ -112,6 +119,14 @@ __all__ = [
     "mesh_has_mirror",
     "mirror_attitude",
     "los_half_turn",
+    "as_symmetry",
+    "Mode",
+    "candidate_modes",
+    "equivalent_attitudes",
+    "mode_separation_deg",
+    "ModeCheck",
+    "ModeFit",
+    "mode_check",
     "MeasurementModel",
     "NoiseModel",
     "Observation",

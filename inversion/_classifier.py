@@ -43,15 +43,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import ppr
+
 from ._database import TemplateBank
-from ._grid import (
-    body_mirror_normal,
-    geodesic_deg,
-    los_half_turn,
-    mirror_attitude,
-    quat_mul,
-    symmetry_group,
-)
+from ._grid import as_symmetry, geodesic_deg, los_half_turn, quat_mul
 from ._noise import Observation, canonical_sensor
 
 WEIGHT_KINDS = ("uniform", "channel", "range", "fisher")
@@ -541,60 +536,97 @@ def score_pair(x: np.ndarray, y: np.ndarray, w: np.ndarray, shift: int) -> float
 
 def _equivalents(q_est, symmetry, mirror: bool, half_turn: bool = False) -> np.ndarray:
     """``(N, G', 4)``: the attitudes equivalent to each estimate, ``q g`` for the rotations
-    ``g`` of the symmetry; with ``mirror`` also the mirror image's ``P q sigma g``; with
-    ``half_turn`` also all of those turned by 180 deg about the line of sight
-    (:func:`inversion.los_half_turn`)."""
-    g = symmetry_group(symmetry) if isinstance(symmetry, str) else np.asarray(symmetry)
+    ``g`` of the symmetry; with ``mirror`` also the mirror images ``P q S`` for its improper
+    elements ``S`` (:func:`inversion.mirror_attitude`); with ``half_turn`` also all of those
+    turned by 180 deg about the line of sight (:func:`inversion.los_half_turn`).
+
+    ``symmetry``: a named class, a ``(G, 4)`` array of rotations (no improper elements), a
+    :class:`ppr.MeshSymmetry` or a :class:`ppr.Mesh` (:func:`inversion.as_symmetry`)."""
     q_est = np.atleast_2d(q_est)
+    if isinstance(symmetry, np.ndarray | list | tuple):
+        g, sym = np.asarray(symmetry, np.float64), None
+    else:
+        sym = as_symmetry(symmetry)
+        g = sym.quaternions()
     cand = quat_mul(q_est[:, None, :], g[None, :, :])
     if mirror:
-        normal = body_mirror_normal(symmetry) if isinstance(symmetry, str) else None
-        if normal is None:
+        if sym is None or len(sym.improper) == 0:
             raise ValueError(
-                f"mirror=True needs a named symmetry with a mirror plane (dihedral:n, "
-                f"octahedral), got {symmetry!r}"
+                "mirror=True needs a symmetry with a mirror plane or another improper element "
+                f"(dihedral:n, octahedral, or a mesh that has one), got {_describe(symmetry)}"
             )
-        cand = np.concatenate([cand, quat_mul(mirror_attitude(q_est, normal)[:, None, :], g)], 1)
+        # P R S = C2(w) R (-S), -S proper; world mirror normal +y
+        minus_s = np.stack([ppr.matrix_to_quat(-s) for s in sym.improper])
+        w = np.array([0.0, 0.0, 1.0, 0.0])
+        img = quat_mul(quat_mul(w, q_est)[:, None, :], minus_s[None, :, :])
+        cand = np.concatenate([cand, img], 1)
     if half_turn:
         cand = np.concatenate([cand, los_half_turn(cand)], 1)
     return cand
 
 
+def _describe(symmetry) -> str:
+    if isinstance(symmetry, str):
+        return repr(symmetry)
+    if isinstance(symmetry, ppr.MeshSymmetry):
+        return f"a mesh group {symmetry.point_group}"
+    if isinstance(symmetry, ppr.Mesh):
+        return f"a mesh of group {as_symmetry(symmetry).point_group}"
+    return f"an array of {len(np.atleast_2d(symmetry))} rotations"
+
+
+def _symmetry_arg(symmetry, mesh):
+    if mesh is None:
+        return symmetry
+    if not (isinstance(symmetry, str) and symmetry == "none"):
+        raise ValueError(f"pass either symmetry ({_describe(symmetry)}) or mesh, not both")
+    if not isinstance(mesh, ppr.Mesh | ppr.MeshSymmetry):
+        raise ValueError(f"mesh must be a ppr.Mesh or ppr.MeshSymmetry, got {type(mesh).__name__}")
+    return mesh
+
+
 def attitude_error_deg(
     q_true,
     q_est,
-    symmetry: str | np.ndarray = "none",
+    symmetry="none",
     *,
     mirror: bool = False,
     half_turn: bool = False,
+    mesh=None,
 ) -> np.ndarray:
     """Geodesic angle (deg) between attitudes modulo the shape's symmetry group; with
-    ``mirror=True`` also modulo the mirror image (:func:`inversion.mirror_attitude`, world
-    mirror through the sensor's x-z plane); with ``half_turn=True`` also modulo a half turn
-    about the line of sight (:func:`inversion.los_half_turn`), an exact symmetry of every
-    monostatic measurement."""
+    ``mirror=True`` also modulo the mirror images (:func:`inversion.mirror_attitude`, world
+    mirror through the sensor's x-z plane, with every improper element of the body); with
+    ``half_turn=True`` also modulo a half turn about the line of sight
+    (:func:`inversion.los_half_turn`), an exact symmetry of every monostatic measurement.
+
+    ``symmetry``: a named class (``"dihedral:4"``), ``(G, 4)`` rotations, or a
+    :class:`ppr.MeshSymmetry`; or pass ``mesh=`` (a :class:`ppr.Mesh`, whose own group
+    :func:`ppr.mesh_symmetries` finds, or a :class:`ppr.MeshSymmetry`) instead."""
     q_true = np.atleast_2d(q_true)
-    cand = _equivalents(q_est, symmetry, mirror, half_turn)
+    cand = _equivalents(q_est, _symmetry_arg(symmetry, mesh), mirror, half_turn)
     return geodesic_deg(q_true[:, None, :], cand).min(axis=1)
 
 
 def line_of_sight_error_deg(
-    q_true, q_est, symmetry: str | np.ndarray = "none", *, mirror: bool = False
+    q_true, q_est, symmetry="none", *, mirror: bool = False, mesh=None
 ) -> np.ndarray:
     """Angle (deg) between the true and estimated line of sight *in the body frame*
-    (``R^T k`` with ``k`` the world direction to the sensor, ``+z``), modulo the symmetry.
+    (``R^T k`` with ``k`` the world direction to the sensor, ``+z``), modulo the symmetry
+    (``symmetry`` or ``mesh=`` as in :func:`attitude_error_deg`).
 
     A monostatic range profile depends on the attitude only through this direction; the roll
     about the line of sight enters through the polarization alone, so this error is the
     well-conditioned part of the attitude error.
 
-    ``mirror=True`` also counts the mirrored line of sight ``sigma v`` as equal (a body with a
-    mirror plane ``sigma``, :func:`inversion.body_mirror_normal`): the mirror image of the
-    scene gives the same range profiles and differs only in the off-block Mueller elements
-    (:func:`inversion.mirror_attitude`), which glossy targets do not show at all.
+    ``mirror=True`` also counts the mirrored line of sight ``S v`` as equal for the improper
+    elements ``S`` of the body (a mirror plane, :func:`inversion.body_mirror_normal`): the
+    mirror image of the scene gives the same range profiles and differs only in the
+    off-block Mueller elements (:func:`inversion.mirror_attitude`), which glossy targets do
+    not show at all.
     """
     q_true = np.atleast_2d(q_true)
-    cand = _equivalents(q_est, symmetry, mirror)  # (N, G, 4)
+    cand = _equivalents(q_est, _symmetry_arg(symmetry, mesh), mirror)  # (N, G, 4)
     los_t = _body_los(q_true)[:, None, :]
     los_e = _body_los(cand)
     cos = np.clip(np.sum(los_t * los_e, axis=-1), -1.0, 1.0)

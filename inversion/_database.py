@@ -47,9 +47,10 @@ import zarr
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm import tqdm
 
+import ppr
 from ppr._config import StrictModel, load_toml_model, validate_data
 
-from ._grid import AttitudeGrid
+from ._grid import AttitudeGrid, as_symmetry, symmetry_group
 from ._noise import MeasurementModel, canonical_sensor
 
 FORMAT_VERSION = 1
@@ -67,6 +68,7 @@ class CorruptChunkError(ValueError):
 # ----------------------------------------------------------------------------- spec (config)
 class ShapeSpec(StrictModel):
     name: str
+    # a class name (inversion.symmetry_group), or "auto": the group of the shape's own mesh
     symmetry: str = "none"
     params: dict[str, float | int] = {}  # ppr.shapes parameters (model "ppr" only)
 
@@ -75,7 +77,8 @@ class ShapeSpec(StrictModel):
     def _symmetry(cls, v):
         from ._grid import symmetry_group
 
-        symmetry_group(v)  # raises ValueError naming the group
+        if v != "auto":
+            symmetry_group(v)  # raises ValueError naming the group
         return v
 
 
@@ -154,6 +157,11 @@ class DatabaseSpec(StrictModel):
                 raise ValueError(
                     f"shapes[{i}].params = {sh.params!r}: shape parameters need model = 'ppr'"
                 )
+            if sh.symmetry == "auto":
+                raise ValueError(
+                    f"shapes[{i}].symmetry = 'auto': the group of the shape's own mesh needs "
+                    "model = 'ppr' (model 'synthetic' has no mesh); name the class instead"
+                )
         return self
 
     def canonical(self) -> str:
@@ -170,13 +178,44 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> DatabaseSpec:
 
 
 # ----------------------------------------------------------------------------- rows
+def shape_symmetry(spec: DatabaseSpec, i: int):
+    """Symmetry of shape ``i``: its class name, or for ``symmetry = "auto"`` the group of its
+    mesh (``model = "ppr"``: :func:`ppr.mesh_symmetries` of the ``ppr.shapes`` mesh)."""
+    s = spec.shapes[i]
+    if s.symmetry != "auto":
+        return s.symmetry
+    if spec.model != "ppr":
+        raise ValueError(
+            f"shapes[{i}] ({s.name!r}): symmetry = 'auto' computes the group from the shape's "
+            f"mesh and needs model = 'ppr', got model = {spec.model!r}"
+        )
+    return as_symmetry(ppr.shapes.by_name(s.name, **s.params))
+
+
 def grids_for(spec: DatabaseSpec) -> list[AttitudeGrid]:
     return [
         AttitudeGrid(
-            spec.grid.kind, spec.grid.size, s.symmetry if spec.grid.reduce_symmetry else "none"
+            spec.grid.kind,
+            spec.grid.size,
+            shape_symmetry(spec, i) if spec.grid.reduce_symmetry else "none",
         )
-        for s in spec.shapes
+        for i in range(len(spec.shapes))
     ]
+
+
+def _names(spec: DatabaseSpec) -> dict:
+    """Label names of a database; ``symmetry_group`` holds each shape's rotations (the
+    group ``symmetry = "auto"`` resolves to, as quaternions)."""
+    return {
+        "shapes": [s.name for s in spec.shapes],
+        "materials": list(spec.materials),
+        "finishes": list(spec.finishes),
+        "finish_m": list(spec.finishes.values()),
+        "symmetry": [s.symmetry for s in spec.shapes],
+        "symmetry_group": [
+            symmetry_group(shape_symmetry(spec, i)).tolist() for i in range(len(spec.shapes))
+        ],
+    }
 
 
 def enumerate_rows(
@@ -336,13 +375,7 @@ def _store_attrs(spec: DatabaseSpec, signature_fn) -> tuple[dict, list, dict]:
         "ppr_database": FORMAT_VERSION,
         "spec": json.loads(spec.canonical()),
         "sensor": json.loads(sensor),
-        "names": {
-            "shapes": [s.name for s in spec.shapes],
-            "materials": list(spec.materials),
-            "finishes": list(spec.finishes),
-            "finish_m": list(spec.finishes.values()),
-            "symmetry": [s.symmetry for s in spec.shapes],
-        },
+        "names": _names(spec),
         "grids": [g.describe() for g in grids],
         "n_rows": n,
         "chunk_rows": spec.chunk_rows,
@@ -581,6 +614,14 @@ class TemplateBank:
     def n_bins(self) -> int:
         return self.signatures.shape[2]
 
+    def symmetry(self, shape_id: int):
+        """Symmetry of a shape for the attitude-error helpers: its class name, or for
+        ``symmetry = "auto"`` the ``(G, 4)`` rotations computed from its mesh."""
+        name = self.names["symmetry"][int(shape_id)]
+        if name == "auto":
+            return np.asarray(self.names["symmetry_group"][int(shape_id)], np.float64)
+        return name
+
     def labels(self, attribute: str) -> np.ndarray:
         """Integer class label per row for ``shape``, ``material``, ``finish`` or ``attitude``."""
         if attribute in ("shape", "material", "finish"):
@@ -654,13 +695,7 @@ def bank_in_memory(
         signatures=np.concatenate(sigs),
         **{k: rows[k] for k in PARAM_KEYS},
         quat=rows["quat"],
-        names={
-            "shapes": [s.name for s in spec.shapes],
-            "materials": list(spec.materials),
-            "finishes": list(spec.finishes),
-            "finish_m": list(spec.finishes.values()),
-            "symmetry": [s.symmetry for s in spec.shapes],
-        },
+        names=_names(spec),
         sensor=canonical_sensor(signature_fn.sensor),
         resolution_deg=[g.resolution_deg for g in grids],
     )

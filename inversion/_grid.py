@@ -31,15 +31,25 @@ Symmetry
     ``f`` is 2-Lipschitz and vanishes on the fundamental domain ``D`` (the Voronoi cell of the
     identity among ``G``), so the kept points still cover ``D`` within ``rho`` and therefore all
     of SO(3) modulo ``G``; about ``N / |G|`` points plus a boundary band remain.
+
+    ``G`` is a named class (:func:`symmetry_group`: ``dihedral:n``, ``octahedral``, ...) or the
+    group of a mesh computed from the mesh itself (:func:`ppr.mesh_symmetries`, through
+    :func:`as_symmetry`): its proper rotations reduce the grid, its improper elements give the
+    mirror images (:func:`inversion.candidate_modes`).
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import math
+from collections import OrderedDict
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+import ppr
 
 # Stated covering radius rho = C * N^(-1/3) radians for a full grid of N rotations. Measured with
 # ``covering_radius`` (2e5 Monte Carlo samples): Hopf nside 1..8 gives C = 3.77..4.02, the
@@ -144,6 +154,19 @@ def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     )
 
 
+def quat_matrix(q) -> np.ndarray:
+    """Host (NumPy) rotation matrices ``(..., 3, 3)`` of quaternions ``(..., 4)`` (normalized
+    first), as :func:`ppr.quat_to_matrix` without a JAX dispatch per call."""
+    q = np.asarray(q, np.float64)
+    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
+    rows = (
+        (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+        (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+        (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
+    )
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+
 def axis_angle_quat(axis, angle) -> np.ndarray:
     axis = np.asarray(axis, dtype=np.float64)
     axis = axis / np.linalg.norm(axis)
@@ -162,19 +185,76 @@ def geodesic_deg(p, q) -> np.ndarray | float:
     return np.degrees(2 * np.arccos(np.clip(d, 0, 1)))
 
 
-def body_mirror_normal(symmetry: str) -> np.ndarray | None:
-    """Unit normal of a mirror plane the named shape class has, or ``None`` if it implies none.
+def body_mirror_normal(symmetry) -> np.ndarray | None:
+    """Unit normal of a mirror plane the shape has, or ``None`` if it has none.
 
-    The classes of :func:`symmetry_group` are those of ``ppr.shapes``: ``dihedral:n`` stands
-    for an n-sided prism or a square box (point group D_nh) and ``octahedral`` for the cube
-    (O_h); both have the mirror ``z -> -z`` (normal ``(0, 0, 1)``). ``cyclic:n`` and ``none``
-    imply no mirror. A body's mirror symmetry gives the measurement a second, improper
-    ambiguity besides its rotations: see :func:`mirror_attitude`.
+    The named classes of :func:`symmetry_group` are those of ``ppr.shapes``: ``dihedral:n``
+    stands for an n-sided prism or a square box (point group D_nh) and ``octahedral`` for
+    the cube (O_h); both have the mirror ``z -> -z`` (normal ``(0, 0, 1)``). ``cyclic:n`` and
+    ``none`` imply no mirror. A :class:`ppr.MeshSymmetry` or :class:`ppr.Mesh` gives the
+    normal of its first mirror plane (:meth:`ppr.MeshSymmetry.mirror_normals`). A body's
+    mirror symmetry gives the measurement a second, improper ambiguity besides its
+    rotations: see :func:`mirror_attitude`.
     """
+    if not isinstance(symmetry, str):
+        normals = as_symmetry(symmetry).mirror_normals()
+        return normals[0] if len(normals) else None
     symmetry_group(symmetry)  # validates the name
     if symmetry.split(":")[0] in ("dihedral", "octahedral"):
         return np.array([0.0, 0.0, 1.0])
     return None
+
+
+_MESH_GROUPS: OrderedDict = OrderedDict()
+
+
+@functools.lru_cache(maxsize=64)
+def _named_symmetry(name: str) -> ppr.MeshSymmetry:
+    rot = quat_matrix(symmetry_group(name))
+    mats = [rot]
+    if body_mirror_normal(name) is not None:
+        mats.append(np.einsum("ij,gjk->gik", np.diag([1.0, 1.0, -1.0]), rot))
+    return ppr.MeshSymmetry.from_matrices(np.concatenate(mats))
+
+
+def _mesh_digest(mesh, tol: float) -> str:
+    h = hashlib.blake2b(digest_size=16)
+    for a in (mesh.vertices, mesh.faces, mesh.material_ids):
+        a = np.ascontiguousarray(np.asarray(a))
+        h.update(str((a.dtype, a.shape)).encode())
+        h.update(a.tobytes())
+    h.update(repr((mesh.parts, float(tol))).encode())
+    return h.hexdigest()
+
+
+def as_symmetry(symmetry, *, tol: float = 1e-6) -> ppr.MeshSymmetry:
+    """A shape's symmetry as a :class:`ppr.MeshSymmetry` (proper and improper elements).
+
+    ``symmetry``: a named class of :func:`symmetry_group` (``"dihedral:4"``: its rotations,
+    and for ``dihedral:n`` and ``octahedral`` the same rotations times the mirror
+    ``z -> -z``, i.e. D_nh and O_h about the body origin); a :class:`ppr.MeshSymmetry`
+    (returned as is); a :class:`ppr.Mesh` (:func:`ppr.mesh_symmetries` at ``tol``, cached per
+    mesh content and tolerance); or a ``(G, 4)`` array of quaternions (rotations only).
+    """
+    if isinstance(symmetry, ppr.MeshSymmetry):
+        return symmetry
+    if isinstance(symmetry, ppr.Mesh):
+        key = _mesh_digest(symmetry, tol)
+        if key not in _MESH_GROUPS:
+            _MESH_GROUPS[key] = ppr.mesh_symmetries(symmetry, tol=tol)
+            while len(_MESH_GROUPS) > 32:
+                _MESH_GROUPS.popitem(last=False)
+        _MESH_GROUPS.move_to_end(key)
+        return _MESH_GROUPS[key]
+    if isinstance(symmetry, str):
+        return _named_symmetry(symmetry)
+    q = np.asarray(symmetry, np.float64)
+    if q.ndim != 2 or q.shape[1] != 4 or len(q) == 0:
+        raise ValueError(
+            "symmetry must be a class name, a ppr.MeshSymmetry, a ppr.Mesh or (G, 4) "
+            f"quaternions, got {type(symmetry).__name__} of shape {q.shape}"
+        )
+    return ppr.MeshSymmetry.from_matrices(quat_matrix(q))
 
 
 def mesh_has_mirror(mesh, normal, rtol: float = 1e-9) -> bool:
@@ -291,13 +371,21 @@ def los_half_turn(q, los=(0.0, 0.0, 1.0)) -> np.ndarray:
     return canonical_sign(quat_mul(np.broadcast_to(np.concatenate([[0.0], a]), q.shape), q))
 
 
-def symmetry_group(name: str) -> np.ndarray:
+def symmetry_group(name) -> np.ndarray:
     """Rotation group of a shape as ``(|G|, 4)`` quaternions (identity first).
 
     ``"none"``; ``"cyclic:n"`` (n-fold about body z); ``"dihedral:n"`` (plus n two-fold axes in
     the xy plane: an n-sided prism, ``dihedral:4`` a square box like a 3U CubeSat,
-    ``dihedral:2`` a general cuboid); ``"octahedral"`` (cube, 24 rotations).
+    ``dihedral:2`` a general cuboid); ``"octahedral"`` (cube, 24 rotations). Or the proper
+    rotations of a :class:`ppr.MeshSymmetry` or of a :class:`ppr.Mesh`'s own symmetry
+    (:func:`as_symmetry`).
     """
+    if isinstance(name, ppr.MeshSymmetry | ppr.Mesh):
+        return canonical_sign(as_symmetry(name).quaternions())
+    if not isinstance(name, str):
+        raise ValueError(
+            f"symmetry_group: expected a class name, ppr.MeshSymmetry or ppr.Mesh, got {name!r}"
+        )
     if name == "none":
         gens = []
     elif name.startswith("cyclic:") or name.startswith("dihedral:"):
@@ -403,14 +491,22 @@ class AttitudeGrid:
     Not a pytree: a host-side description used to enumerate database rows.
     """
 
-    def __init__(self, kind: str = "hopf", size: int = 1, symmetry: str = "none"):
+    def __init__(self, kind: str = "hopf", size: int = 1, symmetry="none"):
+        """``symmetry``: a class name of :func:`symmetry_group`, a :class:`ppr.MeshSymmetry`
+        or a :class:`ppr.Mesh` (its own group, :func:`as_symmetry`); its rotations reduce
+        the grid."""
         if kind == "hopf":
             full = hopf_grid(int(size))
         elif kind == "fibonacci":
             full = fibonacci_grid(int(size))
         else:
             raise ValueError(f"unknown grid kind {kind!r}; use 'hopf' or 'fibonacci'")
-        self.kind, self.size, self.symmetry = kind, int(size), symmetry
+        self.kind, self.size = kind, int(size)
+        if isinstance(symmetry, str):
+            self.symmetry = symmetry
+        else:
+            symmetry = as_symmetry(symmetry)
+            self.symmetry = f"mesh:{symmetry.point_group}"
         self.resolution_deg = stated_resolution_deg(len(full), kind)
         self.group = symmetry_group(symmetry)
         keep = reduce_by_symmetry(full, self.group, self.resolution_deg)

@@ -68,6 +68,9 @@ __all__ = [
     "PhysicalBounds",
     "refine_bounded",
     "predicted",
+    "ModeFit",
+    "ModeCheck",
+    "mode_check",
     "SimulatorModel",
     "SimulatorKernel",
 ]
@@ -853,7 +856,7 @@ def mirror_check(
     model,
     data,
     fit: RefineResult,
-    symmetry: str,
+    symmetry,
     *,
     noise=None,
     world_normal=(0.0, 1.0, 0.0),
@@ -865,7 +868,8 @@ def mirror_check(
     """Refine from the mirror image of ``fit`` and compare the two optima.
 
     A body with a mirror plane (the named `symmetry` class's, e.g. ``"dihedral:4"`` for a 3U
-    CubeSat: :func:`inversion.body_mirror_normal`) at attitude ``P R sigma`` is the mirror
+    CubeSat, or the first of a :class:`ppr.MeshSymmetry` or :class:`ppr.Mesh`:
+    :func:`inversion.body_mirror_normal`) at attitude ``P R sigma`` is the mirror
     image of the scene at ``R``: identical range profiles, and Mueller profiles that differ
     only by the sign of the off-block elements (:func:`inversion.mirror_attitude`). Glossy
     returns have no off-block elements, so a local fit cannot tell the two attitudes apart,
@@ -882,21 +886,64 @@ def mirror_check(
     (:meth:`RefineResult.outside_bounds`), the mirror is refit from the same start with
     :func:`refine_bounded`, as one would the fit itself.
     """
-    from ._classifier import line_of_sight_error_deg
-    from ._grid import body_mirror_normal, mirror_attitude
+    from ._classifier import _describe, line_of_sight_error_deg
+    from ._grid import as_symmetry, body_mirror_normal, mirror_attitude, quat_matrix
 
     normal = body_mirror_normal(symmetry)
     if normal is None:
         raise ValueError(
-            f"mirror_check: symmetry {symmetry!r} implies no mirror plane "
-            "(use dihedral:n or octahedral for bodies that have one)"
+            f"mirror_check: symmetry {_describe(symmetry)} implies no mirror plane "
+            "(use dihedral:n or octahedral for bodies that have one, or mode_check)"
         )
     p = fit.params
     q_m = mirror_attitude(np.asarray(p.quaternion), normal, world_normal)
-    start = PhysicalParams(
-        jnp.asarray(q_m, p.m.dtype), p.m, p.n, p.corr_length, p.range_offset, p.gain
+    # a mesh's mirror plane passes through its centre c: the image moves by R (sigma c - c)
+    c = as_symmetry(symmetry).centre
+    sigma = np.eye(3) - 2.0 * np.outer(normal, normal)
+    rot = quat_matrix(np.asarray(p.quaternion, np.float64))
+    shift = float(rot[2] @ (sigma @ c - c))  # the line of sight is world +z
+    mirror = _refit_from(
+        model,
+        data,
+        fit,
+        q_m,
+        shift,
+        noise=noise,
+        max_steps=max_steps,
+        rounds=rounds,
+        solver=solver,
+        bounds=bounds,
     )
-    mirror = refine(
+    sep = line_of_sight_error_deg(
+        np.asarray(p.quaternion),
+        np.asarray(mirror.params.quaternion),
+        symmetry if isinstance(symmetry, str) else as_symmetry(symmetry),
+    )[0]
+    return MirrorCheck(
+        fit=fit,
+        mirror=mirror,
+        delta_deviance=float(mirror.cost - fit.cost),
+        separation_deg=float(sep),
+    )
+
+
+def _refit_from(
+    model, data, fit: RefineResult, q_start, range_shift: float, *, noise, max_steps, rounds,
+    solver, bounds,
+) -> RefineResult:
+    """Refine from ``fit``'s parameters with the attitude ``q_start`` and the range offset
+    moved by ``range_shift`` (same free groups and range scale as ``fit``); refit with
+    :func:`refine_bounded` when ``bounds`` is given and the unbounded optimum leaves it."""
+    p = fit.params
+    start = PhysicalParams(
+        jnp.asarray(q_start, p.m.dtype),
+        p.m,
+        p.n,
+        p.corr_length,
+        p.range_offset + jnp.asarray(range_shift, p.range_offset.dtype),
+        p.gain,
+    )
+    out = refine(
         model,
         data,
         [start],
@@ -907,8 +954,8 @@ def mirror_check(
         rounds=rounds,
         range_scale=fit.parametrisation.range_scale,
     )
-    if bounds is not None and mirror.outside_bounds(bounds):
-        mirror = refine_bounded(
+    if bounds is not None and out.outside_bounds(bounds):
+        out = refine_bounded(
             model,
             data,
             [start],
@@ -918,15 +965,229 @@ def mirror_check(
             rounds=rounds,
             range_scale=fit.parametrisation.range_scale,
         )
-    sep = line_of_sight_error_deg(
-        np.asarray(p.quaternion), np.asarray(mirror.params.quaternion), symmetry
-    )[0]
-    return MirrorCheck(
-        fit=fit,
-        mirror=mirror,
-        delta_deviance=float(mirror.cost - fit.cost),
-        separation_deg=float(sep),
-    )
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class ModeFit:
+    """One candidate mode of a fit refined (:func:`mode_check`).
+
+    - `mode`: the candidate (:class:`inversion.Mode`: start attitude, label, kind).
+    - `fit`: the refiner's optimum from that start.
+    - `delta_deviance`: ``fit.cost - (the checked fit).cost`` (``-2 log`` likelihood ratio
+      for :class:`PoissonCounts`).
+    - `separation_deg`: attitude angle of the optimum from the checked fit, modulo the exact
+      equivalences; `los_separation_deg`: the same for the body-frame line of sight (modulo
+      the exact rotations only).
+    - `duplicate_of`: index (in :attr:`ModeCheck.modes`) of the mode this optimum shares a
+      basin with (within the check's ``min_separation_deg`` modulo the exact equivalences),
+      the one of the group with the lowest deviance; ``None`` for that one itself.
+    - `weight`: posterior weight ``exp(-deviance / 2)`` normalized over the distinct modes
+      (0 for a duplicate): equal prior mass and equal posterior volume per mode, exact for
+      a parity or symmetry image whose data are the same up to the noise.
+    """
+
+    mode: Any
+    fit: RefineResult
+    delta_deviance: float
+    separation_deg: float
+    los_separation_deg: float
+    duplicate_of: int | None
+    weight: float
+
+    @property
+    def label(self) -> str:
+        return self.mode.label
+
+    @property
+    def kind(self) -> str:
+        return self.mode.kind
+
+    def to_dict(self) -> dict:
+        return {
+            **self.mode.to_dict(),
+            "deviance": float(self.fit.cost),
+            "delta_deviance": float(self.delta_deviance),
+            "separation_deg": float(self.separation_deg),
+            "los_separation_deg": float(self.los_separation_deg),
+            "duplicate_of": self.duplicate_of,
+            "weight": float(self.weight),
+            "refined_quaternion": [float(x) for x in np.asarray(self.fit.params.quaternion)],
+            "converged": bool(self.fit.success),
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class ModeCheck:
+    """Every candidate mode of a fit, refined and weighted (:func:`mode_check`).
+
+    ``modes[0]`` is the checked fit itself (label ``"fit"``). :attr:`weights` are the
+    posterior weights of the modes (0 for duplicates), :meth:`fits` the distinct optima to
+    sample (:func:`inversion.sample_modes`).
+    """
+
+    fit: RefineResult
+    modes: tuple[ModeFit, ...]
+
+    @property
+    def weights(self) -> np.ndarray:
+        return np.array([m.weight for m in self.modes])
+
+    @property
+    def distinct(self) -> tuple[ModeFit, ...]:
+        return tuple(m for m in self.modes if m.duplicate_of is None)
+
+    def fits(self) -> list[RefineResult]:
+        """The distinct optima, in mode order (for :func:`inversion.sample_modes`)."""
+        return [m.fit for m in self.distinct]
+
+    @property
+    def best(self) -> RefineResult:
+        """The optimum with the lowest deviance."""
+        return min((m.fit for m in self.modes), key=lambda f: f.cost)
+
+    def ambiguous(self, level: float = 0.05) -> bool:
+        """More than one distinct mode keeps a posterior weight above `level`."""
+        return int(np.sum(self.weights > level)) > 1
+
+    def summary(self) -> str:
+        lines = [f"mode check: {len(self.distinct)} distinct of {len(self.modes)} modes"]
+        for j, m in enumerate(self.modes):
+            dup = "" if m.duplicate_of is None else f", same mode as {m.duplicate_of}"
+            lines.append(
+                f"  {j}: {m.label}: weight {m.weight:.3g}, delta deviance "
+                f"{m.delta_deviance:+.4g}, {m.separation_deg:.3g} deg from the fit "
+                f"(line of sight {m.los_separation_deg:.3g} deg){dup}"
+            )
+        if self.ambiguous():
+            lines.append("  ambiguous: the data do not single out one mode")
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        return {
+            "n_distinct": len(self.distinct),
+            "ambiguous": self.ambiguous(),
+            "modes": [m.to_dict() for m in self.modes],
+        }
+
+
+def mode_check(
+    model,
+    data,
+    fit: RefineResult,
+    symmetry,
+    *,
+    noise=None,
+    mirror: bool = True,
+    near: bool = True,
+    half_turn_exact: bool = True,
+    los=(0.0, 0.0, 1.0),
+    world_normal=(0.0, 1.0, 0.0),
+    exact_tol: float = 1e-6,
+    min_separation_deg: float = 1.0,
+    max_steps: int = 200,
+    rounds: int = 2,
+    solver: str | Any = "lm",
+    bounds: PhysicalBounds | None = None,
+    modes=None,
+) -> ModeCheck:
+    """Refine every candidate mode of ``fit`` and weight the optima.
+
+    The candidates (:func:`inversion.candidate_modes`) are the mirror images of the scene
+    through the body's improper elements, the attitudes its near symmetries map the fit to,
+    and (``half_turn_exact=False``, a bistatic sensor) the half turn about the line of
+    sight; exactly equivalent attitudes give the same data and are not refit. Each is
+    refined from ``fit``'s parameters with its attitude and range offset
+    (:attr:`inversion.Mode.range_shift`), like :func:`mirror_check` does for the one mirror
+    image of a named class, which this generalizes: ``symmetry`` may be a named class, a
+    :class:`ppr.MeshSymmetry` or a :class:`ppr.Mesh` (its own group; pass
+    ``ppr.mesh_symmetries(mesh, tol=1e-2)`` to include near symmetries). Optima within
+    ``min_separation_deg`` of each other modulo the exact equivalences are one mode; each
+    distinct mode is weighted by ``exp(-deviance / 2)`` (:class:`ModeFit`).
+
+    `modes`: the candidates to refit (default :func:`inversion.candidate_modes` with these
+    settings; the fit must be first). `noise`, `max_steps`, `rounds`, `solver`, `bounds`:
+    as in :func:`mirror_check`.
+    """
+    from ._classifier import line_of_sight_error_deg
+    from ._grid import as_symmetry
+    from ._modes import candidate_modes, mode_separation_deg
+
+    sym = as_symmetry(symmetry)
+    q_fit = np.asarray(fit.params.quaternion, np.float64)
+    if modes is None:
+        modes = candidate_modes(
+            q_fit,
+            sym,
+            mirror=mirror,
+            near=near,
+            half_turn_exact=half_turn_exact,
+            los=los,
+            world_normal=world_normal,
+            exact_tol=exact_tol,
+            min_separation_deg=min_separation_deg,
+        )
+    modes = list(modes)
+    if not modes or modes[0].kind != "fit":
+        raise ValueError("mode_check: modes must start with the fit itself (kind 'fit')")
+    exact_rot = sym.quaternions()[sym.residuals[sym.determinants > 0] <= exact_tol]
+
+    sep_kw = {"half_turn_exact": half_turn_exact, "los": los, "exact_tol": exact_tol}
+
+    fits = [fit]
+    for m in modes[1:]:
+        fits.append(
+            _refit_from(
+                model,
+                data,
+                fit,
+                m.quaternion,
+                m.range_shift,
+                noise=noise,
+                max_steps=max_steps,
+                rounds=rounds,
+                solver=solver,
+                bounds=bounds,
+            )
+        )
+    quats = [np.asarray(f.params.quaternion, np.float64) for f in fits]
+    costs = np.array([f.cost for f in fits], float)
+    # group optima that share a basin; each group is represented by its lowest deviance
+    group = list(range(len(fits)))
+    for j in range(1, len(fits)):
+        for i in range(j):
+            sep = mode_separation_deg(quats[i], quats[j], sym, **sep_kw)
+            if group[i] == i and sep <= min_separation_deg:
+                group[j] = i
+                break
+    rep = {}
+    for j, g in enumerate(group):
+        if g not in rep or costs[j] < costs[rep[g]]:
+            rep[g] = j
+    distinct = sorted(rep.values())
+    finite = [j for j in distinct if np.isfinite(costs[j])]
+    weights = np.zeros(len(fits))
+    if finite:
+        c0 = min(costs[j] for j in finite)
+        for j in finite:
+            weights[j] = math.exp(-0.5 * (costs[j] - c0))
+        weights /= weights.sum()
+    out = []
+    for j, (m, f) in enumerate(zip(modes, fits, strict=True)):
+        r = rep[group[j]]
+        los_sep = line_of_sight_error_deg(q_fit, quats[j], exact_rot)[0]
+        out.append(
+            ModeFit(
+                mode=m,
+                fit=f,
+                delta_deviance=float(f.cost - fit.cost),
+                separation_deg=mode_separation_deg(q_fit, quats[j], sym, **sep_kw),
+                los_separation_deg=float(los_sep),
+                duplicate_of=None if r == j else r,
+                weight=float(weights[j]),
+            )
+        )
+    return ModeCheck(fit=fit, modes=tuple(out))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -63,7 +63,7 @@ def _expected(signature_fn, truth: dict, dtype) -> np.ndarray:
 def _score(bank: TemplateBank, res, truth: dict) -> dict:
     best = res.best(bank)
     out = {f"{a}_correct": best[f"{a}_id"] == truth[f"{a}_id"] for a in CLASS_ATTRIBUTES}
-    sym = bank.names["symmetry"]
+    sym = [bank.symmetry(i) for i in range(len(bank.names["symmetry"]))]
     err = np.array(
         [
             attitude_error_deg(truth["quat"][i], best["quat"][i], sym[int(truth["shape_id"][i])])[0]

@@ -27,7 +27,7 @@ from ._polarimetry import (
     polarizance,
     retardance,
 )
-from ._pose import quat_from_axis_angle, quat_to_matrix
+from ._pose import matrix_to_quat, quat_from_axis_angle, quat_to_matrix
 from ._pulse import (
     Profile,
     backscatter_terms,
@@ -41,6 +41,7 @@ from ._pulse import (
     window_size,
 )
 from ._scene import Pose, Pulse, RangeBins, Scene, Sensor, load_scene, load_sensor
+from ._symmetry import MeshSymmetry, mesh_symmetries, symmetry_label
 from ._visibility import VisibilityCaster
 
 __all__ = [
@@ -70,8 +71,12 @@ __all__ = [
     "load_mesh",
     "mesh_arrays",
     "subdivide",
+    "matrix_to_quat",
     "quat_from_axis_angle",
     "quat_to_matrix",
+    "MeshSymmetry",
+    "mesh_symmetries",
+    "symmetry_label",
     "Pose",
     "Pulse",
     "RangeBins",

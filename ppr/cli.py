@@ -1764,7 +1764,8 @@ recomputes missing or corrupt chunks in place; a complete, valid one is not rebu
 --overwrite. Summary: --out/database.json (rows, chunks, rows per second).
 
 Config (configs/databases/*.toml): name; model ("synthetic" stand-in or "ppr"); materials
-(library names); [finishes] name = Blinn-Phong exponent m; [[shapes]] name, symmetry;
+(library names); [finishes] name = Blinn-Phong exponent m; [[shapes]] name, symmetry
+(a class such as "dihedral:4", or "auto": the group of the shape's own mesh, model "ppr");
 [grid] kind ("hopf"), size (nside: angular resolution), reduce_symmetry; [sensor] channels
 (full, stokes, copol, circular), n_bins, bin_width_m (metres), pulse_fwhm_s (seconds);
 chunk_rows; compute_dtype. Several hosts: run with --shard-index i --num-shards N against

@@ -176,3 +176,33 @@ def test_mesh_has_mirror_on_the_shapes_the_named_classes_stand_for():
     assert mesh_has_mirror(panels, [0.0, 0.0, 1.0]) and mesh_has_mirror(panels, [0.0, 1.0, 0.0])
     with pytest.raises(ValueError, match="vertices"):
         mesh_has_mirror(np.zeros((0, 3)), [0.0, 0.0, 1.0])
+
+
+def test_grid_and_database_take_a_mesh_group():
+    """The attitude grid reduced by a 3U CubeSat's own group (D4h, computed from the mesh) is
+    the grid reduced by the named class that stands for it (dihedral:4); a database shape
+    with symmetry = "auto" (model ppr) gets that grid and records the group's 8 rotations;
+    the synthetic model, which has no mesh, refuses "auto" when the spec is read."""
+    import ppr
+    from inversion._database import _names, grids_for, spec_from_dict
+
+    mesh = ppr.shapes.cubesat(3)
+    by_mesh = AttitudeGrid("hopf", 2, mesh)
+    by_name = AttitudeGrid("hopf", 2, "dihedral:4")
+    assert by_mesh.describe()["symmetry"] == "mesh:D4h"
+    np.testing.assert_array_equal(by_mesh.quats, by_name.quats)
+    spec = {
+        "name": "t",
+        "model": "ppr",
+        "shapes": [{"name": "cubesat", "symmetry": "auto", "params": {"units": 3}}],
+        "materials": ["aluminium"],
+        "finishes": {"rough": 10.0},
+        "grid": {"size": 2},
+    }
+    (grid,) = grids_for(spec_from_dict(spec))
+    np.testing.assert_array_equal(grid.quats, by_name.quats)
+    assert len(_names(spec_from_dict(spec))["symmetry_group"][0]) == 8
+    spec["model"] = "synthetic"
+    spec["shapes"] = [{"name": "box3u", "symmetry": "auto"}]
+    with pytest.raises(ValueError, match=r"shapes\[0\]\.symmetry = 'auto': .* needs model = 'ppr'"):
+        spec_from_dict(spec)
