@@ -61,7 +61,7 @@ def test_default_config_loads_and_bad_configs_are_clear(tmp_path):
     with pytest.raises(ConfigError, match=r"sampler.n_walkerz.*unknown key"):
         load_mcmc_config(bad)
     bad.write_text('[priors.gain]\nkind = "loguniform"\nlow = nan\nhigh = 1.0\n')
-    with pytest.raises(ConfigError, match=r"priors.gain.low is not finite"):
+    with pytest.raises(ConfigError, match=r"priors.gain.low = nan: not finite"):
         load_mcmc_config(bad)
     bad.write_text("[sampler]\nn_steps = 100\nburn_in = 200\n")
     with pytest.raises(ConfigError, match="burn_in"):
