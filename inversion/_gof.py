@@ -81,11 +81,15 @@ __all__ = [
 DEFAULT_MISMATCH_P = 1e-3
 
 # asymptotic series in 1/lam of the Poisson unit deviance d(Y; lam): mean, variance, third
-# cumulant, and Cov(d, (Y - lam)^2) - 2 lam (tests/test_gof.py checks them against the sums)
+# cumulant, Cov(d, (Y - lam)^2) - 2 lam and E[(d - E d)^2 (Y - lam)] (derived from the Poisson
+# central moments with a computer algebra system; tests/test_gof.py checks them against the
+# sums)
 _E_SERIES = (1.0, 1 / 6, 1 / 6, 19 / 60, 9 / 10, 863 / 252)
 _V_SERIES = (2.0, 2 / 3, 4 / 3, 701 / 180, 449 / 30, 90329 / 1260)
 _K3_SERIES = (8.0, 4.0, 12.0, 283 / 6, 1144 / 5, 1430593 / 1080)
 _C2_SERIES = (0.0, 1 / 6, 2 / 3, 57 / 20, 72 / 5, 6425 / 63)
+# E[(d - E d)^2 (Y - lam)]
+_M21_SERIES = (0.0, -4 / 3, -4.0, -929 / 60, -1114 / 15, -35863 / 84)
 SERIES_FROM = 100.0  # lam above: the series (error < 1e-9 of the sums); at or below: exact sums
 _CHUNK = 8192  # values of lam per pmf table (memory ~ CHUNK x max(y) x 8 B)
 
@@ -145,8 +149,7 @@ def _poisson_exact(lam: np.ndarray, a: np.ndarray) -> dict:
 
 def _poisson_fields(lam: np.ndarray, a: np.ndarray | None = None) -> dict:
     """:data:`_FIELDS` of the Poisson unit deviance at each ``lam`` (exact sums up to
-    :data:`SERIES_FROM`, series above; there the ``a``-terms of the third cumulant, below
-    ``1e-4`` of it, are left out)."""
+    :data:`SERIES_FROM`, series above)."""
     flat = lam.ravel()
     a = np.zeros_like(flat) if a is None else np.asarray(a, np.float64).ravel()
     out = {k: np.empty(flat.size) for k in _FIELDS}
@@ -166,8 +169,13 @@ def _poisson_fields(lam: np.ndarray, a: np.ndarray | None = None) -> dict:
         out["d2"][big] = _series(_E_SERIES, lb, 2)
         # Cov(d, Y) = lam d mean / d lam (differentiate the pmf sum)
         out["var"][big] = _series(_V_SERIES, lb) - 2.0 * ab * lb * d1 + ab * ab * lb
-        out["k3"][big] = _series(_K3_SERIES, lb)
-        out["c2"][big] = 2.0 + _series(_C2_SERIES, lb) / lb - ab  # kappa_3(Y) = lam
+        cov2 = 2.0 * lb + _series(_C2_SERIES, lb)  # Cov(d, (Y - lam)^2)
+        # k3(d - a Y) = k3(d) - 3 a E[(d - Ed)^2 (Y - lam)] + 3 a^2 Cov(d, (Y - lam)^2)
+        #               - a^3 k3(Y), with k3(Y) = lam
+        out["k3"][big] = (
+            _series(_K3_SERIES, lb) - 3.0 * ab * _series(_M21_SERIES, lb) + 3.0 * ab * ab * cov2
+        ) - ab**3 * lb
+        out["c2"][big] = cov2 / lb - ab
         out["var_y"][big] = lb
         out["k4n"][big] = 1.0 / lb
     return {k: v.reshape(lam.shape) for k, v in out.items()}
@@ -218,11 +226,11 @@ def _stirling2(n: int) -> list[int]:
 
 
 def _counting_cumulants(mu, g, cells):
-    """Cumulants 3, 4, 6 of ``g N`` with ``N`` negative binomial (mean ``mu / g``, ``cells``
+    """Cumulants 3 to 6 of ``g N`` with ``N`` negative binomial (mean ``mu / g``, ``cells``
     speckle cells; Poisson for ``cells = None``), in data units."""
     lam = mu / g
     out = {}
-    for n in (3, 4, 6):
+    for n in (3, 4, 5, 6):
         if cells is None:
             k = lam
         else:
@@ -233,10 +241,21 @@ def _counting_cumulants(mu, g, cells):
     return out
 
 
+def _variance_call(noise, mu, phys):
+    return noise.variance(mu, phys)
+
+
+_variance_jit = None
+
+
 def _variance(noise, mu, phys):
+    global _variance_jit
+    import equinox as eqx
     import jax.numpy as jnp
 
-    v = np.asarray(noise.variance(jnp.asarray(mu), phys), np.float64)
+    if _variance_jit is None:  # one small program per noise model and shape (eager: ~1 ms)
+        _variance_jit = eqx.filter_jit(_variance_call)
+    v = np.asarray(_variance_jit(noise, jnp.asarray(mu), phys), np.float64)
     v = np.broadcast_to(v, mu.shape)
     if not np.all(np.isfinite(v)) or np.any(v <= 0):
         raise ValueError(
@@ -246,33 +265,69 @@ def _variance(noise, mu, phys):
     return v
 
 
-def _pearson_fields(noise, mu, phys) -> dict:
-    """:data:`_FIELDS` of ``(y - mu)^2 / v`` (module docstring)."""
-    v = _variance(noise, mu, phys)
-    ones = np.ones_like(mu)
-    if _kind(noise) != "counting":
-        var, k3 = 2.0 * ones, 8.0 * ones
-    else:
+def _variance_derivatives(noise, mu, phys):
+    """``v'(mu)`` and ``v''(mu)`` of an elementwise variance function (closed forms for the
+    library's models, forward-mode autodiff for others)."""
+    import jax
+    import jax.numpy as jnp
+
+    from ._refine import GaussianNoise
+
+    if isinstance(noise, GaussianNoise):
+        return np.zeros_like(mu), np.zeros_like(mu)
+    if _kind(noise) == "counting":  # v = g max(mu, 0) + max(mu, 0)^2 / M + floor
+        g = 1.0
+        if noise.counts_per_photon == "gain" and phys is not None:
+            g = float(np.asarray(phys.gain))
+        inv_m = 0.0 if noise.speckle_cells is None else 1.0 / float(noise.speckle_cells)
+        pos = mu > 0
+        return np.where(pos, g + 2.0 * mu * inv_m, 0.0), np.where(pos, 2.0 * inv_m, 0.0)
+    x = jnp.asarray(mu)
+    ones = jnp.ones_like(x)
+
+    def first(m):
+        return jax.jvp(lambda t: noise.variance(t, phys), (m,), (ones,))[1]
+
+    v1, v2 = jax.jvp(first, (x,), (ones,))
+    return np.asarray(v1, np.float64), np.asarray(v2, np.float64)
+
+
+def _pearson_fields(noise, mu, phys, a=None) -> dict:
+    """:data:`_FIELDS` of ``X = (y - mu)^2 / v`` (module docstring) and of ``X - a y``."""
+    v = np.array(_variance(noise, mu, phys))
+    a = np.zeros_like(mu) if a is None else np.asarray(a, np.float64)
+    zero = np.zeros_like(mu)
+    if _kind(noise) == "counting":
         g = 1.0
         if noise.counts_per_photon == "gain" and phys is not None:
             g = float(np.asarray(phys.gain))
         k = _counting_cumulants(np.maximum(mu, 0.0), g, noise.speckle_cells)
-        # v = g mu + mu^2 / M + floor; the floor is Gaussian (no higher cumulants)
-        m4 = k[4] + 3.0 * v * v
-        m6 = k[6] + 15.0 * k[4] * v + 10.0 * k[3] ** 2 + 15.0 * v**3
-        var = (m4 - v * v) / (v * v)
-        k3 = (m6 - 3.0 * v * m4 + 2.0 * v**3) / v**3
-    zero = np.zeros_like(mu)
-    # Cov(X, (y - mu)^2) / v = Var((y - mu)^2) / v^2 = var; kappa_4 / v^2 = var - 2
+    else:  # Gaussian data: no cumulants beyond the variance
+        k = dict.fromkeys((3, 4, 5, 6), zero)
+    # central moments of y (the floor is Gaussian: it enters v only)
+    m4 = k[4] + 3.0 * v * v
+    m5 = k[5] + 10.0 * k[3] * v
+    m6 = k[6] + 15.0 * k[4] * v + 10.0 * k[3] ** 2 + 15.0 * v**3
+    var_x = (m4 - v * v) / (v * v)
+    k3_x = (m6 - 3.0 * v * m4 + 2.0 * v**3) / v**3
+    v1, v2 = _variance_derivatives(noise, mu, phys)
+    # moments of X - a y: Cov(X, y) = k3 / v; E[(X - 1)^2 (y - mu)] = (m5 - 2 v k3) / v^2;
+    # E[(X - 1)(y - mu)^2] = (m4 - v^2) / v
     return {
-        "mean": ones,
+        "mean": np.ones_like(mu),
         "d1": zero,
         "d2": zero,
-        "var": var,
-        "k3": k3,
-        "c2": var,
-        "var_y": np.array(v),
-        "k4n": var - 2.0,
+        "var": var_x - 2.0 * a * k[3] / v + a * a * v,
+        "k3": k3_x
+        - 3.0 * a * (m5 - 2.0 * v * k[3]) / (v * v)
+        + 3.0 * a * a * (m4 - v * v) / v
+        - a**3 * k[3],
+        "c2": var_x - a * k[3] / v,
+        "var_y": v,
+        "k4n": k[4] / (v * v),
+        # d/d mu of E[X] at fixed data is -v'/v: the fitted weights move the statistic
+        "b": v1 / v,
+        "xm": v1 * v1 / v - 0.5 * v2 - k[3] * v1 / (v * v),
     }
 
 
@@ -306,8 +361,11 @@ def _poisson_lam(noise, mu):
 
 def _fields(noise, mu, phys, a=None) -> dict:
     if _kind(noise) == "poisson":
-        return _poisson_fields(_poisson_lam(noise, mu), a)
-    return _pearson_fields(noise, mu, phys)
+        f = _poisson_fields(_poisson_lam(noise, mu), a)
+        f["b"] = f["d1"]  # the plug-in mean moves with the fit; the deviance's slope is 0
+        f["xm"] = np.zeros_like(f["d1"])
+        return f
+    return _pearson_fields(noise, mu, phys, a)
 
 
 def deviance_moments(expected, noise, phys=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -321,21 +379,31 @@ def _fitted_moments(noise, mu, phys, jacobian, rtol):
     """Null (mean, variance, third cumulant) of the deviance after a fit whose expectation has
     the Jacobian ``jacobian`` (``(n, P)``) at ``mu``, and the number of observable directions.
 
-    To first order the fit moves ``mu`` by ``delta = H W (y - mu)``, ``H = J I^+ J^T``,
-    ``W = diag(1 / var(y))``, ``I = J^T W J`` (``I^+``: its observable-subspace inverse,
-    rank ``p``). The deviance then drops by the quadratic form ``Q = (y - mu)^T W H W
-    (y - mu)`` (the likelihood-ratio statistic: mean ``p``, variance
-    ``2 p + sum_i h_i^2 kappa_4 / var^2``, ``h_i = H_ii / var_i``), and the plug-in mean
-    ``sum_i E_i(mu_hat)`` moves with ``delta`` too: by ``sum_i E'_i delta_i = a^T (y - mu)``,
-    ``a = W H E'`` (first order: large for sparse counts, where ``E ~ 2 mu log(1 / mu)``),
-    and on average by ``1/2 sum_i E''_i H_ii``. So
+    Write the statistic as ``S = sum_i s(y_i, mu_i)`` and compare it with its plug-in mean
+    ``sum_i E_i(mu_hat)``. To first order the fit moves ``mu`` by ``delta = H W (y - mu)``,
+    ``H = J I^+ J^T``, ``W = diag(1 / var(y))``, ``I = J^T W J`` (``I^+``: its
+    observable-subspace inverse, rank ``p``; ``h_i = H_ii W_ii``, ``sum h_i = p``). Expanding
+    ``T = S(y, mu_hat) - sum E_i(mu_hat)`` about ``mu``:
 
-        E[D_fit - sum E_i(mu_hat)]   = -p - 1/2 sum_i E''_i H_ii
-        Var[D_fit - sum E_i(mu_hat)] = sum_i Var(d_i - a_i y_i) + Var Q
-                                       - 2 sum_i h_i Cov(d_i - a_i y_i, (y_i - mu_i)^2) / var_i
+    - first order: ``sum_i (E[ds_i/dmu] - E'_i) delta_i = -a^T (y - mu)``, ``a = W H b``,
+      ``b = E' - E[ds/dmu]``. For the Poisson deviance ``E[dd/dmu] = 0`` and ``b = E'``,
+      large for sparse counts where ``E ~ 2 mu log(1 / mu)``: the plug-in mean follows the
+      counts. For the Pearson statistic ``E' = 0`` but ``E[ds/dmu] = -v'/v``: weights taken
+      at the fitted ``mu`` follow the counts when the variance depends on ``mu``;
+    - second order: the likelihood-ratio drop ``Q = (y - mu)^T W H W (y - mu)`` (mean ``p``,
+      variance ``2 p + sum_i h_i^2 kappa_4 / var^2``), the curvature ``-1/2 sum E''_i H_ii``
+      of the plug-in mean, and for a variance depending on ``mu`` the mean
+      ``sum_i h_i (v'^2 / v - v''/2 - kappa_3 v' / v^2)`` (curvature of ``1/v`` and the
+      covariance of ``(y - mu)^2`` with ``delta``).
 
-    and the third cumulant is ``sum_i k3(d_i - a_i y_i) - 8 p``. For a Gaussian model
-    ``E_i = 1``: no plug-in terms, and the variance is ``2 (n - p)`` for Gaussian data.
+    So, with ``t_i = s_i - a_i y_i``:
+
+        E[T]   = sum_i E_i - p - 1/2 sum_i E''_i H_ii + sum_i h_i xm_i
+        Var[T] = sum_i Var t_i + Var Q - 2 sum_i h_i Cov(t_i, (y_i - mu_i)^2) / var_i
+        k3[T]  = sum_i k3 t_i - 8 p
+
+    For Gaussian data with a constant variance this is ``n - p``, ``2 (n - p)``,
+    ``8 (n - p)``: the chi-square law. ``tests/test_gof.py`` checks it by brute force.
     """
     from ._observability import observable_inverse
 
@@ -348,10 +416,15 @@ def _fitted_moments(noise, mu, phys, jacobian, rtol):
     inv, p = observable_inverse(J.T @ (w[:, None] * J), rtol)
     JI = J @ inv
     H_diag = np.sum(JI * J, axis=1)
-    a = w * (JI @ (J.T @ f0["d1"].ravel()))
+    a = w * (JI @ (J.T @ f0["b"].ravel()))
     f = _fields(noise, mu, phys, a.reshape(mu.shape)) if np.any(a) else f0
     h = H_diag * w
-    mean = float(np.sum(f["mean"])) - p - 0.5 * float(np.sum(f["d2"].ravel() * H_diag))
+    mean = (
+        float(np.sum(f["mean"]))
+        - p
+        - 0.5 * float(np.sum(f["d2"].ravel() * H_diag))
+        + float(np.sum(h * f["xm"].ravel()))
+    )
     var_q = 2.0 * p + float(np.sum(h * h * f["k4n"].ravel()))
     var = float(np.sum(f["var"])) + var_q - 2.0 * float(np.sum(h * f["c2"].ravel()))
     third = float(np.sum(f["k3"])) - 8.0 * p
@@ -404,6 +477,12 @@ class GoodnessOfFit:
             f"z = {self.z:+.2f}, p = {self.p_value:.3g}: {verdict}"
         )
 
+    def tail(self, deviance):
+        """Upper-tail probability of the null law at other deviance values (scalar or array):
+        ``tail(self.deviance) == p_value``."""
+        var = self.std**2
+        return _upper_tail(deviance, self.expected, var, self.skewness * var**1.5)
+
     def to_dict(self) -> dict:
         """Plain JSON-ready values (floats, ints, bools; no infinities)."""
         out = dataclasses.asdict(self)
@@ -413,16 +492,20 @@ class GoodnessOfFit:
         return out
 
 
-def _upper_tail(x: float, mean: float, var: float, k3: float) -> float:
-    """P(X >= x) for the Pearson type III law with the given cumulants (normal if unskewed)."""
+def _upper_tail(x, mean: float, var: float, k3: float):
+    """P(X >= x) for the Pearson type III law with the given cumulants (normal if unskewed);
+    ``x`` scalar or array."""
+    x = np.asarray(x, np.float64)
     sd = math.sqrt(var)
     skew = k3 / var**1.5
     if not skew > 1e-4:  # a symmetric null (large counts): the normal limit
-        return float(stats.norm.sf((x - mean) / sd))
-    shape = 4.0 / skew**2
-    scale = 0.5 * sd * skew
-    loc = mean - shape * scale
-    return float(special.gammaincc(shape, max((x - loc) / scale, 0.0)))
+        out = stats.norm.sf((x - mean) / sd)
+    else:
+        shape = 4.0 / skew**2
+        scale = 0.5 * sd * skew
+        loc = mean - shape * scale
+        out = special.gammaincc(shape, np.maximum((x - loc) / scale, 0.0))
+    return float(out) if out.ndim == 0 else out
 
 
 def goodness_of_fit(
