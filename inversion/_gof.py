@@ -63,6 +63,7 @@ variance and ``24 lambda`` to the third cumulant (the non-central chi-square's c
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -350,6 +351,23 @@ def deviance_terms(data, expected, noise, phys=None) -> np.ndarray:
         noise.check_data(y)
         return _unit_poisson_deviance(y, _poisson_lam(noise, mu))
     return (y - mu) ** 2 / _variance(noise, mu, phys)
+
+
+def deviance_function(noise, phys=None):
+    """``f(data, expected) -> float``: the summed :func:`deviance_terms` without the input
+    checks (for host-side fits that evaluate it many times on checked data)."""
+    if _kind(noise) == "poisson":
+        return functools.partial(_poisson_deviance_sum, b=float(noise.background))
+    return functools.partial(_pearson_sum, noise=noise, phys=phys)
+
+
+def _poisson_deviance_sum(y, mu, b):
+    lam = mu + b
+    return float(np.sum(_unit_poisson_deviance(y, np.where(lam > 0.5 * b, lam, b))))
+
+
+def _pearson_sum(y, mu, noise, phys):
+    return float(np.sum((y - mu) ** 2 / _variance(noise, mu, phys)))
 
 
 def _poisson_lam(noise, mu):

@@ -35,6 +35,8 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import equinox as eqx
+import jax
 import numpy as np
 
 __all__ = [
@@ -43,6 +45,7 @@ __all__ = [
     "observability",
     "observability_from_fisher",
     "observable_inverse",
+    "line_of_sight_of",
     "DEFAULT_RTOL",
 ]
 
@@ -167,6 +170,18 @@ class Observability:
         }
 
 
+def line_of_sight_of(model) -> np.ndarray | None:
+    """Unit vector toward the sensor in the sensor frame of a model built on a
+    :class:`ppr.Sensor` (its bisector, e.g. :class:`~inversion.SimulatorModel`); ``None`` for
+    a model without one (:func:`observability` then uses ``+z``)."""
+    sensor = getattr(getattr(model, "pure_model", model), "sensor", None)
+    w = getattr(sensor, "bisector", None)
+    if w is None:
+        return None
+    w = np.asarray(w, np.float64)
+    return w / np.linalg.norm(w)
+
+
 def _index(labels, label):
     for i, lab in enumerate(labels):
         if lab == label or lab.split(" [")[0] == label:
@@ -207,17 +222,26 @@ def observability(
             "RefineResult from inversion.refine/refine_bounded or a CramerRao from "
             "inversion.cramer_rao"
         )
-    return observability_from_fisher(fisher, param, line_of_sight=line_of_sight, rtol=rtol)
+    return observability_from_fisher(
+        fisher,
+        param,
+        line_of_sight=line_of_sight,
+        rtol=rtol,
+        physical_jacobian=getattr(result, "physical_jacobian", None),
+    )
 
 
 def observability_from_fisher(
-    fisher, parametrisation, *, line_of_sight=None, rtol: float | None = None
+    fisher,
+    parametrisation,
+    *,
+    line_of_sight=None,
+    rtol: float | None = None,
+    physical_jacobian=None,
 ) -> Observability:
     """:func:`observability` of a Fisher matrix in the solver coordinates of
-    ``parametrisation`` (whose reference is the parameter point)."""
-    import jax
-    import jax.numpy as jnp
-
+    ``parametrisation`` (whose reference is the parameter point); ``physical_jacobian``
+    ``d physical_vector / d theta`` there if known (else computed)."""
     from ._refine import _from_physical
 
     rtol = DEFAULT_RTOL if rtol is None else float(rtol)
@@ -236,8 +260,12 @@ def observability_from_fisher(
         raise ValueError("observability: the Fisher matrix has non-finite entries (failed fit?)")
     F = 0.5 * (F + F.T)
     theta = _from_physical(param, param.reference)
-    G = np.asarray(jax.jacfwd(param.physical_vector)(jnp.asarray(theta)), np.float64)
-    values = np.asarray(param.physical_vector(theta), np.float64)
+    if physical_jacobian is None:
+        G, values = _physical_jacobian(param, theta)
+    else:
+        G = np.asarray(physical_jacobian, np.float64)
+        values = np.asarray(_physical_vector(param, theta))
+    G, values = np.asarray(G, np.float64), np.asarray(values, np.float64)
     labels, tlabels = param.labels, param.theta_labels
 
     own, keep, s, w, U, null, cov_theta = _decompose(F, rtol)
@@ -277,6 +305,16 @@ def observability_from_fisher(
         rtol=rtol,
         condition=cond,
     )
+
+
+@eqx.filter_jit
+def _physical_jacobian(param, theta):
+    return jax.jacfwd(param.physical_vector)(theta), param.physical_vector(theta)
+
+
+@eqx.filter_jit
+def _physical_vector(param, theta):
+    return param.physical_vector(theta)
 
 
 def _decompose(F, rtol):

@@ -50,7 +50,7 @@ from jax.custom_derivatives import SymbolicZero
 
 from ppr._types import Array, Float
 
-from ._params import DEFAULT_FREE, Parametrisation, PhysicalParams, lift_start
+from ._params import DEFAULT_FREE, GAIN_RANGE, Parametrisation, PhysicalParams, lift_start
 
 __all__ = [
     "GaussianNoise",
@@ -284,8 +284,9 @@ class RefineResult:
       in solver coordinates; `sigma` the 1-sigma errors (marginal: infinite for a parameter
       with weight in an unconstrained direction); `condition` the condition number of
       ``J^T J`` (large: some parameter is not constrained by the data); `fisher_theta` the
-      matrix ``J^T J`` itself. :meth:`observability` names the unconstrained directions and
-      gives finite uncertainties in the observable subspace.
+      matrix ``J^T J`` itself and `physical_jacobian` ``d physical_vector / d theta``.
+      :meth:`observability` names the unconstrained directions and gives finite
+      uncertainties in the observable subspace.
     - `starts`: summaries of every start, best first; `elapsed_s`: wall time.
     """
 
@@ -307,6 +308,7 @@ class RefineResult:
     elapsed_s: float
     method: str = "levenberg_marquardt"
     fisher_theta: np.ndarray | None = None
+    physical_jacobian: np.ndarray | None = None
 
     @property
     def reduced_chi2(self) -> float:
@@ -368,11 +370,22 @@ class RefineResult:
                 "  outside the physical box (refit with refine_bounded): " + "; ".join(out)
             )
         vec = np.asarray(self.parametrisation.physical_vector(jnp.asarray(self.theta)))
-        for lab, v, s in zip(self.labels, vec, self.sigma, strict=True):
-            note = ""
+        sigma, own, det = self.sigma, np.zeros(len(vec), bool), np.ones(len(vec), bool)
+        fisher = self.fisher_theta
+        if fisher is not None and np.all(np.isfinite(fisher)):
+            # finite uncertainties in the observable subspace, the null directions named
+            ob = self.observability()
+            sigma, own, det = ob.sigma, ~ob.observable, ob.determined
+            if ob.unobservable:
+                lines.append("  unobservable: " + "; ".join(ob.names))
+        for lab, v, s, o, d in zip(self.labels, vec, sigma, own, det, strict=True):
             if (lab.startswith("m[") or lab.startswith("n_im[")) and v <= 1.001e-9:
-                note = "  (on the boundary: Gaussian sigma not meaningful)"
-            lines.append(f"  {lab:>22s} = {v: .6g} +- {s:.3g}{note}")
+                lines.append(f"  {lab:>22s} = {v: .6g}  (on the boundary: no Gaussian sigma)")
+            elif o:
+                lines.append(f"  {lab:>22s} = {v: .6g}  (unobservable on its own)")
+            else:
+                note = "" if d else "  (in the observable subspace)"
+                lines.append(f"  {lab:>22s} = {v: .6g} +- {s:.3g}{note}")
         return "\n".join(lines)
 
 
@@ -594,7 +607,8 @@ class CramerRao:
     - `condition`: condition number of the Fisher matrix (huge: a parameter the measurement
       cannot determine at all, e.g. the attitude about a symmetry axis).
     - `fisher_theta`: the Fisher matrix in the solver coordinates of `parametrisation`
-      (reference: the point); :meth:`observability` names its unobservable directions.
+      (reference: the point), `physical_jacobian` ``d physical_vector / d theta`` there;
+      :meth:`observability` names the unobservable directions.
     """
 
     covariance: np.ndarray
@@ -602,6 +616,7 @@ class CramerRao:
     condition: float
     fisher_theta: np.ndarray | None = None
     parametrisation: Parametrisation | None = None
+    physical_jacobian: np.ndarray | None = None
 
     @property
     def sigma(self) -> np.ndarray:
@@ -644,6 +659,7 @@ def cramer_rao(
         condition=cond,
         fisher_theta=JTJ,
         parametrisation=param,
+        physical_jacobian=G,
     )
 
 
@@ -847,7 +863,7 @@ def _finish(model, noise, data_j, best: StartSummary, ordered, free, range_scale
     else:
         param = Parametrisation(phys, free, range_scale)
         p = param.size
-        cov = cov_theta = fisher = np.full((p, p), np.nan)
+        cov = cov_theta = fisher = G = np.full((p, p), np.nan)
         labels, cond, chi2 = param.labels, np.inf, np.inf
     param = Parametrisation(phys, free, range_scale)
     n_data = int(np.prod(data_j.shape))
@@ -870,6 +886,7 @@ def _finish(model, noise, data_j, best: StartSummary, ordered, free, range_scale
         elapsed_s=time.perf_counter() - t0,
         method=method,
         fisher_theta=fisher,
+        physical_jacobian=G,
     )
 
 
@@ -1272,7 +1289,9 @@ class PhysicalBounds:
     Defaults: ``n'`` in [0.05, 5] (not [1, 5]: metals have ``n' < 1``, e.g. aluminium 0.94,
     gold 0.54, silver 0.054 at 532 nm, PHYSICS.md section 11), ``n''`` in [0, 15], ``m`` in
     [0, 1e6], correlation length in [1e-8, 1e-2] m, range offset in [-1, 1] m, gain in
-    [1e-8, 1e8]; the attitude rotation vector is bounded by ``max_rotation_deg`` about the start.
+    :data:`~inversion._params.GAIN_RANGE` = [1e-6, 1e18] counts per (m^2 sr^-1) (wide: any
+    real measurement is inside); the attitude rotation vector is bounded by
+    ``max_rotation_deg`` about the start.
     """
 
     n_re: tuple[float, float] = (0.05, 5.0)
@@ -1280,7 +1299,7 @@ class PhysicalBounds:
     m: tuple[float, float] = (0.0, 1e6)
     corr_length: tuple[float, float] = (1e-8, 1e-2)
     range_offset: tuple[float, float] = (-1.0, 1.0)
-    gain: tuple[float, float] = (1e-8, 1e8)
+    gain: tuple[float, float] = GAIN_RANGE
     max_rotation_deg: float = 180.0
 
     def __post_init__(self):

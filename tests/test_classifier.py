@@ -306,3 +306,74 @@ def test_half_turn_about_line_of_sight_in_attitude_errors():
     )
     with pytest.raises(ValueError, match="unit 3-vector"):
         los_half_turn(q, los=(0.0, 0.0, 2.0))
+
+
+def _lobe_signatures(points, normals, q, n_bins=32):
+    """A smooth toy signature model (NumPy): point scatterers with normals, amplitude
+    ``1 + cos/2`` toward the sensor (+z), Gaussian pulse of 2.5 bins at depth ``-3 z``; two
+    channels, the second weighted by ``n_x^2 + 0.1`` (attitude-dependent, like polarization).
+    Profiles normalized to sum 1."""
+    from scipy.special import erf
+
+    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
+    R = np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+    p = np.einsum("nij,kj->nki", R, points)
+    nn = np.einsum("nij,kj->nki", R, normals)
+    depth = -3.0 * p[..., 2] + n_bins / 2
+    cdf = 0.5 * (1 + erf((np.arange(n_bins + 1) - depth[..., None]) / (2.5 * np.sqrt(2))))
+    weight = np.stack([np.ones_like(nn[..., 0]), nn[..., 0] ** 2 + 0.1], -1)
+    out = np.einsum("nk,nkc,nkb->ncb", 1.0 + 0.5 * nn[..., 2], weight, np.diff(cdf, axis=-1))
+    return out / out.sum(axis=(1, 2), keepdims=True)
+
+
+def test_flags_an_observation_that_no_template_fits():
+    """A bank of one toy shape on a 19 deg attitude grid (Hopf, 1944 templates): its
+    observations at random attitudes (off the grid), sub-bin offsets and 1e4 or 1e6
+    photo-counts fit within the bank's resolution; a shape the bank lacks (another, longer
+    point set) is flagged (5 of 6 attitudes; at the sixth it mimics the bank within a grid
+    spacing). Without the resolution allowance the bank's own shape at 1e6 counts would be
+    flagged: there the grid error, not the noise, dominates."""
+    from inversion._database import TemplateBank
+    from inversion._grid import hopf_grid
+    from inversion._refine import PoissonCounts
+
+    rng = np.random.default_rng(0)
+    pts_a, pts_b = rng.normal(size=(5, 3)), 2.5 * rng.normal(size=(5, 3))
+    nrm = rng.normal(size=(2, 5, 3))
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    grid = hopf_grid(3)
+    n = len(grid)
+    ids = np.zeros(n, np.int32)
+    bank = TemplateBank(
+        signatures=_lobe_signatures(pts_a, nrm[0], grid).astype(np.float32),
+        shape_id=ids,
+        attitude_id=np.arange(n, dtype=np.int32),
+        material_id=ids,
+        finish_id=ids,
+        quat=grid,
+        names={"shapes": ["a"], "symmetry": ["none"], "finish_m": [1.0]},
+        sensor="",
+    )
+    prep = prepare(bank)
+    q = rng.normal(size=(12, 4))
+    y = np.concatenate(
+        [_lobe_signatures(pts_a, nrm[0], q[:6]), _lobe_signatures(pts_b, nrm[1], q[6:])]
+    )
+    y = shift_profile(y, rng.uniform(-2, 2, (12, 1)))
+    noise = PoissonCounts(background=1e-3)
+    for counts in (1e4, 1e6):
+        x = rng.poisson(counts * y + 1e-3).astype(np.float64)
+        res = classify(prep, x, k=3, noise=noise)
+        assert not res.no_template_fits[:6].any(), [f.summary() for f in res.fit[:6]]
+        assert res.no_template_fits[6:].sum() >= 5, [f.summary() for f in res.fit[6:]]
+        assert all(f.allowance > 0 and f.n_params == 2 for f in res.fit)
+    strict = classify(prep, x, k=3, noise=noise, resolution_scale=0.0)
+    assert strict.no_template_fits[:6].all(), [f.summary() for f in strict.fit[:6]]
+    assert classify(prep, x, k=3).fit is None  # no noise model, no verdict

@@ -430,7 +430,7 @@ def test_invert_end_to_end(tmp_path, capsys):
         tmp_path / "inv.toml",
         f'scene = "scene.toml"\nbrdf = "glossy"\nn_starts = 1\nmcmc = "{mcmc}"\n'
         "mcmc_walkers = 16\nmcmc_steps = 20\nmcmc_burn_in = 5\n"
-        'mcmc_set = { "priors.gain.high" = 1e15 }\nmirror_symmetry = "octahedral"\n',
+        'mirror_symmetry = "octahedral"\n',
     )
     out = tmp_path / "inv"
     assert run("invert", "-q", "-c", cfg, "-o", out) == 0
