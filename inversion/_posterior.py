@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -56,8 +57,6 @@ GAIN_UNIT = "counts per (m^2 sr^-1)"
 
 
 def _arviz():
-    import warnings
-
     with warnings.catch_warnings():
         # arviz 0.2x announces its 1.0 API on import (FutureWarning): nothing to act on here
         warnings.simplefilter("ignore", FutureWarning)
@@ -138,6 +137,10 @@ def _groups(result, chain, lp, gain_unit, line_of_sight):
     data["los_azimuth"] = np.degrees(np.arctan2(v[..., 1], v[..., 0]))
     units["los_polar"] = units["los_azimuth"] = "deg"
     stats = {"lp": np.swapaxes(lp, 0, 1)}
+    # contiguous, as read back from a file: ArviZ's sums then run in the same order in memory
+    # and on disk (the diagnostics agree to the last bit)
+    data = {k: np.ascontiguousarray(v) for k, v in data.items()}
+    stats = {k: np.ascontiguousarray(v) for k, v in stats.items()}
     return data, stats, dims, units
 
 
@@ -214,17 +217,20 @@ def to_inference_data(
         "labels": " | ".join(result.labels),
     }
     k = par.reference.n_materials
-    idata = az.from_dict(
-        posterior=post,
-        sample_stats=stats,
-        dims=dims,
-        coords={"material": np.arange(k), "component": ["w", "x", "y", "z"]},
-        attrs=attrs,
-        **kwargs,
-    )
+    with warnings.catch_warnings():
+        # an ensemble often has more walkers than kept steps: the layout is (chain, draw)
+        warnings.filterwarnings("ignore", "More chains", UserWarning)
+        idata = az.from_dict(
+            posterior=post,
+            sample_stats=stats,
+            dims=dims,
+            coords={"material": np.arange(k), "component": ["w", "x", "y", "z"]},
+            **kwargs,
+        )
     for group in ("posterior", "warmup_posterior"):
         if group in idata.groups():
             ds = idata[group]
+            ds.attrs.update(attrs)
             for name, unit in units.items():
                 ds[name].attrs["units"] = unit
                 ds[name].attrs["long_name"] = _LONG_NAMES.get(name, name)
