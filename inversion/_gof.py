@@ -92,7 +92,7 @@ _C2_SERIES = (0.0, 1 / 6, 2 / 3, 57 / 20, 72 / 5, 6425 / 63)
 # E[(d - E d)^2 (Y - lam)]
 _M21_SERIES = (0.0, -4 / 3, -4.0, -929 / 60, -1114 / 15, -35863 / 84)
 SERIES_FROM = 100.0  # lam above: the series (error < 1e-9 of the sums); at or below: exact sums
-_CHUNK = 8192  # values of lam per pmf table (memory ~ CHUNK x max(y) x 8 B)
+_CHUNK = 128  # values of lam per pmf table: sorted, so the sparse bins get short tables
 
 
 def _series(coef, lam, deriv=0):

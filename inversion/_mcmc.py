@@ -435,16 +435,27 @@ class MCMCResult:
     def summary(self) -> str:
         iv68, iv95 = self.interval(0.68), self.interval(0.95)
         med = self.median()
+        diag = self.diagnostics() if self.physical_chain is not None else None
         lines = [
             f"mcmc: walkers={self.chain.shape[1]} steps={self.chain.shape[0]} "
             f"burn_in={self.burn_in} "
             f"acceptance={np.mean(self.acceptance_fraction):.2f} max_tau={np.max(self.tau):.1f} "
-            f"min_ess={np.min(self.ess):.0f} converged={self.converged} time={self.elapsed_s:.1f}s"
+            f"converged={self.converged} time={self.elapsed_s:.1f}s"
         ]
+        if diag is not None:
+            rhat = [d["r_hat"] for d in diag.values() if d["r_hat"] is not None]
+            ess = [d["ess_bulk"] for d in diag.values() if d["ess_bulk"] is not None]
+            lines[0] += (
+                f" max_rhat={max(rhat, default=float('nan')):.3f} "
+                f"min_ess_bulk={min(ess, default=float('nan')):.0f} (ArviZ, walkers as chains)"
+            )
         for i, lab in enumerate(self.labels):
+            tail = f"  tau {self.tau[i]:.1f}"
+            if diag is not None and diag[lab]["r_hat"] is not None:
+                tail = f"  r_hat {diag[lab]['r_hat']:.3f}  ess_bulk {diag[lab]['ess_bulk']:.0f}"
             lines.append(
                 f"  {lab:>22s} median {med[i]: .6g}  68% [{iv68[i, 0]:.6g}, {iv68[i, 1]:.6g}]"
-                f"  95% [{iv95[i, 0]:.6g}, {iv95[i, 1]:.6g}]  tau {self.tau[i]:.1f}"
+                f"  95% [{iv95[i, 0]:.6g}, {iv95[i, 1]:.6g}]{tail}"
             )
         return "\n".join(lines)
 

@@ -117,6 +117,16 @@ class Observability:
         """Names of the unobservable directions."""
         return [d.name for d in self.unobservable]
 
+    @property
+    def attitude_sigma_deg(self) -> float | None:
+        """Root-sum-square 1-sigma of the attitude components observable on their own
+        (degrees, observable subspace; the unobservable ones are named instead); ``None``
+        when the attitude is not fitted."""
+        idx = [i for i, lab in enumerate(self.labels) if lab.startswith("rot_")]
+        if not idx:
+            return None
+        return float(np.sqrt(sum(self.sigma[i] ** 2 for i in idx if self.observable[i])))
+
     def sigma_of(self, label: str) -> float:
         """Uncertainty of one parameter by label (with or without its unit)."""
         return float(self.sigma[_index(self.labels, label)])

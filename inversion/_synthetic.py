@@ -262,3 +262,32 @@ def _synthetic_kernel(shape_id, material_id, finish_id, quat, t, sigma_r, bin_w,
 
 
 _kernel_jit = jax.jit(_synthetic_kernel, static_argnames=("n_bins",))  # shared compile cache
+
+
+def point_lobe_signatures(points, normals, quats, n_bins: int = 32) -> np.ndarray:
+    """A smooth toy signature model in NumPy (tests and benches of the template fit): point
+    scatterers at body positions ``points`` ``(K, 3)`` with unit ``normals``, each returning
+    ``1 + cos/2`` (the cosine between its rotated normal and the line of sight +z) at depth
+    ``-3 z`` bins from the centre, a Gaussian pulse of 2.5 bins integrated over each bin; two
+    channels, the second weighted by ``n_x^2 + 0.1`` (attitude-dependent, as polarization is).
+    ``quats`` ``(N, 4)`` body -> sensor, scalar first. Returns ``(N, 2, n_bins)`` profiles
+    summing to 1."""
+    from scipy.special import erf
+
+    q = np.asarray(quats, np.float64)
+    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
+    rot = np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+    p = np.einsum("nij,kj->nki", rot, np.asarray(points, np.float64))
+    nn = np.einsum("nij,kj->nki", rot, np.asarray(normals, np.float64))
+    depth = -3.0 * p[..., 2] + n_bins / 2
+    cdf = 0.5 * (1 + erf((np.arange(n_bins + 1) - depth[..., None]) / (2.5 * np.sqrt(2))))
+    weight = np.stack([np.ones_like(nn[..., 0]), nn[..., 0] ** 2 + 0.1], -1)
+    out = np.einsum("nk,nkc,nkb->ncb", 1.0 + 0.5 * nn[..., 2], weight, np.diff(cdf, axis=-1))
+    return out / out.sum(axis=(1, 2), keepdims=True)

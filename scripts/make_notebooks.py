@@ -460,6 +460,7 @@ deviance against its exact null distribution (`inversion.fit_goodness_of_fit`)."
 assert crb.labels == fit.labels
 ob_fit, ob_crb = fit.observability(), crb.observability()
 print("unobservable at the fit:", ob_fit.names or "none")
+print(f"attitude bound (observable components): {ob_crb.attitude_sigma_deg:.3g} deg")
 for lab, s_fit, s_crb, seen in zip(crb.labels, ob_fit.sigma, ob_crb.sigma, ob_crb.observable, strict=True):
     if not seen:
         print(f"{lab:>18s}: unobservable on its own")

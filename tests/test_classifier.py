@@ -308,31 +308,6 @@ def test_half_turn_about_line_of_sight_in_attitude_errors():
         los_half_turn(q, los=(0.0, 0.0, 2.0))
 
 
-def _lobe_signatures(points, normals, q, n_bins=32):
-    """A smooth toy signature model (NumPy): point scatterers with normals, amplitude
-    ``1 + cos/2`` toward the sensor (+z), Gaussian pulse of 2.5 bins at depth ``-3 z``; two
-    channels, the second weighted by ``n_x^2 + 0.1`` (attitude-dependent, like polarization).
-    Profiles normalized to sum 1."""
-    from scipy.special import erf
-
-    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
-    R = np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-    p = np.einsum("nij,kj->nki", R, points)
-    nn = np.einsum("nij,kj->nki", R, normals)
-    depth = -3.0 * p[..., 2] + n_bins / 2
-    cdf = 0.5 * (1 + erf((np.arange(n_bins + 1) - depth[..., None]) / (2.5 * np.sqrt(2))))
-    weight = np.stack([np.ones_like(nn[..., 0]), nn[..., 0] ** 2 + 0.1], -1)
-    out = np.einsum("nk,nkc,nkb->ncb", 1.0 + 0.5 * nn[..., 2], weight, np.diff(cdf, axis=-1))
-    return out / out.sum(axis=(1, 2), keepdims=True)
-
-
 def test_flags_an_observation_that_no_template_fits():
     """A bank of one toy shape on a 19 deg attitude grid (Hopf, 1944 templates): its
     observations at random attitudes (off the grid), sub-bin offsets and 1e4 or 1e6
@@ -343,6 +318,7 @@ def test_flags_an_observation_that_no_template_fits():
     from inversion._database import TemplateBank
     from inversion._grid import hopf_grid
     from inversion._refine import PoissonCounts
+    from inversion._synthetic import point_lobe_signatures as _lobe_signatures
 
     rng = np.random.default_rng(0)
     pts_a, pts_b = rng.normal(size=(5, 3)), 2.5 * rng.normal(size=(5, 3))
