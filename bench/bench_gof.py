@@ -37,10 +37,8 @@ import numpy as np  # noqa: E402
 from scipy import special, stats  # noqa: E402
 
 from inversion import PoissonCounts, PoissonNoise, classify, goodness_of_fit, prepare  # noqa: E402
-from inversion._database import TemplateBank  # noqa: E402
-from inversion._grid import hopf_grid  # noqa: E402
 from inversion._noise import shift_profile  # noqa: E402
-from inversion._synthetic import point_lobe_signatures  # noqa: E402
+from inversion._synthetic import point_lobe_bank, point_lobe_signatures  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "results" / "gof_calibration.md"
 LEVELS = (0.1, 0.01, 1e-3, 1e-4)
@@ -155,22 +153,8 @@ def fitted_calibration(r):
 
 
 def classifier_flag(n_obs):
+    bank, shape_in, shape_out = point_lobe_bank()
     rng = np.random.default_rng(0)
-    pts_a, pts_b = rng.normal(size=(5, 3)), 2.5 * rng.normal(size=(5, 3))
-    nrm = rng.normal(size=(2, 5, 3))
-    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
-    grid = hopf_grid(3)
-    ids = np.zeros(len(grid), np.int32)
-    bank = TemplateBank(
-        signatures=point_lobe_signatures(pts_a, nrm[0], grid).astype(np.float32),
-        shape_id=ids,
-        attitude_id=np.arange(len(grid), dtype=np.int32),
-        material_id=ids,
-        finish_id=ids,
-        quat=grid,
-        names={"shapes": ["a"], "symmetry": ["none"], "finish_m": [1.0]},
-        sensor="",
-    )
     prep = prepare(bank)
     noise = PoissonCounts(1e-3)
     rows, per_obs = [], []
@@ -178,8 +162,8 @@ def classifier_flag(n_obs):
         q = rng.normal(size=(2 * n_obs, 4))
         y = np.concatenate(
             [
-                point_lobe_signatures(pts_a, nrm[0], q[:n_obs]),
-                point_lobe_signatures(pts_b, nrm[1], q[n_obs:]),
+                point_lobe_signatures(*shape_in, q[:n_obs]),
+                point_lobe_signatures(*shape_out, q[n_obs:]),
             ]
         )
         y = shift_profile(y, rng.uniform(-2, 2, (2 * n_obs, 1)))

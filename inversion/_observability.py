@@ -39,6 +39,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from ppr import quat_to_matrix
+
 __all__ = [
     "Observability",
     "UnobservableDirection",
@@ -354,17 +356,6 @@ def observable_inverse(fisher, rtol: float | None = None) -> tuple[np.ndarray, i
     return cov, int((~null).sum())
 
 
-def _rotation_matrix(q):
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def _fmt_vec(v) -> str:
     return "(" + ", ".join(f"{c:+.3f}" for c in v) + ")"
 
@@ -382,7 +373,7 @@ def _describe(v, info, G, labels, tlabels, values, los, q_ref) -> UnobservableDi
         axis = a / np.linalg.norm(a)
         if axis @ los < 0:
             axis = -axis
-        body = _rotation_matrix(q_ref).T @ axis
+        body = np.asarray(quat_to_matrix(q_ref), np.float64).T @ axis
         angle = math.degrees(math.acos(min(1.0, abs(float(axis @ los)))))
         if angle <= ROLL_TOLERANCE_DEG:
             name = "roll about the line of sight"

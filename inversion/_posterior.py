@@ -92,14 +92,10 @@ def _quat_from_rotvec(w):
 
 def _body_los(q, los):
     """The sensor-frame direction ``los`` in the body frame, ``R(q)^T los`` (``q`` body ->
-    sensor, scalar first)."""
-    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
-    rows = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]
-    return np.stack([sum(rows[i][j] * los[i] for i in range(3)) for j in range(3)], axis=-1)
+    sensor, scalar first; batched)."""
+    from ppr import quat_to_matrix
+
+    return np.einsum("...ij,i->...j", np.asarray(quat_to_matrix(q), np.float64), los)
 
 
 def _groups(result, chain, lp, gain_unit, line_of_sight):

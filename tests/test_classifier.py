@@ -315,32 +315,15 @@ def test_flags_an_observation_that_no_template_fits():
     point set) is flagged (5 of 6 attitudes; at the sixth it mimics the bank within a grid
     spacing). Without the resolution allowance the bank's own shape at 1e6 counts would be
     flagged: there the grid error, not the noise, dominates."""
-    from inversion._database import TemplateBank
-    from inversion._grid import hopf_grid
     from inversion._refine import PoissonCounts
-    from inversion._synthetic import point_lobe_signatures as _lobe_signatures
+    from inversion._synthetic import point_lobe_bank, point_lobe_signatures
 
+    bank, shape_in, shape_out = point_lobe_bank()
     rng = np.random.default_rng(0)
-    pts_a, pts_b = rng.normal(size=(5, 3)), 2.5 * rng.normal(size=(5, 3))
-    nrm = rng.normal(size=(2, 5, 3))
-    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
-    grid = hopf_grid(3)
-    n = len(grid)
-    ids = np.zeros(n, np.int32)
-    bank = TemplateBank(
-        signatures=_lobe_signatures(pts_a, nrm[0], grid).astype(np.float32),
-        shape_id=ids,
-        attitude_id=np.arange(n, dtype=np.int32),
-        material_id=ids,
-        finish_id=ids,
-        quat=grid,
-        names={"shapes": ["a"], "symmetry": ["none"], "finish_m": [1.0]},
-        sensor="",
-    )
     prep = prepare(bank)
     q = rng.normal(size=(12, 4))
     y = np.concatenate(
-        [_lobe_signatures(pts_a, nrm[0], q[:6]), _lobe_signatures(pts_b, nrm[1], q[6:])]
+        [point_lobe_signatures(*shape_in, q[:6]), point_lobe_signatures(*shape_out, q[6:])]
     )
     y = shift_profile(y, rng.uniform(-2, 2, (12, 1)))
     noise = PoissonCounts(background=1e-3)

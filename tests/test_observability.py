@@ -14,18 +14,8 @@ import pytest
 from inversion._observability import observability_from_fisher
 from inversion._params import Parametrisation, PhysicalParams, quat_from_rotvec
 from inversion._refine import PoissonCounts, cramer_rao
+from ppr import quat_to_matrix
 from ppr._safe import safe_pow
-
-
-def _matrix(q):
-    w, x, y, z = q / jnp.linalg.norm(q)
-    return jnp.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 class LobeProfile(eqx.Module):
@@ -44,7 +34,7 @@ class LobeProfile(eqx.Module):
         return jnp.ones(())
 
     def expected(self, phys, aux):
-        R = _matrix(phys.quaternion)
+        R = quat_to_matrix(phys.quaternion)
         cos = jnp.clip((self.normals @ R.T)[:, 2], 0.0, 1.0)
         depth = -(self.centers @ R.T)[:, 2] + phys.range_offset
         amp = 1e3 * phys.gain * self.areas * (phys.m[0] + 2.0) * safe_pow(cos, phys.m[0])
@@ -70,7 +60,7 @@ def test_roll_about_the_line_of_sight_is_named_and_nothing_else_is_infinite():
     ob = crb.observability()
     assert len(ob.names) == 1 and ob.names[0].startswith("roll about the line of sight")
     # the roll axis in the body frame is the body-frame line of sight R^T z
-    body_los = np.asarray(_matrix(jnp.asarray(q)))[2]
+    body_los = np.asarray(quat_to_matrix(jnp.asarray(q)))[2]
     np.testing.assert_allclose(ob.unobservable[0].axis_body, body_los, atol=1e-9)
     assert ob.rank == len(ob.labels) - 1
     iz = ob.labels.index("rot_z [deg]")

@@ -12,17 +12,11 @@ import pytest
 from inversion._mcmc import MCMCResult, _physical_vectors
 from inversion._params import Parametrisation, PhysicalParams, quat_from_rotvec
 from inversion._posterior import GAIN_UNIT, posterior_diagnostics
+from ppr import quat_to_matrix
 
 
-def _rotation(q):
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+def _rot(q):
+    return np.asarray(quat_to_matrix(np.asarray(q, np.float64)))
 
 
 def _result(n_steps=40, n_walkers=16, burn_in=12, thin=2):
@@ -94,8 +88,8 @@ def test_saved_posterior_is_in_physical_units_and_diagnostics_are_arviz(tmp_path
         rv = np.radians([p[k].values[w, d] for k in ("rot_x", "rot_y", "rot_z")])
         qw = np.asarray(quat_from_rotvec(jnp.asarray(rv)))
         # q = exp(w) (x) q0 as a rotation: R(q) = R(exp w) R(q0)
-        R = _rotation(qw) @ _rotation(q0)
-        np.testing.assert_allclose(_rotation(quat[w, d]), R, atol=1e-12)
+        R = _rot(qw) @ _rot(q0)
+        np.testing.assert_allclose(_rot(quat[w, d]), R, atol=1e-12)
         los = R.T @ [0.0, 0.0, 1.0]
         assert p["los_polar"].values[w, d] == pytest.approx(np.degrees(np.arccos(los[2])))
     np.testing.assert_array_equal(idata.observed_data["counts"].values, data)
