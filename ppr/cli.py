@@ -1373,7 +1373,8 @@ def cmd_invert(args) -> int:
                 f"{cfg_path}: mirror_symmetry = {cfg.mirror_symmetry!r}: the scene's mesh has "
                 f"no mirror plane with normal {normal.tolist()} through the body origin"
             )
-    with outputs(args.out, INVERT_OUTPUTS, args.overwrite, optional=["invert_corner.png"]) as out:
+    optional = ["invert_corner.png", "invert_posterior.nc"]  # written with an MCMC config
+    with outputs(args.out, INVERT_OUTPUTS, args.overwrite, optional=optional) as out:
         t0 = time.perf_counter()
         try:
             fit = inversion.refine(
