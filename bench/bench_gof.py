@@ -40,6 +40,10 @@ from inversion import PoissonCounts, PoissonNoise, classify, goodness_of_fit, pr
 from inversion._noise import shift_profile  # noqa: E402
 from inversion._synthetic import point_lobe_bank, point_lobe_signatures  # noqa: E402
 
+# the toy fits of the brute-force tests (a log-linear Poisson model fitted by Fisher scoring)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from test_gof import _glm_fit  # noqa: E402
+
 OUT = Path(__file__).resolve().parent / "results" / "gof_calibration.md"
 LEVELS = (0.1, 0.01, 1e-3, 1e-4)
 
@@ -93,15 +97,6 @@ def null_calibration(r):
     return rows
 
 
-def _glm(y, X, beta0, iters=30):
-    b = np.tile(beta0, (y.shape[0], 1))
-    for _ in range(iters):
-        mu = np.exp(b @ X.T)
-        h = np.einsum("ri,ij,ik->rjk", mu, X, X)
-        b = b + np.linalg.solve(h, ((y - mu) @ X)[..., None])[..., 0]
-    return np.exp(b @ X.T)
-
-
 def fitted_calibration(r):
     rng = np.random.default_rng(1)
     rows = []
@@ -113,7 +108,7 @@ def fitted_calibration(r):
         x = np.linspace(-1, 1, n)
         X = np.stack([np.ones(n), x, x * x], 1)
         y = rng.poisson(np.exp(X @ np.asarray(beta)), size=(r, n)).astype(float)
-        fit = _glm(y, X, np.asarray(beta))
+        fit = _glm_fit(y, X, np.asarray(beta))
         noise = PoissonCounts(1e-12)
         with_j = [
             goodness_of_fit(y[i], fit[i], noise, jacobian=fit[i][:, None] * X) for i in range(r)
