@@ -641,7 +641,9 @@ def fit_goodness_of_fit(
     to ``data`` with the noise model it was refined with: the expectation and its Jacobian at
     ``fit.params`` (visibility recomputed, the refiner's compiled Jacobian program reused),
     the observable directions as fitted degrees of freedom. ``deviance`` equals
-    ``fit.cost`` up to rounding."""
+    ``fit.cost`` up to rounding. Raises ``ValueError`` for data the model cannot have
+    produced (shape, NaN, negative counts) and ``FloatingPointError`` when the Jacobian at
+    the fit is not finite."""
     from ._refine import _model_shape, check_observation, weighted_jacobian
 
     phys, par = fit.params, fit.parametrisation

@@ -35,10 +35,10 @@ from scipy.optimize import minimize_scalar
 
 from ._gof import (
     DEFAULT_MISMATCH_P,
+    _check_pair,
     _kind,
     _variance,
     deviance_function,
-    deviance_terms,
     goodness_of_fit,
 )
 from ._noise import _shift_profile
@@ -108,7 +108,9 @@ def fit_template(x, y, shift0: float, noise, *, window: float = 1.0):
     ``d mu / d (log g, s)`` of shape ``(C, B, 2)``."""
     x = np.asarray(x, np.float64)
     y = np.asarray(y, np.float64)
-    deviance_terms(x, np.zeros_like(x) if _kind(noise) == "poisson" else x, noise)  # checks
+    _check_pair(x, y)
+    if _kind(noise) == "poisson":
+        noise.check_data(x)
     args = (x, y, noise, deviance_function(noise))
     res = minimize_scalar(
         _profile_deviance,
