@@ -78,9 +78,9 @@ from inversion._refine import (  # noqa: E402
 NOISE = PoissonCounts(background=1e-3)
 
 OUT = Path(__file__).resolve().parent / "results"
-# physical box (also the MCMC's uniform index prior); the simulator returns m^2/sr per bin,
-# so counts need gains of ~1e15-1e20, far outside PhysicalBounds' default gain range
-BOUNDS = PhysicalBounds(gain=(1e-30, 1e30))
+# physical box (also the MCMC's uniform index prior); the gain (counts per m^2 sr^-1, the
+# simulator returning m^2/sr per bin) is ~1e7-2e10 here, inside the default range
+BOUNDS = PhysicalBounds()
 NOTES = (
     "Notes: with a monostatic sensor and a single-bounce BRDF the returning microfacets face the "
     "sensor, the Fresnel factor is the normal-incidence scalar and the unknown gain absorbs it: "
@@ -239,11 +239,9 @@ def nearest_material(n) -> int:
 
 def chain_config(steps, moves="stretch", init_scale=0.5):
     """The MCMC benches' sampler: 24 walkers, ``steps`` steps (a third burned in), the
-    starting ball at ``init_scale`` (default half) of the Laplace scale, a log-uniform gain
-    prior wide enough for the simulator's m^2/sr units."""
+    starting ball at ``init_scale`` (default half) of the Laplace scale, the default priors."""
     return mcmc_config_from_dict(
         {
-            "priors": {"gain": {"kind": "loguniform", "low": 1e-30, "high": 1e30}},
             "sampler": {
                 "n_walkers": 24,
                 "n_steps": steps,
@@ -812,7 +810,6 @@ def main(argv=None):
         f"{[round(r, 1) for r in bank.resolution_deg]} deg",
         flush=True,
     )
-    # the simulator returns m^2/sr per bin: counts need gains of ~1e15-1e20 (chain_config)
     mcmc_cfg = chain_config(args.mcmc_steps)
     obs = make_observations(models, args.n_per_snr, args.snrs, args.seed)
     # warm-up (compilation) on a separate observation, timed separately

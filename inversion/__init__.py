@@ -29,6 +29,15 @@ from ._database import (
     spec_from_dict,
     store_differences,
 )
+
+# calibrated goodness of fit, observability, posterior files (issue 26)
+from ._gof import (
+    GoodnessOfFit,
+    deviance_moments,
+    fit_goodness_of_fit,
+    goodness_of_fit,
+    poisson_deviance_moments,
+)
 from ._grid import (
     AttitudeGrid,
     as_symmetry,
@@ -64,7 +73,15 @@ from ._noise import (
     observe,
     shift_profile,
 )
-from ._params import Parametrisation, PhysicalParams
+from ._observability import (
+    Observability,
+    UnobservableDirection,
+    line_of_sight_of,
+    observability,
+    observability_from_fisher,
+)
+from ._params import GAIN_RANGE, Parametrisation, PhysicalParams
+from ._posterior import GAIN_UNIT, posterior_diagnostics, to_inference_data, write_posterior
 from ._refine import (
     CramerRao,
     GaussianNoise,
@@ -77,6 +94,7 @@ from ._refine import (
     RefineResult,
     SimulatorModel,
     cramer_rao,
+    fisher_at,
     mirror_check,
     mode_check,
     refine,
@@ -157,4 +175,20 @@ __all__ = [
     "mirror_check",
     "refine",
     "refine_bounded",
+    "fisher_at",
+    "GoodnessOfFit",
+    "goodness_of_fit",
+    "fit_goodness_of_fit",
+    "deviance_moments",
+    "poisson_deviance_moments",
+    "Observability",
+    "UnobservableDirection",
+    "observability",
+    "observability_from_fisher",
+    "line_of_sight_of",
+    "GAIN_RANGE",
+    "GAIN_UNIT",
+    "to_inference_data",
+    "write_posterior",
+    "posterior_diagnostics",
 ]

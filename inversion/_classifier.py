@@ -291,7 +291,14 @@ def _bound_chunk(coef, resid, g):
 
 @dataclass
 class Classification:
-    """Top-k candidates per observation: rows of the bank, scores, shifts (bins)."""
+    """Top-k candidates per observation: rows of the bank, scores, shifts (bins).
+
+    With a noise model (``classify(..., noise=...)``) also, per observation, `fit`: the
+    :class:`~inversion.GoodnessOfFit` of the best template (gain and sub-bin shift fitted,
+    the bank's resolution allowed for; :mod:`inversion._template_fit`) and
+    `no_template_fits`: its ``model_mismatch``, i.e. no template of the bank explains the
+    observation within its noise (a shape, or a material or roughness, the bank lacks).
+    """
 
     index: np.ndarray  # (N, k) int
     score: np.ndarray  # (N, k)
@@ -300,6 +307,8 @@ class Classification:
     seconds: float
     certified: np.ndarray  # (N,) bool: result provably equals the exhaustive search
     n_rescored: np.ndarray | None = None  # (N,) templates scored exactly (low-rank mode)
+    fit: tuple | None = None  # (N,) GoodnessOfFit of the best template (with a noise model)
+    no_template_fits: np.ndarray | None = None  # (N,) bool (with a noise model)
 
     def best(self, bank: TemplateBank) -> dict:
         """Attributes of the top candidate of each observation."""
@@ -357,8 +366,9 @@ def _sensor_diff(a: str, b: str) -> str:
     )
 
 
-def check_observations(prep: PreparedBank, obs) -> np.ndarray:
-    """Stack observations to (N, C, B) float32 after checking them against the bank."""
+def check_observations(prep: PreparedBank, obs, dtype=np.float32) -> np.ndarray:
+    """Stack observations to (N, C, B) (float32: the scores') after checking them against
+    the bank."""
     bank = prep.bank
     items = obs if isinstance(obs, list | tuple) else [obs]
     datas = []
@@ -386,7 +396,7 @@ def check_observations(prep: PreparedBank, obs) -> np.ndarray:
         )
     if not np.all(np.isfinite(x)):
         raise ValueError("observation contains non-finite values")
-    return x.astype(np.float32)
+    return x.astype(dtype)
 
 
 def classify(
@@ -395,12 +405,23 @@ def classify(
     k: int = 5,
     max_shift: int | None = None,
     n_candidates: int | None = None,
+    *,
+    noise=None,
+    threshold: float = 1e-3,
+    neighbours: int = 4,
+    resolution_scale: float = 1.0,
 ) -> Classification:
     """Top-``k`` templates of ``prep`` for each observation (an :class:`Observation`, a list
     of them, or an array (C, B) / (N, C, B)), maximizing the score over shifts
     ``|shift| <= max_shift`` bins (default: all ``B - 1``). In low-rank mode the top
     ``n_candidates`` (default ``max(64, 8 k)``) upper bounds are rescored exactly; see
-    :class:`PreparedBank` for the certificate (``Classification.certified``)."""
+    :class:`PreparedBank` for the certificate (``Classification.certified``).
+
+    With `noise` (the observations' noise model, e.g. ``PoissonCounts()`` for photo-counts)
+    the best template of each observation is also fitted and tested against the noise,
+    allowing for the bank's resolution (:func:`inversion._template_fit.template_goodness_of_fit`
+    with `threshold`, `neighbours`, `resolution_scale`): ``Classification.fit`` and
+    ``Classification.no_template_fits``."""
     x = check_observations(prep, obs)
     b = prep.bank.n_bins
     max_shift = b - 1 if max_shift is None else int(max_shift)
@@ -421,8 +442,24 @@ def classify(
         idx, sc, lg, fr, certified, n_rescored = _lowrank(
             prep, x, rhs, xnorm, max_shift, k, n_candidates
         )
-    seconds = time.perf_counter() - t0
-    return Classification(idx, sc, lg, lg + fr, seconds, certified, n_rescored)
+    res = Classification(idx, sc, lg, lg + fr, time.perf_counter() - t0, certified, n_rescored)
+    if noise is None:
+        return res
+    from ._template_fit import template_goodness_of_fit
+
+    fits = template_goodness_of_fit(
+        prep,
+        check_observations(prep, obs, np.float64),
+        res,
+        noise,
+        threshold=threshold,
+        neighbours=neighbours,
+        resolution_scale=resolution_scale,
+    )
+    res.fit = fits
+    res.no_template_fits = np.array([f.model_mismatch for f in fits])
+    res.seconds = time.perf_counter() - t0
+    return res
 
 
 def _exact_all(prep, rhs, xnorm, max_shift, k):

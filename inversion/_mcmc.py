@@ -44,6 +44,7 @@ from ppr._config import ConfigError, StrictModel, load_toml_model, validate_data
 
 from ._params import (
     DEFAULT_FREE,
+    GAIN_RANGE,
     LOG_M_MIN,
     U_N_IMAG_MIN,
     Parametrisation,
@@ -162,7 +163,9 @@ class PriorConfig(StrictModel):
     n_im: Prior1D = Prior1D(kind="uniform", low=0.0, high=15.0)
     corr_length: Prior1D = Prior1D(kind="loguniform", low=1e-8, high=1e-2)
     range_offset: Prior1D = Prior1D(kind="uniform", low=-1.0, high=1.0)
-    gain: Prior1D = Prior1D(kind="loguniform", low=1e-8, high=1e8)
+    # counts per (m^2 sr^-1) for SimulatorModel (PhysicalParams.gain): the single-photon
+    # regime of ranging to small debris (~1-100) up to laboratory scales (~1e12), with margin
+    gain: Prior1D = Prior1D(kind="loguniform", low=GAIN_RANGE[0], high=GAIN_RANGE[1])
 
 
 class SamplerConfig(StrictModel):
@@ -351,10 +354,16 @@ class MCMCResult:
 
     - `chain`: ``(n_steps, n_walkers, P)`` in solver coordinates ``theta`` (all steps);
       `log_prob`: ``(n_steps, n_walkers)``; `samples`: kept, flattened samples in *physical*
-      units (:attr:`labels`), ``(n_kept * n_walkers / thin, P)``.
+      units (:attr:`labels`), ``(n_kept * n_walkers / thin, P)``; `physical_chain`: every
+      step in physical units, ``(n_steps, n_walkers, P)`` (`samples` is its rows after
+      ``burn_in``, thinned, flattened step-major).
     - `acceptance_fraction` per walker; `tau` integrated autocorrelation time per parameter
-      (steps); `ess` effective sample size per parameter; `converged`: chain longer than
+      (steps, emcee's estimator); `ess` emcee's effective sample size per parameter
+      (``n_walkers n_kept / tau``); `converged`: chain longer than
       ``autocorr_tol * max(tau)``; `path`: HDF5 file of the chain (or None).
+    - :meth:`to_inference_data`, :meth:`write` (ArviZ netCDF in physical units, walkers as
+      chains) and :meth:`diagnostics` (ArviZ's R-hat, bulk/tail ESS, MCSE): what reports
+      should quote (:mod:`inversion._posterior`).
     """
 
     chain: np.ndarray
@@ -370,6 +379,26 @@ class MCMCResult:
     thin: int
     elapsed_s: float
     path: Path | None = None
+    physical_chain: np.ndarray | None = None
+
+    def to_inference_data(self, **kwargs):
+        """:func:`inversion.to_inference_data` of this result (ArviZ, physical units)."""
+        from ._posterior import to_inference_data
+
+        return to_inference_data(self, **kwargs)
+
+    def write(self, path: str | Path, **kwargs) -> Path:
+        """Write the posterior as ArviZ netCDF (:func:`inversion.write_posterior`)."""
+        from ._posterior import write_posterior
+
+        return write_posterior(path, self, **kwargs)
+
+    def diagnostics(self) -> dict[str, dict[str, float]]:
+        """ArviZ's ``r_hat``, ``ess_bulk``, ``ess_tail``, ``mcse_mean``, ``mcse_sd`` per label
+        (walkers as chains; :func:`inversion.posterior_diagnostics`)."""
+        from ._posterior import posterior_diagnostics
+
+        return posterior_diagnostics(self.to_inference_data(), self.labels)
 
     def interval(self, level: float = 0.68) -> np.ndarray:
         """Equal-tailed credible interval ``(P, 2)`` in physical units at ``level``."""
@@ -406,16 +435,27 @@ class MCMCResult:
     def summary(self) -> str:
         iv68, iv95 = self.interval(0.68), self.interval(0.95)
         med = self.median()
+        diag = self.diagnostics() if self.physical_chain is not None else None
         lines = [
             f"mcmc: walkers={self.chain.shape[1]} steps={self.chain.shape[0]} "
             f"burn_in={self.burn_in} "
             f"acceptance={np.mean(self.acceptance_fraction):.2f} max_tau={np.max(self.tau):.1f} "
-            f"min_ess={np.min(self.ess):.0f} converged={self.converged} time={self.elapsed_s:.1f}s"
+            f"converged={self.converged} time={self.elapsed_s:.1f}s"
         ]
+        if diag is not None:
+            rhat = [d["r_hat"] for d in diag.values() if d["r_hat"] is not None]
+            ess = [d["ess_bulk"] for d in diag.values() if d["ess_bulk"] is not None]
+            lines[0] += (
+                f" max_rhat={max(rhat, default=float('nan')):.3f} "
+                f"min_ess_bulk={min(ess, default=float('nan')):.0f} (ArviZ, walkers as chains)"
+            )
         for i, lab in enumerate(self.labels):
+            tail = f"  tau {self.tau[i]:.1f}"
+            if diag is not None and diag[lab]["r_hat"] is not None:
+                tail = f"  r_hat {diag[lab]['r_hat']:.3f}  ess_bulk {diag[lab]['ess_bulk']:.0f}"
             lines.append(
                 f"  {lab:>22s} median {med[i]: .6g}  68% [{iv68[i, 0]:.6g}, {iv68[i, 1]:.6g}]"
-                f"  95% [{iv95[i, 0]:.6g}, {iv95[i, 1]:.6g}]  tau {self.tau[i]:.1f}"
+                f"  95% [{iv95[i, 0]:.6g}, {iv95[i, 1]:.6g}]{tail}"
             )
         return "\n".join(lines)
 
@@ -551,8 +591,10 @@ def sample_posterior(
     tau, converged = _autocorr(kept, sc.autocorr_tol)
     n_kept = kept.shape[0]
     ess = n_kept * sc.thin * sc.n_walkers / np.maximum(tau, 1.0)
-    flat = kept.reshape(-1, ndim)
-    samples = np.asarray(_physical_vectors(param, jnp.asarray(flat)))
+    phys_chain = np.asarray(
+        _physical_vectors(param, jnp.asarray(chain.reshape(-1, ndim))), np.float64
+    ).reshape(chain.shape)
+    samples = phys_chain[sc.burn_in :: sc.thin].reshape(-1, ndim)
     return MCMCResult(
         chain=chain,
         log_prob=lps,
@@ -567,6 +609,7 @@ def sample_posterior(
         thin=sc.thin,
         elapsed_s=time.perf_counter() - t0,
         path=path,
+        physical_chain=phys_chain,
     )
 
 

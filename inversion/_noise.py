@@ -201,26 +201,39 @@ class NoiseModel(eqx.Module):
 
 def shift_profile(
     x: Float[ArrayLike, "*batch bins"], shift: ArrayLike
-) -> Float[Array, "*batch bins"]:
+) -> Float[ArrayLike, "*batch bins"]:
     """Shift a piecewise-constant profile later by ``shift`` bins (flux-conserving rebinning).
 
     Bin ``b`` of the result collects ``F(b + 1 - shift) - F(b - shift)`` with ``F`` the
     piecewise-linear cumulative of ``x``; flux leaving the window is lost, zeros enter. Integer
-    shifts are exact index shifts. ``shift`` broadcasts against ``x.shape[:-1]``.
+    shifts are exact index shifts. ``shift`` broadcasts against ``x.shape[:-1]``. NumPy
+    inputs give a NumPy result (host-side fits call it thousands of times); any JAX input
+    (or a tracer) a JAX one.
     """
-    x = jnp.asarray(x)
+    xp = jnp if any(isinstance(a, jax.Array) for a in (x, shift)) else np
+    return _shift_profile(x, shift, xp)
+
+
+def _shift_profile(x, shift, xp):
+    """:func:`shift_profile` with the array namespace given (unannotated: host-side fits call
+    it in loops, where a runtime type check would cost more than the shift)."""
+    x = xp.asarray(x)
+    if not xp.issubdtype(x.dtype, xp.floating):
+        x = x.astype(jnp.result_type(float))
     n = x.shape[-1]
-    shift = jnp.broadcast_to(jnp.asarray(shift, dtype=x.dtype), x.shape[:-1])[..., None]
-    whole = jnp.floor(shift)
+    shift = xp.broadcast_to(xp.asarray(shift, dtype=x.dtype), x.shape[:-1])[..., None]
+    whole = xp.floor(shift)
     frac = shift - whole  # in [0, 1): bin b gets (1 - frac) x(b - whole) + frac x(b - whole - 1)
-    idx = jnp.arange(n) - whole.astype(jnp.int32)
+    idx = xp.arange(n) - whole.astype(xp.int32)
+    a = _take(x, idx, xp)
+    return xp.where(frac > 0, (1 - frac) * a + frac * _take(x, idx - 1, xp), a)
 
-    def take(i):
-        ok = (i >= 0) & (i < n)
-        return jnp.where(ok, jnp.take_along_axis(x, jnp.clip(i, 0, n - 1), axis=-1), 0.0)
 
-    a = take(idx)
-    return jnp.where(frac > 0, (1 - frac) * a + frac * take(idx - 1), a)
+def _take(x, i, xp):
+    """``x[..., i]`` with zeros outside ``[0, n)`` (module level: no closure per call)."""
+    n = x.shape[-1]
+    ok = (i >= 0) & (i < n)
+    return xp.where(ok, xp.take_along_axis(x, xp.clip(i, 0, n - 1), axis=-1), 0.0)
 
 
 class Observation(eqx.Module):

@@ -41,6 +41,7 @@ from ppr._types import Array, ArrayLike, Complex, Float
 
 __all__ = [
     "GROUPS",
+    "GAIN_RANGE",
     "PhysicalParams",
     "Parametrisation",
     "quat_multiply",
@@ -51,6 +52,15 @@ __all__ = [
 ]
 
 GROUPS = ("attitude", "m", "n", "corr_length", "range_offset", "gain")
+# Default range of the gain (counts per m^2 sr^-1, PhysicalParams.gain) for priors and bounds.
+# At the target, a pulse of energy E over a beam of area A_beam gives the fluence E / A_beam;
+# the receiver of area A_rx at range R sees the solid angle A_rx / R^2; the detector counts
+# eta / (h nu) per joule after the two-way transmission T^2. So
+#     gain = E / A_beam * A_rx / R^2 * T^2 * eta / (h nu):
+# 10 mJ at 532 nm into a 20 urad beam, a 1 m^2 telescope, 1000 km, T^2 eta = 0.15 gives ~10;
+# a laboratory set-up (1 mJ, 0.5 m beam at 10 m, 100 cm^2 aperture, eta = 0.2) ~3e11. The range
+# holds both with six decades to spare either way.
+GAIN_RANGE = (1e-6, 1e18)
 DEFAULT_FREE = ("attitude", "m", "n", "range_offset", "gain")
 
 # Physical values 0 of m and n'' are mapped to these floors by ``from_physical`` (equal to the
@@ -144,7 +154,13 @@ class PhysicalParams(eqx.Module):
     - `n`: complex refractive index per material slot ``(K,)``, ``n'' >= 0``.
     - `corr_length`: surface correlation length per material slot ``(K,)``, metres.
     - `range_offset`: one-way range offset, metres (shifts the profile to larger range).
-    - `gain`: overall gain (extinction x calibration), dimensionless, > 0.
+    - `gain`: overall gain, > 0: expected counts per unit of the forward model's profile. For
+      :class:`~inversion.SimulatorModel` (``counts = gain x J + background`` with ``J`` the
+      bin-integrated Mueller radiant intensity per unit irradiance of :func:`ppr.render`, in
+      m^2 sr^-1) it is in **counts per (m^2 sr^-1)**: pulse fluence at the target x receiver
+      solid angle x two-way transmission x detector efficiency / photon energy (see
+      :data:`GAIN_RANGE` for magnitudes, ~10 for ranging to debris in low orbit, ~1e11 in a
+      laboratory).
     """
 
     quaternion: Float[Array, "4"]

@@ -50,7 +50,7 @@ from jax.custom_derivatives import SymbolicZero
 
 from ppr._types import Array, Float
 
-from ._params import DEFAULT_FREE, Parametrisation, PhysicalParams, lift_start
+from ._params import DEFAULT_FREE, GAIN_RANGE, Parametrisation, PhysicalParams, lift_start
 
 __all__ = [
     "GaussianNoise",
@@ -65,6 +65,8 @@ __all__ = [
     "check_observation",
     "refine",
     "covariance_at",
+    "fisher_at",
+    "weighted_jacobian",
     "PhysicalBounds",
     "refine_bounded",
     "predicted",
@@ -279,8 +281,12 @@ class RefineResult:
       (or adapter) result name; `message` a human-readable explanation; `n_steps` total solver
       steps over all rounds; `n_rounds` visibility/weight rounds used.
     - `covariance`: ``(J^T J)^{-1}`` in physical units (`labels`); `covariance_theta` the same
-      in solver coordinates; `sigma` the 1-sigma errors; `condition` the condition number of
-      ``J^T J`` (large: some parameter is not constrained by the data).
+      in solver coordinates; `sigma` the 1-sigma errors (marginal: infinite for a parameter
+      with weight in an unconstrained direction); `condition` the condition number of
+      ``J^T J`` (large: some parameter is not constrained by the data); `fisher_theta` the
+      matrix ``J^T J`` itself and `physical_jacobian` ``d physical_vector / d theta``.
+      :meth:`observability` names the unconstrained directions and gives finite
+      uncertainties in the observable subspace.
     - `starts`: summaries of every start, best first; `elapsed_s`: wall time.
     """
 
@@ -301,6 +307,8 @@ class RefineResult:
     starts: tuple[StartSummary, ...]
     elapsed_s: float
     method: str = "levenberg_marquardt"
+    fisher_theta: np.ndarray | None = None
+    physical_jacobian: np.ndarray | None = None
 
     @property
     def reduced_chi2(self) -> float:
@@ -309,6 +317,13 @@ class RefineResult:
     @property
     def sigma(self) -> np.ndarray:
         return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+
+    def observability(self, line_of_sight=None, rtol: float | None = None):
+        """:func:`inversion.observability` of this fit: the directions the data do not
+        constrain, by name, and finite uncertainties in the observable subspace."""
+        from ._observability import observability
+
+        return observability(self, line_of_sight=line_of_sight, rtol=rtol)
 
     @property
     def attitude_sigma_deg(self) -> float | None:
@@ -355,11 +370,22 @@ class RefineResult:
                 "  outside the physical box (refit with refine_bounded): " + "; ".join(out)
             )
         vec = np.asarray(self.parametrisation.physical_vector(jnp.asarray(self.theta)))
-        for lab, v, s in zip(self.labels, vec, self.sigma, strict=True):
-            note = ""
+        sigma, own, det = self.sigma, np.zeros(len(vec), bool), np.ones(len(vec), bool)
+        fisher = self.fisher_theta
+        if fisher is not None and np.all(np.isfinite(fisher)):
+            # finite uncertainties in the observable subspace, the null directions named
+            ob = self.observability()
+            sigma, own, det = ob.sigma, ~ob.observable, ob.determined
+            if ob.unobservable:
+                lines.append("  unobservable: " + "; ".join(ob.names))
+        for lab, v, s, o, d in zip(self.labels, vec, sigma, own, det, strict=True):
             if (lab.startswith("m[") or lab.startswith("n_im[")) and v <= 1.001e-9:
-                note = "  (on the boundary: Gaussian sigma not meaningful)"
-            lines.append(f"  {lab:>22s} = {v: .6g} +- {s:.3g}{note}")
+                lines.append(f"  {lab:>22s} = {v: .6g}  (on the boundary: no Gaussian sigma)")
+            elif o:
+                lines.append(f"  {lab:>22s} = {v: .6g}  (unobservable on its own)")
+            else:
+                note = "" if d else "  (in the observable subspace)"
+                lines.append(f"  {lab:>22s} = {v: .6g} +- {s:.3g}{note}")
         return "\n".join(lines)
 
 
@@ -481,21 +507,36 @@ def _jacobians(model, param, aux, inv_sigma, data, theta, noise=None):
     return J, G, jnp.sum(r * r)
 
 
-def covariance_at(
+def fisher_at(
     model, noise, data, phys: PhysicalParams, free=DEFAULT_FREE, aux=None, range_scale=0.01
 ):
-    """Gauss-Newton covariance at ``phys``: ``(cov_physical, cov_theta, labels, condition, chi2)``.
+    """Gauss-Newton (Fisher) information at ``phys``: ``(JTJ, G, parametrisation, chi2)``.
 
-    ``aux`` (visibility) is recomputed with ``model.prepare`` when not given. Uses a
-    pseudo-inverse (relative cutoff 1e-12), so an unconstrained direction does not crash: it
-    shows as a huge condition number, and every physical parameter with weight in an exactly
-    unconstrained direction gets an infinite variance in ``cov_physical`` (``cov_theta`` keeps
-    the finite pseudo-inverse, e.g. for sizing an MCMC starting ball).
+    ``JTJ = J^T J`` of the weighted residuals ``(data - mu) / sqrt(var(mu))`` in the solver
+    coordinates ``theta`` of ``parametrisation`` (reference ``phys``): the expected Fisher
+    information of the noise model at ``mu``. ``G = d physical_vector / d theta``. ``aux``
+    (visibility) is recomputed with ``model.prepare`` when not given; ``chi2`` is the solver's
+    cost at ``phys``.
+    """
+    J, _, _, G, param, chi2 = weighted_jacobian(model, noise, data, phys, free, aux, range_scale)
+    return J.T @ J, G, param, chi2
+
+
+def weighted_jacobian(
+    model, noise, data, phys: PhysicalParams, free=DEFAULT_FREE, aux=None, range_scale=0.01
+):
+    """Jacobian of the weighted residuals at ``phys``: ``(J, inv_sigma, mu, G, param, chi2)``.
+
+    ``J = d [(data - mu) inv_sigma] / d theta`` flattened to ``(C * B, P)`` (so
+    ``d mu / d theta = -J / inv_sigma``), ``inv_sigma = 1 / sqrt(var(mu))`` and ``mu`` the
+    expected values ``(C, B)`` at ``phys``, ``G = d physical_vector / d theta``, the
+    :class:`Parametrisation` (reference ``phys``) and the solver's cost. One compiled program
+    per model, shared with the refiners' covariance.
     """
     param = Parametrisation(phys, tuple(free), range_scale)
     if aux is None:
         aux = model.prepare(phys)
-    inv_sigma, _ = _weights(_pure(model), noise, phys, aux)
+    inv_sigma, mu = _weights(_pure(model), noise, phys, aux)
     theta = _from_physical(param, phys)
     J, G, chi2 = _jacobians(_pure(model), param, aux, inv_sigma, jnp.asarray(data), theta, noise)
     J = np.asarray(J, np.float64)
@@ -505,7 +546,36 @@ def covariance_at(
             "covariance_at: the residual Jacobian has non-finite entries at the optimum "
             f"(columns {sorted(set(np.argwhere(~np.isfinite(J))[:, 1].tolist()))})"
         )
-    JTJ = J.T @ J
+    return (
+        J,
+        np.asarray(inv_sigma, np.float64),
+        np.asarray(mu, np.float64),
+        G,
+        param,
+        float(chi2),
+    )
+
+
+def covariance_at(
+    model, noise, data, phys: PhysicalParams, free=DEFAULT_FREE, aux=None, range_scale=0.01
+):
+    """Gauss-Newton covariance at ``phys``: ``(cov_physical, cov_theta, labels, condition, chi2)``.
+
+    ``aux`` (visibility) is recomputed with ``model.prepare`` when not given. Uses a
+    pseudo-inverse (relative cutoff 1e-12), so an unconstrained direction does not crash: it
+    shows as a huge condition number, and every physical parameter with weight in an exactly
+    unconstrained direction gets an infinite variance in ``cov_physical`` (``cov_theta`` keeps
+    the finite pseudo-inverse, e.g. for sizing an MCMC starting ball). These are the marginal
+    variances; :func:`inversion.observability` names the unconstrained directions and gives
+    finite uncertainties in the observable subspace.
+    """
+    JTJ, G, param, chi2 = fisher_at(model, noise, data, phys, free, aux, range_scale)
+    cov, cov_theta, cond = _covariance_from_fisher(JTJ, G, param)
+    return cov, cov_theta, param.labels, cond, chi2
+
+
+def _covariance_from_fisher(JTJ, G, param: Parametrisation):
+    """``(cov_physical, cov_theta, condition)`` of a Fisher matrix (see :func:`covariance_at`)."""
     ev, V = np.linalg.eigh(JTJ)
     with np.errstate(over="ignore"):  # singular (exact symmetry): condition number inf
         cond = float(ev[-1] / ev[0]) if ev[-1] > 0 and ev[0] > 0 else np.inf
@@ -517,6 +587,7 @@ def covariance_at(
     # parameter with weight in such a null direction gets an infinite variance.
     null = ev <= 1e-12 * max(ev[-1], 1e-300)
     if np.any(null):
+        theta = _from_physical(param, param.reference)
         phys_vec = np.asarray(param.physical_vector(theta))
         moved = np.abs(G @ V[:, null])  # physical change along each unit null direction
         # (a parameter pinned on a boundary by its reparametrisation, n'' = softplus(u) or
@@ -524,7 +595,7 @@ def covariance_at(
         loose = np.any(moved > 1e-6 * (1.0 + np.abs(phys_vec))[:, None], axis=1)
         cov = cov.copy()
         cov[loose, loose] = np.inf
-    return cov, cov_theta, param.labels, cond, float(chi2)
+    return cov, cov_theta, cond
 
 
 @dataclasses.dataclass(frozen=True)
@@ -535,15 +606,28 @@ class CramerRao:
       bounds; `attitude_sigma_deg` the root-sum-square attitude bound (degrees).
     - `condition`: condition number of the Fisher matrix (huge: a parameter the measurement
       cannot determine at all, e.g. the attitude about a symmetry axis).
+    - `fisher_theta`: the Fisher matrix in the solver coordinates of `parametrisation`
+      (reference: the point), `physical_jacobian` ``d physical_vector / d theta`` there;
+      :meth:`observability` names the unobservable directions.
     """
 
     covariance: np.ndarray
     labels: list[str]
     condition: float
+    fisher_theta: np.ndarray | None = None
+    parametrisation: Parametrisation | None = None
+    physical_jacobian: np.ndarray | None = None
 
     @property
     def sigma(self) -> np.ndarray:
         return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+
+    def observability(self, line_of_sight=None, rtol: float | None = None):
+        """:func:`inversion.observability` of this bound: the unobservable directions by name
+        and finite bounds in the observable subspace."""
+        from ._observability import observability
+
+        return observability(self, line_of_sight=line_of_sight, rtol=rtol)
 
     @property
     def attitude_sigma_deg(self) -> float | None:
@@ -567,10 +651,16 @@ def cramer_rao(
     noise = PoissonCounts() if noise is None else noise
     aux = model.prepare(phys)
     mu = model.expected(phys, aux)
-    cov, _, labels, cond, _ = covariance_at(
-        model, noise, mu, phys, free=free, aux=aux, range_scale=range_scale
+    JTJ, G, param, _ = fisher_at(model, noise, mu, phys, free, aux, range_scale)
+    cov, _, cond = _covariance_from_fisher(JTJ, G, param)
+    return CramerRao(
+        covariance=cov,
+        labels=list(param.labels),
+        condition=cond,
+        fisher_theta=JTJ,
+        parametrisation=param,
+        physical_jacobian=G,
     )
-    return CramerRao(covariance=cov, labels=list(labels), condition=cond)
 
 
 def _as_starts(starts) -> list[PhysicalParams]:
@@ -767,13 +857,13 @@ def _message(code: int) -> str:
 def _finish(model, noise, data_j, best: StartSummary, ordered, free, range_scale, t0, method):
     phys = best.params
     if np.isfinite(best.cost):
-        cov, cov_theta, labels, cond, chi2 = covariance_at(
-            model, noise, data_j, phys, free=free, range_scale=range_scale
-        )
+        fisher, G, param, chi2 = fisher_at(model, noise, data_j, phys, free, None, range_scale)
+        cov, cov_theta, cond = _covariance_from_fisher(fisher, G, param)
+        labels = param.labels
     else:
         param = Parametrisation(phys, free, range_scale)
         p = param.size
-        cov = cov_theta = np.full((p, p), np.nan)
+        cov = cov_theta = fisher = G = np.full((p, p), np.nan)
         labels, cond, chi2 = param.labels, np.inf, np.inf
     param = Parametrisation(phys, free, range_scale)
     n_data = int(np.prod(data_j.shape))
@@ -795,6 +885,8 @@ def _finish(model, noise, data_j, best: StartSummary, ordered, free, range_scale
         starts=ordered,
         elapsed_s=time.perf_counter() - t0,
         method=method,
+        fisher_theta=fisher,
+        physical_jacobian=G,
     )
 
 
@@ -1197,7 +1289,9 @@ class PhysicalBounds:
     Defaults: ``n'`` in [0.05, 5] (not [1, 5]: metals have ``n' < 1``, e.g. aluminium 0.94,
     gold 0.54, silver 0.054 at 532 nm, PHYSICS.md section 11), ``n''`` in [0, 15], ``m`` in
     [0, 1e6], correlation length in [1e-8, 1e-2] m, range offset in [-1, 1] m, gain in
-    [1e-8, 1e8]; the attitude rotation vector is bounded by ``max_rotation_deg`` about the start.
+    :data:`~inversion._params.GAIN_RANGE` = [1e-6, 1e18] counts per (m^2 sr^-1) (wide: any
+    real measurement is inside); the attitude rotation vector is bounded by
+    ``max_rotation_deg`` about the start.
     """
 
     n_re: tuple[float, float] = (0.05, 5.0)
@@ -1205,7 +1299,7 @@ class PhysicalBounds:
     m: tuple[float, float] = (0.0, 1e6)
     corr_length: tuple[float, float] = (1e-8, 1e-2)
     range_offset: tuple[float, float] = (-1.0, 1.0)
-    gain: tuple[float, float] = (1e-8, 1e8)
+    gain: tuple[float, float] = GAIN_RANGE
     max_rotation_deg: float = 180.0
 
     def __post_init__(self):

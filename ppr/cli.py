@@ -1272,7 +1272,13 @@ class InvertConfig(StrictModel):
     observation: InvertObservation = InvertObservation()
 
 
-INVERT_OUTPUTS = ["invert.json", "invert_chain.npz", "invert_fit.png", "invert_corner.png"]
+INVERT_OUTPUTS = [
+    "invert.json",
+    "invert_chain.npz",
+    "invert_posterior.nc",
+    "invert_fit.png",
+    "invert_corner.png",
+]
 
 
 def cmd_invert(args) -> int:
@@ -1367,7 +1373,8 @@ def cmd_invert(args) -> int:
                 f"{cfg_path}: mirror_symmetry = {cfg.mirror_symmetry!r}: the scene's mesh has "
                 f"no mirror plane with normal {normal.tolist()} through the body origin"
             )
-    with outputs(args.out, INVERT_OUTPUTS, args.overwrite, optional=["invert_corner.png"]) as out:
+    optional = ["invert_corner.png", "invert_posterior.nc"]  # written with an MCMC config
+    with outputs(args.out, INVERT_OUTPUTS, args.overwrite, optional=optional) as out:
         t0 = time.perf_counter()
         try:
             fit = inversion.refine(
@@ -1393,6 +1400,14 @@ def cmd_invert(args) -> int:
             }
             fit = chk.best
         t_fit = time.perf_counter() - t0
+        # the fit against its noise (exact null distribution of the deviance), and what the
+        # data constrain (named unobservable directions; finite uncertainties otherwise)
+        los = inversion.line_of_sight_of(model)
+        gof = inversion.fit_goodness_of_fit(model, data, fit, noise)
+        obs_fit = fit.observability(line_of_sight=los)
+        _say(args, f"ppr invert: {gof.summary()}")
+        if obs_fit.unobservable:
+            _say(args, "ppr invert: unobservable: " + "; ".join(obs_fit.names))
         summary = {
             "command": "invert",
             "config_file": str(cfg_path),
@@ -1417,7 +1432,10 @@ def cmd_invert(args) -> int:
                 "starts": [{"result": st.result, "cost": st.cost} for st in fit.starts]
                 if hasattr(fit.starts[0], "result")
                 else len(fit.starts),
+                "sigma": obs_fit.to_dict()["sigma"],
             },
+            "goodness_of_fit": gof.to_dict(),
+            "observability": obs_fit.to_dict(),
         }
         if mirror is not None:
             summary["mirror_check"] = mirror
@@ -1449,10 +1467,12 @@ def cmd_invert(args) -> int:
                 )
             # what no unbiased estimator can beat on these data (infinite: an exact symmetry)
             crb = inversion.cramer_rao(model, truth, noise, free=tuple(cfg.free))
+            obs_crb = crb.observability(line_of_sight=los)
             summary["cramer_rao"] = {
                 "labels": crb.labels,
-                "sigma": crb.sigma,
-                "attitude_sigma_deg": crb.attitude_sigma_deg,
+                # in the observable subspace: null only for a parameter unobservable on its own
+                "sigma": obs_crb.to_dict()["sigma"],
+                "unobservable": obs_crb.names,
                 "condition": crb.condition,
             }
         chain = {}
@@ -1497,6 +1517,9 @@ def cmd_invert(args) -> int:
                     raise ConfigError(f"{cfg_path}: mcmc: {err}") from None
             lo68, hi68 = post.interval(0.68).T
             lo95, hi95 = post.interval(0.95).T
+            post.write(out.path("invert_posterior.nc"), line_of_sight=los, observed=data)
+            # R-hat, bulk/tail ESS and MCSE from ArviZ (walkers as chains), as in the file
+            diag = post.diagnostics()
             summary["mcmc"] = {
                 "seconds": time.perf_counter() - t1,
                 "labels": post.labels,
@@ -1505,7 +1528,12 @@ def cmd_invert(args) -> int:
                 "interval95": np.stack([lo95, hi95], -1),
                 "acceptance_fraction": float(np.mean(post.acceptance_fraction)),
                 "tau": post.tau,
-                "ess": post.ess,
+                **{
+                    key: [diag[lab][key] for lab in post.labels]
+                    for key in ("r_hat", "ess_bulk", "ess_tail", "mcse_mean", "mcse_sd")
+                },
+                "burn_in": post.burn_in,
+                "thin": post.thin,
                 "converged": bool(post.converged),
                 "warnings": [str(w.message) for w in caught],
             }
@@ -1530,15 +1558,9 @@ def cmd_invert(args) -> int:
                     "tau": post_m.tau,
                     "converged": bool(post_m.converged),
                 }
-            chain = {
-                "chain": post.chain,
-                "log_prob": post.log_prob,
-                "samples": post.samples,
-                "labels": np.array(post.labels),
-            }
+            chain = _chain_arrays(post)
             if post_m is not None:
-                chain["mirror_chain"] = post_m.chain
-                chain["mirror_samples"] = post_m.samples
+                chain.update({f"mirror_{k}": v for k, v in _chain_arrays(post_m).items()})
             post.corner_plot(out.path("invert_corner.png"), truth=truth)
         write_json(out.path("invert.json"), summary)
         np.savez_compressed(out.path("invert_chain.npz"), data=data, **chain)
@@ -1546,6 +1568,25 @@ def cmd_invert(args) -> int:
         _plot_fit(out.path("invert_fit.png"), data, fitted)
     _say(args, f"ppr invert: wrote {', '.join(str(Path(args.out) / n) for n in INVERT_OUTPUTS)}")
     return 0
+
+
+def _chain_arrays(post) -> dict:
+    """The npz view of a posterior, every array in the units its labels state: ``samples``
+    ``(walkers, draws after burn-in, P)`` and ``warmup`` (the burn-in) in physical units
+    (``labels``), the log posterior, the solver-coordinate chain under its own labels."""
+    b, t = post.burn_in, post.thin
+    par = post.parametrisation
+    return {
+        "samples": np.swapaxes(post.physical_chain[b::t], 0, 1),
+        "warmup": np.swapaxes(post.physical_chain[:b:t], 0, 1),
+        "labels": np.array(post.labels),
+        "log_prob": np.swapaxes(post.log_prob[b::t], 0, 1),
+        "burn_in": np.array(b),
+        "thin": np.array(t),
+        "reference_quaternion": np.asarray(par.reference.unit_quaternion()),
+        "chain_theta": np.swapaxes(post.chain, 0, 1),
+        "theta_labels": np.array(par.theta_labels),
+    }
 
 
 def eqx_replace(module, **changes):
@@ -1812,7 +1853,8 @@ Config fields (configs/cli/invert.toml):
   [observation]  source ("simulate" or an .npz with data (channels, bins)), photons
                  (expected total counts), range_offset_m (metres), seed
 Outputs: invert.json (fit, result codes, attitude error, credible intervals, diagnostics),
-invert_chain.npz, invert_fit.png, invert_corner.png."""
+invert_chain.npz (physical samples with walker and draw axes), invert_posterior.nc (ArviZ
+InferenceData, netCDF), invert_fit.png, invert_corner.png."""
 
 REPORT_HELP = """\
 Evaluate the classifier on held-out simulated observations (random attitudes off the grid,

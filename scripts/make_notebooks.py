@@ -449,15 +449,24 @@ print("range offset [mm]:", 1e3 * float(p.range_offset), "(true 3)   gain:", flo
     """md:## What the data can tell: the Cramer-Rao bound
 The Poisson likelihood (`inversion.PoissonCounts`) makes the least-squares optimum the
 maximum-likelihood estimate. `inversion.cramer_rao` gives the bound no unbiased estimator
-can beat at the truth (inverse expected Fisher information); it scales as 1/sqrt(counts). An
-infinite entry is an exact symmetry of the measurement: e.g. the roll about the line of sight
-when every return is a normal-incidence reflection (Mueller `R diag(1, 1, -1, -1)`), which
-no polarization channel can see.""",
+can beat at the truth (inverse expected Fisher information); it scales as 1/sqrt(counts). A
+direction the data cannot see at all is an exact symmetry of the measurement: e.g. the roll
+about the line of sight when every return is a normal-incidence reflection (Mueller
+`R diag(1, 1, -1, -1)`), which no polarization channel can see. `observability()` names such
+directions and gives the uncertainties in the observable subspace (finite; only a parameter
+that is unobservable on its own has none). The fit is then checked against its noise: the
+deviance against its exact null distribution (`inversion.fit_goodness_of_fit`).""",
     """crb = inversion.cramer_rao(model, truth, noise, free=free)   # the same free parameters
 assert crb.labels == fit.labels
-print(f"attitude bound: {crb.attitude_sigma_deg:.3g} deg (refined error above)")
-for lab, s_fit, s_crb in zip(crb.labels, fit.sigma, crb.sigma, strict=True):
+ob_fit, ob_crb = fit.observability(), crb.observability()
+print("unobservable at the fit:", ob_fit.names or "none")
+print(f"attitude bound (observable components): {ob_crb.attitude_sigma_deg:.3g} deg")
+for lab, s_fit, s_crb, seen in zip(crb.labels, ob_fit.sigma, ob_crb.sigma, ob_crb.observable, strict=True):
+    if not seen:
+        print(f"{lab:>18s}: unobservable on its own")
+        continue
     print(f"{lab:>18s}: fit sigma {s_fit:.3g}   Cramer-Rao bound {s_crb:.3g}")
+print(inversion.fit_goodness_of_fit(model, data, fit, noise).summary())
 """,
     """md:## The mirror image: a second mode no local bound sees
 The cube has a mirror plane (`z -> -z`). At the attitude `P R sigma` (`inversion.mirror_attitude`:
@@ -493,9 +502,9 @@ for name, q in (("fit", q_fit), ("mirror fit", q_mir)):
 Priors and sampler settings come from `configs/inversion/default.toml` (the same file
 `ppr invert` reads); here the chain is shortened in small mode.""",
     """import warnings
-# the simulator returns m^2/sr per bin: this observation's gain is ~1e10 (as in ppr invert)
-cfg = inversion.load_mcmc_config(ROOT / "configs/inversion/default.toml",
-                                 {"priors.gain.high": 1e15})
+# the gain is in counts per (m^2 sr^-1) (the simulator returns m^2/sr per bin): ~1e10 here,
+# inside the default prior
+cfg = inversion.load_mcmc_config(ROOT / "configs/inversion/default.toml")
 if SMALL:
     cfg = cfg.model_copy(update={"sampler": cfg.sampler.model_copy(
         update={"n_walkers": 16, "n_steps": 150, "burn_in": 50, "progress": False})})

@@ -306,3 +306,33 @@ def test_half_turn_about_line_of_sight_in_attitude_errors():
     )
     with pytest.raises(ValueError, match="unit 3-vector"):
         los_half_turn(q, los=(0.0, 0.0, 2.0))
+
+
+def test_flags_an_observation_that_no_template_fits():
+    """A bank of one toy shape on a 19 deg attitude grid (Hopf, 1944 templates): its
+    observations at random attitudes (off the grid), sub-bin offsets and 1e4 or 1e6
+    photo-counts fit within the bank's resolution; a shape the bank lacks (another, longer
+    point set) is flagged (5 of 6 attitudes; at the sixth it mimics the bank within a grid
+    spacing). Without the resolution allowance the bank's own shape at 1e6 counts would be
+    flagged: there the grid error, not the noise, dominates."""
+    from inversion._refine import PoissonCounts
+    from inversion._synthetic import point_lobe_bank, point_lobe_signatures
+
+    bank, shape_in, shape_out = point_lobe_bank()
+    rng = np.random.default_rng(0)
+    prep = prepare(bank)
+    q = rng.normal(size=(12, 4))
+    y = np.concatenate(
+        [point_lobe_signatures(*shape_in, q[:6]), point_lobe_signatures(*shape_out, q[6:])]
+    )
+    y = shift_profile(y, rng.uniform(-2, 2, (12, 1)))
+    noise = PoissonCounts(background=1e-3)
+    for counts in (1e4, 1e6):
+        x = rng.poisson(counts * y + 1e-3).astype(np.float64)
+        res = classify(prep, x, k=3, noise=noise)
+        assert not res.no_template_fits[:6].any(), [f.summary() for f in res.fit[:6]]
+        assert res.no_template_fits[6:].sum() >= 5, [f.summary() for f in res.fit[6:]]
+        assert all(f.allowance > 0 and f.n_params == 2 for f in res.fit)
+    strict = classify(prep, x, k=3, noise=noise, resolution_scale=0.0)
+    assert strict.no_template_fits[:6].all(), [f.summary() for f in strict.fit[:6]]
+    assert classify(prep, x, k=3).fit is None  # no noise model, no verdict

@@ -430,7 +430,7 @@ def test_invert_end_to_end(tmp_path, capsys):
         tmp_path / "inv.toml",
         f'scene = "scene.toml"\nbrdf = "glossy"\nn_starts = 1\nmcmc = "{mcmc}"\n'
         "mcmc_walkers = 16\nmcmc_steps = 20\nmcmc_burn_in = 5\n"
-        'mcmc_set = { "priors.gain.high" = 1e15 }\nmirror_symmetry = "octahedral"\n',
+        'mirror_symmetry = "octahedral"\n',
     )
     out = tmp_path / "inv"
     assert run("invert", "-q", "-c", cfg, "-o", out) == 0
@@ -456,7 +456,31 @@ def test_invert_end_to_end(tmp_path, capsys):
     assert abs(np.dot(mm["quaternion"], summary["refine"]["quaternion"])) < 1 - 1e-6
     assert len(mm["interval95"]) == len(summary["mcmc"]["labels"])
     with np.load(out / "invert_chain.npz") as z:
-        assert z["mirror_chain"].shape == z["chain"].shape
+        assert z["mirror_samples"].shape == z["samples"].shape
+        # the npz is in the units its labels say: gain = exp(log_gain) of the solver chain
+        labels, tl = list(z["labels"]), list(z["theta_labels"])
+        np.testing.assert_allclose(
+            z["samples"][..., labels.index("gain")],
+            np.exp(z["chain_theta"][:, 5:, tl.index("log_gain")]),
+            rtol=1e-12,
+        )
+        assert z["samples"].shape[:2] == (16, 15) and int(z["burn_in"]) == 5
+    # the posterior file: ArviZ InferenceData; the JSON quotes ArviZ's diagnostics of it
+    import arviz as az
+
+    idata = az.from_netcdf(out / "invert_posterior.nc")
+    rhat = az.rhat(idata)
+    i_gain = summary["mcmc"]["labels"].index("gain")
+    assert summary["mcmc"]["r_hat"][i_gain] == float(rhat["gain"].values)
+    assert "ess" not in summary["mcmc"] and len(summary["mcmc"]["ess_bulk"]) == len(labels)
+    # goodness of fit and observability: finite, named, JSON null only for a parameter
+    # unobservable on its own
+    gof = summary["goodness_of_fit"]
+    assert gof["statistic"] == "poisson_deviance" and 0 <= gof["p_value"] <= 1
+    assert abs(gof["deviance"] - summary["refine"]["cost"]) < 1e-6 * summary["refine"]["cost"]
+    obs = summary["observability"]
+    nulls = [lab for lab, sg in zip(obs["labels"], obs["sigma"], strict=True) if sg is None]
+    assert nulls == obs["unobservable_on_own"]
     ref = summary["refine"]  # errors modulo the cube's rotations (and mirror) are no larger
     assert ref["attitude_error_mod_symmetry_deg"] <= ref["attitude_error_deg"] + 1e-9
     assert ref["los_error_mod_mirror_deg"] <= ref["los_error_deg"] + 1e-9

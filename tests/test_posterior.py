@@ -1,0 +1,106 @@
+"""Posterior files (inversion._posterior): the saved InferenceData holds the samples in the
+units its attributes state, walkers as chains, burn-in as warmup; the diagnostics are
+ArviZ's own."""
+
+from __future__ import annotations
+
+import arviz as az
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from inversion._mcmc import MCMCResult, _physical_vectors
+from inversion._params import Parametrisation, PhysicalParams, quat_from_rotvec
+from inversion._posterior import GAIN_UNIT, posterior_diagnostics
+from ppr import quat_to_matrix
+
+
+def _rot(q):
+    return np.asarray(quat_to_matrix(np.asarray(q, np.float64)))
+
+
+def _result(n_steps=40, n_walkers=16, burn_in=12, thin=2):
+    """An MCMCResult as sample_posterior assembles it, from a random-walk chain in the solver
+    coordinates of a one-material parametrisation with every group free but corr_length
+    (a real chain would only add its compilation to this test)."""
+    q0 = np.asarray(quat_from_rotvec(jnp.array([0.2, -0.4, 0.3])))
+    ref = PhysicalParams(q0, [12.0], [1.3 + 0.4j], range_offset=0.01, gain=2e3)
+    par = Parametrisation(ref)
+    rng = np.random.default_rng(1)
+    theta0 = np.asarray(par.from_physical(ref))
+    steps = 0.02 * rng.normal(size=(n_steps, n_walkers, par.size))
+    chain = theta0 + np.cumsum(steps, axis=0) + 0.1 * rng.normal(size=(1, n_walkers, par.size))
+    phys = np.asarray(_physical_vectors(par, jnp.asarray(chain.reshape(-1, par.size))))
+    phys = phys.reshape(chain.shape)
+    return MCMCResult(
+        chain=chain,
+        log_prob=rng.normal(size=(n_steps, n_walkers)),
+        samples=phys[burn_in::thin].reshape(-1, par.size),
+        labels=par.labels,
+        parametrisation=par,
+        acceptance_fraction=rng.uniform(0.2, 0.4, n_walkers),
+        tau=np.full(par.size, 10.0),
+        ess=np.full(par.size, 50.0),
+        converged=False,
+        burn_in=burn_in,
+        thin=thin,
+        elapsed_s=0.0,
+        physical_chain=phys,
+    )
+
+
+def test_saved_posterior_is_in_physical_units_and_diagnostics_are_arviz(tmp_path):
+    post = _result()
+    q0 = np.asarray(post.parametrisation.reference.unit_quaternion())
+    data = np.random.default_rng(0).poisson(5.0, size=(4, 16)).astype(float)
+    path = post.write(tmp_path / "posterior.nc", observed=data)
+    idata = az.from_netcdf(path)
+    p, par = idata.posterior, post.parametrisation
+    assert dict(p.sizes)["chain"] == 16 and dict(p.sizes)["draw"] == (40 - 12) // 2
+    assert dict(idata.warmup_posterior.sizes)["draw"] == 6  # burn-in steps 0, 2, ..., 10
+    assert p.attrs["burn_in"] == 12 and p.attrs["thin"] == 2
+    # every column from the solver chain by the documented maps, independently of the library:
+    # degrees of the rotation vector, exp of the log coordinates, softplus of n'', metres
+    th = np.swapaxes(post.chain[12::2], 0, 1)  # (walker, draw, P), solver coordinates
+    col = {lab: i for i, lab in enumerate(par.theta_labels)}
+    expect = {
+        "rot_x": np.degrees(th[..., col["rotvec_x"]]),
+        "rot_z": np.degrees(th[..., col["rotvec_z"]]),
+        "m": np.exp(th[..., col["log_m[0]"]]),
+        "n_re": np.exp(th[..., col["log_n_re[0]"]]),
+        "n_im": np.logaddexp(th[..., col["softplus_inv_n_im[0]"]], 0.0),
+        "range_offset": th[..., col["range_offset/range_scale"]] * par.range_scale,
+        "gain": np.exp(th[..., col["log_gain"]]),
+    }
+    for name, want in expect.items():
+        got = p[name].values
+        got = got[..., 0] if got.ndim == 3 else got
+        np.testing.assert_allclose(got, want, rtol=1e-12, err_msg=name)  # float64 maps
+    units = {"rot_x": "deg", "m": "1", "range_offset": "m", "gain": GAIN_UNIT, "los_polar": "deg"}
+    for name, unit in units.items():
+        assert p[name].attrs["units"] == unit, name
+    # the samples of the result are the same draws, flattened step-major
+    flat = np.swapaxes(p["gain"].values, 0, 1).reshape(-1)
+    np.testing.assert_allclose(flat, post.samples[:, post.labels.index("gain")], rtol=1e-12)
+    # the absolute attitude and the body-frame line of sight of a few draws
+    quat = p["quaternion"].values
+    for w, d in ((0, 0), (5, 3), (15, 13)):
+        rv = np.radians([p[k].values[w, d] for k in ("rot_x", "rot_y", "rot_z")])
+        qw = np.asarray(quat_from_rotvec(jnp.asarray(rv)))
+        # q = exp(w) (x) q0 as a rotation: R(q) = R(exp w) R(q0)
+        R = _rot(qw) @ _rot(q0)
+        np.testing.assert_allclose(_rot(quat[w, d]), R, atol=1e-12)
+        los = R.T @ [0.0, 0.0, 1.0]
+        assert p["los_polar"].values[w, d] == pytest.approx(np.degrees(np.arccos(los[2])))
+    np.testing.assert_array_equal(idata.observed_data["counts"].values, data)
+    # diagnostics: ArviZ's numbers, the same as the MCMCResult reports
+    diag = post.diagnostics()
+    assert diag == posterior_diagnostics(idata)
+    for lab, name, key, fn in (
+        ("gain", "gain", "r_hat", lambda: az.rhat(idata)),
+        ("m[0]", "m", "ess_bulk", lambda: az.ess(idata, method="bulk")),
+        ("n_re[0]", "n_re", "ess_tail", lambda: az.ess(idata, method="tail")),
+        ("range_offset [m]", "range_offset", "mcse_mean", lambda: az.mcse(idata)),
+    ):
+        val = fn()[name].values
+        assert diag[lab][key] == float(val if val.ndim == 0 else val[0])
