@@ -87,6 +87,7 @@ __all__ = [
     "macro_profile",
     "pose_pairs",
     "stack_macro_pairs",
+    "batch_pairs",
     "triangle_rule",
 ]
 
@@ -817,9 +818,11 @@ def _build_pairs(
     node_capacity: tuple[int, int] | None = None,
     mixed: bool | None = None,
     dtype=None,
+    select_only: bool = False,
 ) -> tuple[MacroPairs, dict]:
     """:func:`macro_pairs` and a host summary: counts, glossy pairs cut by ``LOBE_CUT`` and
-    the body-frame one-way range interval ``(lo, hi)`` of the kept paths (None if none)."""
+    the body-frame one-way range interval ``(lo, hi)`` of the kept paths (None if none).
+    ``select_only``: the host selection only (for :func:`_pack` at common capacities)."""
     u_in = np.asarray(laser_dir_body, np.float64)
     u_in = u_in / np.linalg.norm(u_in)
     u_out = np.asarray(receiver_dir_body, np.float64)
@@ -931,6 +934,50 @@ def _build_pairs(
             rsel_i.append(ib[n])
             rsel_j.append(jb[n])
             rsel.append((x[n], kd[n], wd[n] * vis[n], td[n]))
+    sel = {
+        "gsel": gsel,
+        "rsel": (rsel_i, rsel_j, rsel),
+        "nq": nq,
+        "nd": nd,
+        "extent": extent,
+        "info": {
+            "glossy": len(gsel[0]),
+            "broad": len(rsel_i),
+            "lobe_cut": n_cut,
+            "range": (span_lo, span_hi) if span_lo <= span_hi else None,
+        },
+    }
+    if select_only:
+        return sel
+    return _pack(
+        g,
+        sel,
+        bins=bins,
+        terms=terms,
+        window=window,
+        capacities=capacities,
+        node_capacity=node_capacity,
+        mixed=mixed,
+        dtype=dtype,
+    )
+
+
+def _pack(
+    g: MacroGeometry,
+    sel: dict,
+    *,
+    bins=None,
+    terms=DEFAULT_TERMS,
+    window=None,
+    capacities=None,
+    node_capacity=None,
+    mixed=None,
+    dtype=None,
+) -> tuple[MacroPairs, dict]:
+    """Pad a host selection of :func:`_build_pairs` into :class:`MacroPairs`."""
+    gsel = sel["gsel"]
+    rsel_i, rsel_j, rsel = sel["rsel"]
+    nq, nd, extent = sel["nq"], sel["nd"], sel["extent"]
     n_m, n_g, n_r = g.n_macro, len(gsel[0]), len(rsel_i)
     if capacities is None:
         capacities = (max(8, _pair_capacity(n_m)), _pair_capacity(n_g), _pair_capacity(n_r))
@@ -1007,13 +1054,7 @@ def _build_pairs(
         mixed=bool(np.any(g_kind[:n_g] != KIND_GG)) if mixed is None else bool(mixed),
         terms=tuple(terms),
     )
-    info = {
-        "glossy": n_g,
-        "broad": n_r,
-        "lobe_cut": n_cut,
-        "range": (span_lo, span_hi) if span_lo <= span_hi else None,
-    }
-    return pairs, info
+    return pairs, dict(sel["info"])
 
 
 def stack_macro_pairs(pairs: list[MacroPairs]) -> MacroPairs:
@@ -1116,6 +1157,65 @@ def pose_pairs(
     )
     info["convex"] = geom.convex
     return pairs, info
+
+
+def batch_pairs(
+    meshes,
+    casters,
+    shape_ids,
+    laser_dirs_body,
+    receiver_dirs_body,
+    m_parts,
+    brdf,
+    options: MacroOptions | None = None,
+    *,
+    capacities: tuple[int, int, int] = (8, 0, 0),
+    **kwargs,
+) -> MacroPairs:
+    """Host: the :class:`MacroPairs` of a batch of rows (``shape_ids`` into ``meshes`` and
+    ``casters``, body-frame directions and per-part exponents per row), padded to common
+    capacities (at least ``capacities``, so that a fixed value gives every batch the same
+    shapes unless a row needs more) and stacked for ``vmap``."""
+    opt = MacroOptions() if options is None else options
+    sels, geoms = [], []
+    for sid, ui, uo, mp in zip(
+        shape_ids, laser_dirs_body, receiver_dirs_body, m_parts, strict=True
+    ):
+        mesh = meshes[int(sid)]
+        geom = macro_geometry(mesh, plates=opt.plates)
+        mpv = np.broadcast_to(np.asarray(mp, np.float64), (len(mesh.parts),))
+        sels.append(
+            _build_pairs(
+                geom,
+                casters[int(sid)],
+                ui,
+                uo,
+                glossy_parts(mpv, brdf, opt.glossy_m),
+                mpv,
+                select_only=True,
+                **{**opt.pair_options(), **kwargs},
+            )
+        )
+        geoms.append(geom)
+    need = (
+        max(g.n_macro for g in geoms),
+        max(len(s_["gsel"][0]) for s_ in sels),
+        max(len(s_["rsel"][0]) for s_ in sels),
+    )
+    caps = tuple(max(int(c), _pair_capacity(n)) for c, n in zip(capacities, need, strict=True))
+    window = kwargs.get("window")
+    if window is None and kwargs.get("bins") is not None:
+        from ._pulse import window_size  # noqa: PLC0415
+
+        sig, wid, nb = kwargs["bins"]
+        ext = max(s_["extent"] for s_ in sels)
+        window = min(1 << (window_size(ext, sig, wid, int(nb)) - 1).bit_length(), int(nb))
+    pack = {k: v for k, v in kwargs.items() if k in ("bins", "dtype", "node_capacity", "mixed")}
+    rows = [
+        _pack(g, s_, capacities=caps, window=window, terms=tuple(opt.terms), **pack)[0]
+        for g, s_ in zip(geoms, sels, strict=True)
+    ]
+    return stack_macro_pairs(rows)
 
 
 # ----------------------------------------------------------------------------- kernel
