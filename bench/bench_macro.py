@@ -136,6 +136,8 @@ def lobe_reference(m, u, n_grid=241):
     v = ks + gx[..., None] * e1 + gy[..., None] * e2
     r = np.linalg.norm(v, axis=-1).reshape(-1)
     k = v.reshape(-1, 3) / r[:, None]
+    ok = (k @ n_a > 1e-6) & (k @ n_b < -1e-6)  # above both surfaces (broad lobes reach them)
+    k = np.where(ok[:, None], k, ks)
     ub = np.broadcast_to(u, k.shape)
     xk = np.asarray(ppr._frames.perpendicular_unit(jnp.asarray(k)))
     fr = np.broadcast_to([1.0, 0, 0], k.shape)
@@ -150,7 +152,7 @@ def lobe_reference(m, u, n_grid=241):
             -k, ub, np.broadcast_to(n_b, k.shape), mat, terms=one, frame_in=xk, frame_out=fr
         )
     )
-    w = (k @ n_a) * (u @ n_b) / r**3 * (x[1] - x[0]) ** 2
+    w = np.where(ok, (k @ n_a) * (u @ n_b) / r**3 * (x[1] - x[0]) ** 2, 0.0)
     return np.einsum("pij,pjk,p->ik", m2, m1, w)
 
 

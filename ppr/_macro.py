@@ -818,18 +818,55 @@ def _build_pairs(
     node_capacity: tuple[int, int] | None = None,
     mixed: bool | None = None,
     dtype=None,
-    select_only: bool = False,
 ) -> tuple[MacroPairs, dict]:
     """:func:`macro_pairs` and a host summary: counts, glossy pairs cut by ``LOBE_CUT`` and
-    the body-frame one-way range interval ``(lo, hi)`` of the kept paths (None if none).
-    ``select_only``: the host selection only (for :func:`_pack` at common capacities)."""
+    the body-frame one-way range interval ``(lo, hi)`` of the kept paths (None if none)."""
+    sel = _select_pairs(
+        geometry,
+        caster,
+        laser_dir_body,
+        receiver_dir_body,
+        glossy_parts,
+        m_parts,
+        level=level,
+        rule=rule,
+        order=order,
+        samples=samples,
+    )
+    return _pack(
+        geometry,
+        sel,
+        bins=bins,
+        terms=terms,
+        window=window,
+        capacities=capacities,
+        node_capacity=node_capacity,
+        mixed=mixed,
+        dtype=dtype,
+    )
+
+
+def _select_pairs(
+    g: MacroGeometry,
+    caster: VisibilityCaster,
+    laser_dir_body,
+    receiver_dir_body,
+    glossy_parts,
+    m_parts,
+    *,
+    level: int,
+    rule: int,
+    order: int,
+    samples: int,
+) -> dict:
+    """Host: the pairs that pass a pose's tests, their kinds, visibility and nodes (the
+    selection :func:`_pack` pads), with the summary of :func:`_build_pairs`."""
     u_in = np.asarray(laser_dir_body, np.float64)
     u_in = u_in / np.linalg.norm(u_in)
     u_out = np.asarray(receiver_dir_body, np.float64)
     u_out = u_out / np.linalg.norm(u_out)
     gl = np.asarray(glossy_parts, bool)
     mp = np.asarray(m_parts, np.float64)
-    g = geometry
     cand = g.candidates
     if len(cand):
         i, j = cand[:, 0], cand[:, 1]
@@ -947,19 +984,7 @@ def _build_pairs(
             "range": (span_lo, span_hi) if span_lo <= span_hi else None,
         },
     }
-    if select_only:
-        return sel
-    return _pack(
-        g,
-        sel,
-        bins=bins,
-        terms=terms,
-        window=window,
-        capacities=capacities,
-        node_capacity=node_capacity,
-        mixed=mixed,
-        dtype=dtype,
-    )
+    return sel
 
 
 def _pack(
@@ -1177,6 +1202,9 @@ def batch_pairs(
     capacities (at least ``capacities``, so that a fixed value gives every batch the same
     shapes unless a row needs more) and stacked for ``vmap``."""
     opt = MacroOptions() if options is None else options
+    unknown = set(kwargs) - {"bins", "dtype", "node_capacity", "mixed", "window"}
+    if unknown:
+        raise TypeError(f"batch_pairs: unexpected keyword arguments {sorted(unknown)}")
     sels, geoms = [], []
     for sid, ui, uo, mp in zip(
         shape_ids, laser_dirs_body, receiver_dirs_body, m_parts, strict=True
@@ -1185,15 +1213,17 @@ def batch_pairs(
         geom = macro_geometry(mesh, plates=opt.plates)
         mpv = np.broadcast_to(np.asarray(mp, np.float64), (len(mesh.parts),))
         sels.append(
-            _build_pairs(
+            _select_pairs(
                 geom,
                 casters[int(sid)],
                 ui,
                 uo,
                 glossy_parts(mpv, brdf, opt.glossy_m),
                 mpv,
-                select_only=True,
-                **{**opt.pair_options(), **kwargs},
+                level=opt.level,
+                rule=opt.rule,
+                order=opt.order,
+                samples=opt.samples,
             )
         )
         geoms.append(geom)

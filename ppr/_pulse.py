@@ -737,11 +737,10 @@ def double_bounce(
     - `options`: :class:`ppr.MacroOptions` (accuracy knobs).
     - `pairs`: ready :class:`ppr.MacroPairs` at the scene's pose (default: built here).
 
-    Exact for flat surfaces as glossy lobes narrow (the Laplace approximation of the lobe
-    product: relative error ``O(1/m)``, ``2.6e-3`` at ``m = 1e3`` on a 90 deg aluminium
-    dihedral, tests/test_macro.py); broad pairs converge with the quadrature knobs. No
-    gradients through the pair selection and visibility (host, like the single bounce's).
-    """
+    Glossy pairs: the Laplace convolution of the two lobes over the exact clipped overlap
+    (relative error ~``0.3/m`` on a 90 deg aluminium dihedral, tests/test_macro.py); broad
+    pairs converge with the quadrature knobs (bench/bench_macro.py). No gradients through the
+    pair selection and visibility (host, like the single bounce's)."""
     from ._macro import part_exponents, pose_pairs  # noqa: PLC0415
 
     brdf = _default_brdf() if brdf is None else brdf
@@ -840,20 +839,16 @@ def _simulate_macro(scene, caster, rot, brdf, multibounce, options, sigma_r, dt,
     interval of its paths or None)`` (``offset``: the position and pulse shift of ranges)."""
     if multibounce is False:
         return None, None
-    from ._macro import pose_pairs  # noqa: PLC0415
+    from ._macro import MacroOptions, macro_geometry, part_exponents, pose_pairs  # noqa: PLC0415
 
     mesh, sensor, bins = scene.mesh, scene.sensor, scene.bins
+    opt = MacroOptions() if options is None else options
+    if multibounce == "auto" and macro_geometry(mesh, plates=opt.plates).convex:
+        return None, None  # no facing surfaces: exactly zero
     if caster is None:
         caster = VisibilityCaster(mesh, scene.vis_samples)
     u_in = rot.T @ np.asarray(sensor.laser_dir, np.float64)
     u_out = rot.T @ np.asarray(sensor.receiver_dir, np.float64)
-    from ._macro import MacroOptions, macro_geometry  # noqa: PLC0415
-
-    opt = MacroOptions() if options is None else options
-    if multibounce == "auto" and macro_geometry(mesh, plates=opt.plates).convex:
-        return None, None  # no facing surfaces: exactly zero
-    from ._macro import part_exponents  # noqa: PLC0415
-
     pairs, info = pose_pairs(
         mesh,
         caster,

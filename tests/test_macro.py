@@ -303,6 +303,30 @@ def test_dihedral_keeps_handedness_plate_reverses_it_and_roll_turns_linear_by_tw
         assert abs(abs(angle) - 2 * alpha) < 5e-3, (angle, alpha)
 
 
+def test_mirror_image_attitude_gives_the_mirrored_double_bounce():
+    """Parity: the dihedral is symmetric under x -> -x (sigma); at the attitude P R sigma (P
+    the world mirror through the plane of the line of sight and the sensor's x reference) the
+    scene is the mirror image of the one at R, so M' = D M D, D = diag(1, 1, -1, -1), in
+    every bin (float64 rounding: the clipped overlaps are mirror images, the visibility is 1)."""
+    from scipy.spatial.transform import Rotation
+
+    u = _retro_dir(np.radians(8.0)) + np.array([0.05, 0, 0])
+    u /= np.linalg.norm(u)
+    align = Rotation.align_vectors([[0, 0, 1.0]], [u])[0].as_matrix()  # body u -> world z
+    rot = Rotation.from_rotvec([0, 0, 0.7]).as_matrix() @ align
+    sigma, world = np.diag([-1.0, 1.0, 1.0]), np.diag([1.0, -1.0, 1.0])
+    mats = [ppr.Material(AL, 1e4)] * 3
+    out = []
+    for r in (rot, world @ rot @ sigma):
+        q = np.asarray(ppr._pose.matrix_to_quat(r))
+        out.append(_double(_scene(_dihedral(), r.T @ np.array([0, 0, 1.0]), mats, q=q))[0])
+    d = np.diag([1.0, 1.0, -1.0, -1.0])
+    np.testing.assert_allclose(
+        out[1], np.einsum("ij,jkb,kl->ilb", d, out[0], d), rtol=0, atol=1e-10 * out[0].max()
+    )
+    assert np.abs(out[0][:2, 2:]).max() > 1e-3 * out[0].max()  # the off-block elements differ
+
+
 # ----------------------------------------------------------------------------- where it applies
 
 
@@ -451,3 +475,63 @@ def test_bad_input_is_named():
     with pytest.raises(ValueError, match="build them with the same capacities"):
         ppr.stack_macro_pairs([a, b])
     assert ppr.stack_macro_pairs([a, a]).g_vis.shape == (2, CAPS[1])
+
+
+def test_database_signatures_and_inversion_model_include_the_double_bounce():
+    """The signature database's function (inversion.PprSignatures) and the inversion's forward
+    model (inversion.SimulatorModel) include the double bounce of a non-convex shape: both
+    equal ppr.simulate (which includes it by default) projected on their channels, and differ
+    from the single bounce alone (Lambertian stand-in BRDF: every pair broad)."""
+    from inversion import PhysicalParams, SimulatorModel
+    from inversion._noise import MeasurementModel, measure
+    from inversion._ppr_adapter import PprSignatures
+
+    mesh = shapes.cubesat_with_panels(3)
+    mm = MeasurementModel.preset("stokes")
+    opts = _macro.MacroOptions(order=2, rule=3)
+    fn = PprSignatures(
+        [mesh],
+        ["aluminium"],
+        [20.0],
+        mm,
+        n_bins=48,
+        bin_width_m=0.02,
+        brdf=lambertian_mueller,
+        dtype=jnp.float64,
+        macro_options=opts,
+    )
+    assert fn.multibounce and fn.sensor["model"].endswith("+macro")
+    q = np.array([0.3, 0.8, 0.4, 0.33])
+    q /= np.linalg.norm(q)
+    zero = np.zeros(1, np.int32)
+    sig = np.asarray(
+        fn({"shape_id": zero, "material_id": zero, "finish_id": zero, "quat": q[None]})
+    )
+    mat = ppr.load_material("aluminium", 532e-9, dtype=jnp.float64)
+    mat = ppr.Material(mat.n, 20.0)
+    scene = ppr.Scene(
+        mesh,
+        (mat,) * 3,
+        ppr.Pose(q),
+        fn.sensor_model,
+        ppr.Pulse.gaussian(fn.pulse_fwhm_s),
+        fn.bins,
+        vis_samples=4,
+    )
+    kw = dict(brdf=lambertian_mueller, dtype=jnp.float64, macro_options=opts)
+    both = np.asarray(ppr.simulate(scene, **kw).data)
+    single = np.asarray(ppr.simulate(scene, multibounce=False, **kw).data)
+    ref = np.maximum(np.asarray(measure(mm, jnp.asarray(both))), 0.0)
+    # same kernels, same visibility samples; float64 round-off only
+    np.testing.assert_allclose(sig[0], ref, rtol=1e-9, atol=1e-12 * ref.max())
+    assert np.abs(both - single).sum() > 1e-3 * np.abs(single).sum()  # the pairs add light
+    model = SimulatorModel(
+        scene, mm.channel_matrix(), brdf=lambertian_mueller, dense=True, macro_options=opts
+    )
+    phys = PhysicalParams(q, [20.0] * 3, [mat.n] * 3)
+    aux = model.prepare(phys)
+    assert isinstance(aux, tuple) and aux[1].n_broad > 0
+    got = np.asarray(model.expected(phys, aux))
+    np.testing.assert_allclose(
+        got, np.asarray(measure(mm, jnp.asarray(both))), rtol=1e-9, atol=1e-12 * ref.max()
+    )
