@@ -771,10 +771,23 @@ def macro_pairs(
     receiver_dir_body,
     glossy_parts,
     m_parts,
-    **options,
-) -> MacroPairs:
+    *,
+    level: int = 1,
+    rule: int = 6,
+    order: int = 4,
+    samples: int = 16,
+    bins: tuple[float, float, int] | None = None,
+    terms: tuple = DEFAULT_TERMS,
+    window: int | None = None,
+    capacities: tuple[int, int, int] | None = None,
+    node_capacity: tuple[int, int] | None = None,
+    mixed: bool | None = None,
+    dtype=None,
+) -> tuple[MacroPairs, dict]:
     """Host: the pairs of ``geometry`` that can send light from the laser to the receiver at
-    one pose (body-frame directions), with their visibility (module docstring).
+    one pose (body-frame directions), with their visibility (module docstring), and a host
+    summary: counts, glossy pairs cut by ``LOBE_CUT`` and the body-frame one-way range
+    interval ``(lo, hi)`` of the kept paths (None if none).
 
     **Arguments:**
 
@@ -794,33 +807,6 @@ def macro_pairs(
       BRDF for glossy pairs whether or not one has a broad side).
     - `terms`: BRDF terms of the evaluations (default :data:`DEFAULT_TERMS`).
     """
-    return _build_pairs(
-        geometry, caster, laser_dir_body, receiver_dir_body, glossy_parts, m_parts, **options
-    )[0]
-
-
-def _build_pairs(
-    geometry: MacroGeometry,
-    caster: VisibilityCaster,
-    laser_dir_body,
-    receiver_dir_body,
-    glossy_parts,
-    m_parts,
-    *,
-    level: int = 1,
-    rule: int = 6,
-    order: int = 4,
-    samples: int = 16,
-    bins: tuple[float, float, int] | None = None,
-    terms: tuple = DEFAULT_TERMS,
-    window: int | None = None,
-    capacities: tuple[int, int, int] | None = None,
-    node_capacity: tuple[int, int] | None = None,
-    mixed: bool | None = None,
-    dtype=None,
-) -> tuple[MacroPairs, dict]:
-    """:func:`macro_pairs` and a host summary: counts, glossy pairs cut by ``LOBE_CUT`` and
-    the body-frame one-way range interval ``(lo, hi)`` of the kept paths (None if none)."""
     sel = _select_pairs(
         geometry,
         caster,
@@ -860,7 +846,7 @@ def _select_pairs(
     samples: int,
 ) -> dict:
     """Host: the pairs that pass a pose's tests, their kinds, visibility and nodes (the
-    selection :func:`_pack` pads), with the summary of :func:`_build_pairs`."""
+    selection :func:`_pack` pads), with the summary of :func:`macro_pairs`."""
     u_in = np.asarray(laser_dir_body, np.float64)
     u_in = u_in / np.linalg.norm(u_in)
     u_out = np.asarray(receiver_dir_body, np.float64)
@@ -999,7 +985,7 @@ def _pack(
     mixed=None,
     dtype=None,
 ) -> tuple[MacroPairs, dict]:
-    """Pad a host selection of :func:`_build_pairs` into :class:`MacroPairs`."""
+    """Pad a host selection (:func:`_select_pairs`) into :class:`MacroPairs`."""
     gsel = sel["gsel"]
     rsel_i, rsel_j, rsel = sel["rsel"]
     nq, nd, extent = sel["nq"], sel["nd"], sel["extent"]
@@ -1166,12 +1152,12 @@ def pose_pairs(
     **kwargs,
 ) -> tuple[MacroPairs, dict]:
     """Host: :func:`macro_pairs` of ``mesh`` at one pose from the parts' exponents and the
-    BRDF (glossy parts by :func:`glossy_parts`), and the summary of ``_build_pairs``
+    BRDF (glossy parts by :func:`glossy_parts`), and its summary
     (``info["convex"]``: the mesh has no facing surfaces at all)."""
     opt = MacroOptions() if options is None else options
     geom = macro_geometry(mesh, plates=opt.plates)
     mp = np.broadcast_to(np.asarray(m_parts, np.float64), (len(mesh.parts),))
-    pairs, info = _build_pairs(
+    pairs, info = macro_pairs(
         geom,
         caster,
         laser_dir_body,
@@ -1246,6 +1232,62 @@ def batch_pairs(
         for g, s_ in zip(geoms, sels, strict=True)
     ]
     return stack_macro_pairs(rows)
+
+
+def gnomonic_grid(center, span: float, n: int):
+    """Host: ``(k (n^2, 3), weights (n^2,))``: unit directions on an ``n x n`` grid of the
+    plane tangent to the unit ``center`` (coordinates in ``[-span, span]``), with the
+    trapezoid weights of the solid angle (``d omega = dA / r^3``)."""
+    e1 = np.cross(center, [1.0, 0, 0] if abs(center[0]) < 0.9 else [0, 1.0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(center, e1)
+    x = np.linspace(-span, span, int(n))
+    gx, gy = np.meshgrid(x, x, indexing="ij")
+    v = center + gx[..., None] * e1 + gy[..., None] * e2
+    r = np.linalg.norm(v, axis=-1).reshape(-1)
+    return v.reshape(-1, 3) / r[:, None], (x[1] - x[0]) ** 2 / r**3
+
+
+def two_bounce_lobe(n_i, n_j, u_in, u_out, material, frame_in, frame_out, *, span=7.0, n=121):
+    """Host reference (float64, brute force): the two-bounce lobe
+    ``int M_J(-k -> u_out) M_I(u_in -> k) (n_I.k)(n_J.u_out) d omega_k`` of the single-bounce
+    BRDF over a gnomonic grid of ``+-span`` lobe widths ``2/sqrt(m)`` about ``I``'s specular
+    direction (directions below either surface dropped): what the Laplace convolution of the
+    glossy pairs approximates, by another method (tests/test_macro.py, bench/bench_macro.py)."""
+    from ._brdf import mueller_brdf  # noqa: PLC0415
+    from ._frames import perpendicular_unit  # noqa: PLC0415
+
+    n_i, n_j, u_in, u_out = (np.asarray(v, np.float64) for v in (n_i, n_j, u_in, u_out))
+    ks = 2 * (u_in @ n_i) * n_i - u_in
+    k, w = gnomonic_grid(ks, span * 2.0 / math.sqrt(float(material.m)), n)
+    ok = (k @ n_i > 1e-6) & (k @ n_j < -1e-6)
+    k = np.where(ok[:, None], k, ks)
+    xk = np.asarray(perpendicular_unit(jnp.asarray(k)))
+    one = ("single",)
+    b = np.broadcast_to
+    m1 = np.asarray(
+        mueller_brdf(
+            b(u_in, k.shape),
+            k,
+            b(n_i, k.shape),
+            material,
+            terms=one,
+            frame_in=b(frame_in, k.shape),
+            frame_out=xk,
+        )
+    )
+    m2 = np.asarray(
+        mueller_brdf(
+            -k,
+            b(u_out, k.shape),
+            b(n_j, k.shape),
+            material,
+            terms=one,
+            frame_in=xk,
+            frame_out=b(frame_out, k.shape),
+        )
+    )
+    return np.einsum("pij,pjk,p->ik", m2, m1, np.where(ok, (k @ n_i) * (u_out @ n_j) * w, 0.0))
 
 
 # ----------------------------------------------------------------------------- kernel

@@ -452,8 +452,9 @@ def render(
     - `faces`: optional ``(Fc,)`` indices of the facets to keep (pruning: back-facing and
       invisible facets left out, :func:`visible_faces`); padding indices must point at
       facets with ``vis == 0``. The result is the same; the cost scales with ``Fc``.
-    - `macro`: optional :class:`ppr.MacroPairs` (host, :func:`ppr.macro_pairs` at this pose):
-      adds the macro double bounce between the object's surfaces (:mod:`ppr._macro`).
+    - `macro`: optional :class:`ppr.MacroPairs` (host: the first item of
+      :func:`ppr.macro_pairs` at this pose): adds the macro double bounce between the object's
+      surfaces (:mod:`ppr._macro`).
 
     Facets deeper than the window lose the part of their return beyond it: choose
     ``window`` from the longest edge (``simulate`` does). Python scalars are converted to

@@ -97,38 +97,11 @@ def _binned_pulse(r0, sigma):
 
 
 def _lobe_reference(n, m, u, normals):
-    """Brute-force two-bounce lobe at retro-reflection (float64): the integral over directions
-    k of M_B(-k -> u) M_A(u -> k) (n_A.k)(n_B.u) for the single-bounce BRDF, on a gnomonic
-    grid of +-7 lobe widths about A's specular direction (trapezoid rule, Jacobian 1/r^3)."""
-    n_a, n_b = normals
-    mat = ppr.Material(n, m)
-    ks = 2 * (u @ n_a) * n_a - u
-    e1 = np.cross(ks, [1.0, 0, 0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(ks, e1)
-    s = 7 * 2 / np.sqrt(m)
-    x = np.linspace(-s, s, 121)
-    gx, gy = np.meshgrid(x, x, indexing="ij")
-    v = ks + gx[..., None] * e1 + gy[..., None] * e2
-    r = np.linalg.norm(v, axis=-1).reshape(-1)
-    k = v.reshape(-1, 3) / r[:, None]
-    ub = np.broadcast_to(u, k.shape)
-    xk = np.asarray(ppr._frames.perpendicular_unit(jnp.asarray(k)))
-    x_ref = np.array([1.0, 0, 0]) - u[0] * u  # the sensor's frames (_scene: x_ref = x)
-    fr = np.broadcast_to(x_ref / np.linalg.norm(x_ref), k.shape)
-    single = ("single",)
-    m1 = np.asarray(
-        ppr.mueller_brdf(
-            ub, k, np.broadcast_to(n_a, k.shape), mat, terms=single, frame_in=fr, frame_out=xk
-        )
-    )
-    m2 = np.asarray(
-        ppr.mueller_brdf(
-            -k, ub, np.broadcast_to(n_b, k.shape), mat, terms=single, frame_in=xk, frame_out=fr
-        )
-    )
-    w = (k @ n_a) * (u @ n_b) / r**3 * (x[1] - x[0]) ** 2
-    return np.einsum("pij,pjk,p->ik", m2, m1, w)
+    """Brute-force two-bounce lobe at retro-reflection (:func:`ppr._macro.two_bounce_lobe`,
+    float64), in the frames of ``_scene``'s sensor (x reference projected off ``u``)."""
+    x_ref = np.array([1.0, 0, 0]) - u[0] * u
+    x_ref /= np.linalg.norm(x_ref)
+    return _macro.two_bounce_lobe(*normals, u, u, ppr.Material(n, m), x_ref, x_ref)
 
 
 # ----------------------------------------------------------------------------- glossy
