@@ -835,14 +835,14 @@ def _check_concrete(x, what):
         )
 
 
-def _simulate_macro(scene, caster, rot, brdf, multibounce, options, sigma_r, dt, offset):
+def _simulate_macro(scene, caster, rot, brdf, multibounce, options, dt, offset):
     """Host part of :func:`simulate`'s macro double bounce: ``(MacroPairs or None, range
     interval of its paths or None)`` (``offset``: the position and pulse shift of ranges)."""
     if multibounce is False:
         return None, None
     from ._macro import MacroOptions, macro_geometry, part_exponents, pose_pairs  # noqa: PLC0415
 
-    mesh, sensor, bins = scene.mesh, scene.sensor, scene.bins
+    mesh, sensor = scene.mesh, scene.sensor
     opt = MacroOptions() if options is None else options
     if multibounce == "auto" and macro_geometry(mesh, plates=opt.plates).convex:
         return None, None  # no facing surfaces: exactly zero
@@ -858,8 +858,7 @@ def _simulate_macro(scene, caster, rot, brdf, multibounce, options, sigma_r, dt,
         part_exponents(scene.materials),
         brdf,
         opt,
-        bins=(sigma_r, float(bins.width), bins.n_bins),
-        dtype=dt,
+        dtype=dt,  # every bin (no static windows): one program for any bins and poses
     )
     if multibounce == "auto" and info["glossy"] + info["broad"] == 0:
         return None, None
@@ -969,7 +968,7 @@ def simulate(
     edges = bins.edges()
     dt = jnp.result_type(float) if dtype is None else dtype
     macro, span = _simulate_macro(
-        scene, caster, rot, brdf, multibounce, macro_options, sigma_r, dt, pos @ w - shift
+        scene, caster, rot, brdf, multibounce, macro_options, dt, pos @ w - shift
     )
     spans = [] if span is None else [span]
     if np.any(vis > 0):
@@ -1020,8 +1019,23 @@ def simulate(
         projection=None if proj is None else jnp.asarray(proj, dt),
         brdf=brdf,
         terms=terms,
-        macro=macro,
     )
+    if macro is not None:
+        # the double bounce as its own program, all 16 elements, projected here: simulate
+        # calls that differ in states, channels or bin width share its compilation
+        m16 = _macro_jit(
+            macro,
+            cast(pose),
+            mats,
+            cast(sensor),
+            jnp.asarray(sigma_r, dt),
+            jnp.asarray(float(bins.start) - shift, dt),
+            jnp.asarray(bins.width, dt),
+            n_bins=bins.n_bins,
+            projection=None,
+            brdf=_unchecked_if_concrete(brdf, mats, pose),
+        )
+        out = out + (m16 if proj is None else jnp.asarray(proj, dt).T @ m16)
     data = out.reshape(*out_shape, bins.n_bins)
     centres = bins.centres()
     return Profile(
