@@ -717,6 +717,26 @@ def _macro_jit(pairs, pose, materials, sensor, sigma, start, width, *, n_bins, p
     )
 
 
+def _scene_macro(scene: Scene, pairs, mats, brdf, dt) -> Array:
+    """``(16, n_bins)`` macro double bounce of ``scene`` (concrete pose and pulse) from host
+    pairs and materials stacked in ``dt``."""
+    cast = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, dt), t)  # noqa: E731
+    bins, pulse = scene.bins, scene.pulse
+    shift = 0.5 * C_LIGHT * float(pulse.t0)
+    return _macro_jit(
+        pairs,
+        cast(scene.pose),
+        mats,
+        cast(scene.sensor),
+        jnp.asarray(0.5 * C_LIGHT * float(pulse.sigma_t), dt),
+        jnp.asarray(float(bins.start) - shift, dt),
+        jnp.asarray(bins.width, dt),
+        n_bins=bins.n_bins,
+        projection=None,
+        brdf=_unchecked_if_concrete(brdf, mats, scene.pose),
+    )
+
+
 def double_bounce(
     scene: Scene,
     *,
@@ -768,20 +788,7 @@ def double_bounce(
     mats = jax.tree_util.tree_map(
         lambda a: a.astype(jnp.result_type(dt, jnp.complex64) if jnp.iscomplexobj(a) else dt), mats
     )
-    cast = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, dt), t)  # noqa: E731
-    shift = 0.5 * C_LIGHT * float(pulse.t0)
-    out = _macro_jit(
-        pairs,
-        cast(pose),
-        mats,
-        cast(sensor),
-        jnp.asarray(sigma_r, dt),
-        jnp.asarray(float(bins.start) - shift, dt),
-        jnp.asarray(bins.width, dt),
-        n_bins=bins.n_bins,
-        projection=None,
-        brdf=_unchecked_if_concrete(brdf, mats, scene.pose),
-    )
+    out = _scene_macro(scene, pairs, mats, brdf, dt)
     centres = bins.centres()
     return Profile(
         data=out.reshape(4, 4, bins.n_bins),
@@ -1023,18 +1030,7 @@ def simulate(
     if macro is not None:
         # the double bounce as its own program, all 16 elements, projected here: simulate
         # calls that differ in states, channels or bin width share its compilation
-        m16 = _macro_jit(
-            macro,
-            cast(pose),
-            mats,
-            cast(sensor),
-            jnp.asarray(sigma_r, dt),
-            jnp.asarray(float(bins.start) - shift, dt),
-            jnp.asarray(bins.width, dt),
-            n_bins=bins.n_bins,
-            projection=None,
-            brdf=_unchecked_if_concrete(brdf, mats, pose),
-        )
+        m16 = _scene_macro(scene, macro, mats, brdf, dt)
         out = out + (m16 if proj is None else jnp.asarray(proj, dt).T @ m16)
     data = out.reshape(*out_shape, bins.n_bins)
     centres = bins.centres()

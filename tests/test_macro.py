@@ -60,18 +60,23 @@ def q_rotate(q, v):
     return np.asarray(ppr.quat_to_matrix(np.asarray(q, float))) @ np.asarray(v)
 
 
-def _pairs(scene, options=None, dtype=jnp.float64, brdf=ppr.mueller_brdf):
+def _pairs(scene, options=None, dtype=jnp.float64, brdf=ppr.mueller_brdf, glossy=None):
+    """Host pairs of ``scene`` at the shared programs' capacities; ``glossy``: every part
+    glossy (True) or broad (False) whatever the BRDF (default: by the exponents)."""
     rot = np.asarray(ppr.quat_to_matrix(np.asarray(scene.pose.quaternion, float)))
     u_in = rot.T @ np.asarray(scene.sensor.laser_dir, float)
     u_out = rot.T @ np.asarray(scene.sensor.receiver_dir, float)
-    return _macro.pose_pairs(
-        scene.mesh,
+    opts = options or _macro.MacroOptions(rule=3)
+    m = _macro.part_exponents(scene.materials)
+    gl = _macro.glossy_parts(m, brdf, opts.glossy_m) if glossy is None else [glossy] * len(m)
+    return _macro.macro_pairs(
+        _macro.macro_geometry(scene.mesh, plates=opts.plates),
         ppr.VisibilityCaster(scene.mesh, scene.vis_samples),
         u_in,
         u_out,
-        _macro.part_exponents(scene.materials),
-        brdf,
-        options or _macro.MacroOptions(rule=3),
+        gl,
+        m,
+        **opts.pair_options(),
         bins=(float(scene.pulse.sigma_range), WIDTH, N_BINS),
         window=0,
         capacities=CAPS,
@@ -379,32 +384,6 @@ def _macro_total(q, m, pairs, scene, dtype, weights):
     return jnp.sum(out * weights.astype(dtype))
 
 
-def _forced_pairs(scene, glossy, dtype):
-    """Pairs of ``scene`` with every part glossy (image method) or broad, at the capacities of
-    the shared programs."""
-    u = np.asarray(ppr.quat_to_matrix(np.asarray(scene.pose.quaternion))).T @ np.asarray(
-        scene.sensor.laser_dir
-    )
-    geom = _macro.macro_geometry(scene.mesh)
-    caster = ppr.VisibilityCaster(scene.mesh, 4)
-    m = _macro.part_exponents(scene.materials)
-    return _macro.macro_pairs(
-        geom,
-        caster,
-        u,
-        u,
-        [glossy] * 3,
-        m,
-        rule=3,
-        bins=(float(scene.pulse.sigma_range), WIDTH, N_BINS),
-        window=0,
-        capacities=CAPS,
-        node_capacity=NODES,
-        mixed=True,
-        dtype=dtype,
-    )
-
-
 def test_gradients_match_finite_differences_and_float32_matches_float64():
     """A dihedral at a general attitude (rolled, tilted): the derivatives of a weighted sum of
     the 16 profiles with respect to the attitude (three tangent directions) and m, glossy
@@ -419,7 +398,7 @@ def test_gradients_match_finite_differences_and_float32_matches_float64():
     w = jnp.asarray(np.random.default_rng(0).normal(size=(16, N_BINS)))
     for m, glossy in ((3e3, True), (30.0, False)):
         scene = _scene(_dihedral(), u, [ppr.Material(AL, m)] * 3, q=q0)
-        pairs, info = _forced_pairs(scene, glossy, jnp.float64)
+        pairs, info = _pairs(scene, glossy=glossy)
         assert info["glossy" if glossy else "broad"] == 8
 
         def f(q, mm, pairs=pairs, scene=scene):
@@ -441,7 +420,7 @@ def test_gradients_match_finite_differences_and_float32_matches_float64():
             fd = (f(q + h * dq, mm + h * dm) - f(q - h * dq, mm - h * dm)) / (2 * h)
             # central differences of a smooth function: truncation h^2, rounding 1e-16 / h
             assert float(tan) == pytest.approx(float(fd), rel=1e-6, abs=1e-8 * abs(float(val)))
-        pairs32, _ = _forced_pairs(scene, glossy, jnp.float32)
+        pairs32, _ = _pairs(scene, dtype=jnp.float32, glossy=glossy)
         q32 = jnp.asarray(q0, jnp.float32)
         v32 = _macro_total(q32, jnp.float32(m), pairs32, scene, jnp.float32, w)
         assert v32.dtype == jnp.float32
