@@ -39,6 +39,9 @@ class PprSignatures:
     - `measurement`: PSG/PSA channels; `n_bins`, `bin_width_m`, `pulse_fwhm_s`, `wavelength`.
     - `vis_samples`: barycentric samples per face for partial visibility.
     - `brdf`: Mueller BRDF (default ``ppr.mueller_brdf``); `terms`: its terms (default all).
+    - `multibounce`: include the macro double bounce between the shapes' surfaces
+      (``ppr.simulate``'s switch: ``"auto"`` includes it when some shape has surfaces facing
+      each other, i.e. is not convex); `macro_options`: its ``ppr.MacroOptions``.
     """
 
     def __init__(
@@ -55,6 +58,8 @@ class PprSignatures:
         brdf=None,
         terms=None,
         dtype=jnp.float32,
+        multibounce="auto",
+        macro_options=None,
     ):
         if len(shapes) == 0 or len(materials) == 0 or len(finishes) == 0:
             raise ValueError("PprSignatures needs at least one shape, material and finish")
@@ -84,6 +89,15 @@ class PprSignatures:
         self.capacity = cap
         self.n_parts = max(len(m.parts) for m in meshes)
         self.casters = [ppr.VisibilityCaster(m, vis_samples) for m in meshes]
+        if multibounce not in (True, False, "auto"):
+            raise ValueError(f"multibounce must be True, False or 'auto', got {multibounce!r}")
+        self.macro_options = macro_options or ppr.MacroOptions()
+        geoms = [ppr.macro_geometry(m, plates=self.macro_options.plates) for m in meshes]
+        self.multibounce = multibounce is True or (
+            multibounce == "auto" and not all(g.convex for g in geoms)
+        )
+        # padded pair counts grow (one more compilation) only if a row needs more
+        self._macro_caps = (max(g.n_macro for g in geoms), 0, 0)
         mats = [ppr.load_material(name, wavelength, dtype=dtype) for name in materials]
         self.materials = tuple(materials)
         self.finishes = tuple(float(f) for f in finishes)
@@ -138,7 +152,8 @@ class PprSignatures:
     @property
     def sensor(self) -> dict:
         return {
-            "model": "ppr-render-v1",
+            # the macro double bounce changes the signatures of non-convex shapes
+            "model": "ppr-render-v1+macro" if self.multibounce else "ppr-render-v1",
             "channels": self.measurement.fingerprint(),
             "n_bins": self.n_bins,
             "bin_width_m": self.bin_width_m,
@@ -158,10 +173,44 @@ class PprSignatures:
             out[i, : caster.n_faces] = caster.fractions(r.T @ u_in, r.T @ u_out)
         return out
 
+    def macro_pairs(self, shape_id, finish_id, quat):
+        """Host: the stacked ``ppr.MacroPairs`` of a batch of rows (every part gets the row's
+        finish), or None without the double bounce."""
+        if not self.multibounce:
+            return None
+        from ppr._macro import batch_pairs  # noqa: PLC0415
+
+        quat = np.asarray(quat, np.float64)
+        rot = np.asarray(ppr.quat_to_matrix(quat / np.linalg.norm(quat, axis=-1, keepdims=True)))
+        u = np.asarray(self.sensor_model.laser_dir, np.float64)
+        dirs = np.einsum("bji,j->bi", rot, u)  # body frame (monostatic)
+        pairs = batch_pairs(
+            self.meshes,
+            self.casters,
+            np.asarray(shape_id),
+            dirs,
+            dirs,
+            [self.finishes[int(f)] for f in np.asarray(finish_id)],
+            self.brdf,
+            self.macro_options,
+            capacities=self._macro_caps,
+            bins=(self.sigma_r, self.bin_width_m, self.n_bins),
+            window=self.n_bins,
+            mixed=True,
+            dtype=self.dtype,
+        )
+        self._macro_caps = (
+            pairs.tri.shape[1],
+            max(self._macro_caps[1], pairs.g_i.shape[1]),
+            max(self._macro_caps[2], pairs.r_i.shape[1]),
+        )
+        return pairs
+
     def __call__(self, params: dict) -> jax.Array:
         sid = np.asarray(params["shape_id"])
         quat = params["quat"]
         vis = self.visibility(sid, np.asarray(quat))
+        macro = self.macro_pairs(sid, params["finish_id"], np.asarray(quat))
         sharding = getattr(quat, "sharding", None)
         args = [params["shape_id"], params["material_id"], params["finish_id"], quat]
         vis = jnp.asarray(vis, self.dtype)
@@ -184,6 +233,7 @@ class PprSignatures:
             window=self.window,
             brdf=self.brdf,
             terms=self.terms,
+            macro=macro,
         )
 
 
@@ -209,10 +259,11 @@ def _batch_render(
     window,
     brdf,
     terms=None,
+    macro=None,
 ):
     dt = arrays.tri.dtype
 
-    def one(sid, mid, fid, q, v):
+    def one(sid, mid, fid, q, v, mac):
         arr = jax.tree_util.tree_map(lambda a: a[sid], arrays)
         # one entry shared by every part (ppr.render): per-material work done once per row
         mat = ppr.Material(n_tab[mid][None], m_tab[fid][None], corr_tab[mid][None])
@@ -231,7 +282,8 @@ def _batch_render(
             projection=projection,
             brdf=brdf,
             terms=terms,
+            macro=mac,
         )
 
-    out = jax.vmap(one)(shape_id, material_id, finish_id, quat, vis)
+    out = jax.vmap(one)(shape_id, material_id, finish_id, quat, vis, macro)
     return jnp.maximum(out, 0.0)  # channel intensities; clip round-off below zero

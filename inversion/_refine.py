@@ -1572,6 +1572,9 @@ class SimulatorKernel(eqx.Module):
     def expected(self, phys: PhysicalParams, vis):
         import ppr
 
+        macro = None
+        if isinstance(vis, tuple):  # (visibility, ppr.MacroPairs): SimulatorModel.prepare
+            vis, macro = vis
         dt = self.arrays.tri.dtype
         pose = ppr.Pose(phys.unit_quaternion().astype(dt), self.position)
         mats = ppr.Material(phys.n, phys.m.astype(dt), phys.corr_length.astype(dt))
@@ -1593,6 +1596,7 @@ class SimulatorKernel(eqx.Module):
             projection=self.projection,
             brdf=self.brdf,
             terms=self.terms,
+            macro=macro,
         )
         return phys.gain.astype(dt) * out + self.background
 
@@ -1618,6 +1622,11 @@ class SimulatorModel:
     - `dense`: evaluate every facet on every bin (window = n_bins): slower per call for large
       meshes, but every mesh of the same padded capacity shares one compilation.
     - `capacity`: padded face capacity (default :func:`ppr.mesh_arrays`'s).
+    - `multibounce`, `macro_options`: the macro double bounce between the mesh's surfaces
+      (``ppr.simulate``'s switch; ``"auto"``: included when some surfaces face each other).
+      :meth:`prepare` then returns ``(visibility, ppr.MacroPairs)``: the pairs, their
+      visibility and glossy/broad kinds are held fixed over a round like the visibility,
+      at padded counts that grow (one more compilation) only when a pose needs more.
     - `prune`: :meth:`prepare` returns a :class:`ppr.FaceSubset` of the facets lit and
       visible at the given pose instead of the whole mesh's fractions: the facets it leaves
       out contribute exactly zero at that visibility, so every result is the same (to the
@@ -1641,6 +1650,8 @@ class SimulatorModel:
         dense=False,
         capacity=None,
         prune=True,
+        multibounce="auto",
+        macro_options=None,
     ):
         import ppr
         from ppr._conventions import C_LIGHT
@@ -1677,6 +1688,12 @@ class SimulatorModel:
         self._subset_caps: tuple[int, int] | None = None
         self.caster = ppr.VisibilityCaster(mesh, scene.vis_samples)
         self.n_faces = mesh.n_faces
+        if multibounce not in (True, False, "auto"):
+            raise ValueError(f"multibounce must be True, False or 'auto', got {multibounce!r}")
+        self.macro_options = macro_options or ppr.MacroOptions()
+        geom = ppr.macro_geometry(mesh, plates=self.macro_options.plates)
+        self.multibounce = multibounce is True or (multibounce == "auto" and not geom.convex)
+        self._macro_caps = (geom.n_macro, 0, 0)
         self.pure_model = SimulatorKernel(
             arrays=arrays,
             sensor=cast(sensor),
@@ -1709,19 +1726,57 @@ class SimulatorModel:
         import ppr
 
         vis = self.visibility(phys)
+        macro = self.macro_pairs(phys)
         if not self.prune:
-            return vis
+            return vis if macro is None else (vis, macro)
         cap, g_cap = self.subset_capacities()
         arrays = self.pure_model.arrays
         lit = (np.asarray(vis) > 0) & np.asarray(arrays.valid)
         n_groups = len(np.unique(np.asarray(arrays.normal_group)[lit]))
         # a pose beyond the sampled counts gets the next capacity (one more compilation)
-        return ppr.FaceSubset.of(
+        subset = ppr.FaceSubset.of(
             arrays,
             vis,
             capacity=max(cap, ppr._mesh.subset_capacity(int(lit.sum()))),
             group_capacity=max(g_cap, ppr._mesh.subset_capacity(n_groups)),
         )
+        return subset if macro is None else (subset, macro)
+
+    def macro_pairs(self, phys: PhysicalParams):
+        """Host: the ``ppr.MacroPairs`` at ``phys``'s attitude and exponents (None without the
+        double bounce)."""
+        if not self.multibounce:
+            return None
+        import ppr
+        from ppr._macro import batch_pairs
+
+        q = np.asarray(phys.unit_quaternion(), np.float64)
+        rot = np.asarray(ppr.quat_to_matrix(q))
+        sensor = self.pure_model.sensor
+        u_in = rot.T @ np.asarray(sensor.laser_dir, np.float64)
+        u_out = rot.T @ np.asarray(sensor.receiver_dir, np.float64)
+        pm = self.pure_model
+        pairs = batch_pairs(
+            [self.scene.mesh],
+            [self.caster],
+            [0],
+            [u_in],
+            [u_out],
+            [np.asarray(phys.m, np.float64)],
+            pm.brdf,
+            self.macro_options,
+            capacities=self._macro_caps,
+            bins=(float(pm.sigma_r), float(pm.width), pm.n_bins),
+            window=pm.n_bins,
+            mixed=True,
+            dtype=pm.arrays.tri.dtype,
+        )
+        self._macro_caps = (
+            pairs.tri.shape[1],
+            max(self._macro_caps[1], pairs.g_i.shape[1]),
+            max(self._macro_caps[2], pairs.r_i.shape[1]),
+        )
+        return jax.tree_util.tree_map(lambda a: a[0], pairs)  # the one row
 
     def subset_capacities(self, n_poses: int = 256) -> tuple[int, int]:
         """Host: the facet and group capacities of the pruned subsets (:meth:`prepare`): the

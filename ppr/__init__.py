@@ -15,6 +15,14 @@ from ._double_table import PSI_MAX as BACKSCATTER_PSI_MAX
 from ._frames import jones_to_mueller, mueller_rotator
 from ._fresnel import fresnel_amplitudes, fresnel_mueller_params
 from ._library import load_material, material_names
+from ._macro import (
+    MacroGeometry,
+    MacroOptions,
+    MacroPairs,
+    macro_geometry,
+    macro_pairs,
+    stack_macro_pairs,
+)
 from ._material import Material
 from ._mesh import FaceSubset, Mesh, MeshArrays, check_mesh, load_mesh, mesh_arrays, subdivide
 from ._polarimetry import (
@@ -87,6 +95,12 @@ __all__ = [
     "VisibilityCaster",
     "Profile",
     "double_bounce",
+    "MacroGeometry",
+    "MacroOptions",
+    "MacroPairs",
+    "macro_geometry",
+    "macro_pairs",
+    "stack_macro_pairs",
     "render",
     "simulate",
     "backscatter_terms",

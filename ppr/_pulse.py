@@ -431,6 +431,7 @@ def render(
     brdf: Callable = lambertian_mueller,
     terms=None,
     faces: Int[Array, " Fc"] | None = None,
+    macro=None,
 ) -> Float[Array, "C B"]:
     """Pure jitted core: bin-integrated range profiles ``(C, n_bins)`` (m^2/sr per bin).
 
@@ -451,6 +452,9 @@ def render(
     - `faces`: optional ``(Fc,)`` indices of the facets to keep (pruning: back-facing and
       invisible facets left out, :func:`visible_faces`); padding indices must point at
       facets with ``vis == 0``. The result is the same; the cost scales with ``Fc``.
+    - `macro`: optional :class:`ppr.MacroPairs` (host: the first item of
+      :func:`ppr.macro_pairs` at this pose): adds the macro double bounce between the object's
+      surfaces (:mod:`ppr._macro`).
 
     Facets deeper than the window lose the part of their return beyond it: choose
     ``window`` from the longest edge (``simulate`` does). Python scalars are converted to
@@ -479,6 +483,7 @@ def render(
         brdf=brdf,
         terms=terms,
         part=part,
+        macro=macro,
     )
 
 
@@ -571,6 +576,7 @@ def _render_jit(
     brdf,
     terms,
     part=None,
+    macro=None,
 ):
     dt = arrays.tri.dtype
     rot = quat_to_matrix(pose.quaternion.astype(dt))
@@ -586,12 +592,39 @@ def _render_jit(
         part=part,
     )
     w_world = rot @ w_body
+    depth = -(arrays.tri @ w_body) - jnp.dot(pose.position.astype(dt), w_world)  # (F, 3)
+    out = _tent_profile(wch, depth, sigma_r, start, width, n_bins=n_bins, window=window)
+    if macro is not None:
+        from ._macro import macro_profile  # noqa: PLC0415
+
+        out = out + macro_profile(
+            macro,
+            rot,
+            pose.position,
+            materials,
+            sensor,
+            jnp.asarray(sigma_r, dt),
+            jnp.asarray(start, dt),
+            jnp.asarray(width, dt),
+            n_bins=n_bins,
+            projection=projection,
+            brdf=brdf,
+        )
+    return out
+
+
+def _tent_profile(wch, depth, sigma_r, start, width, *, n_bins: int, window: int) -> Array:
+    """``(C, n_bins)`` profile of range items: weights ``wch (N, C)`` spread over triangular
+    range densities with vertex depths ``depth (N, 3)`` (a point item repeats its depth),
+    convolved with the Gaussian pulse and bin-integrated (module docstring). ``window``
+    (static): bins per item (``<= 0`` or ``>= n_bins``: every bin)."""
+    dt = wch.dtype
     sigma = jnp.asarray(sigma_r, dt)
     start = jnp.asarray(start, dt)
     width = jnp.asarray(width, dt)
-    depth = -(arrays.tri @ w_body) - jnp.dot(pose.position.astype(dt), w_world)  # (F, 3)
+    dense = window <= 0 or window >= n_bins
     d0, d1, d2 = _sort3(depth[:, 0:1], depth[:, 1:2], depth[:, 2:3])
-    if window >= n_bins:
+    if dense:
         j0 = jnp.zeros(d0.shape, jnp.int32)
         k = n_bins
     else:
@@ -607,7 +640,7 @@ def _render_jit(
     # that does not vectorize (measured 8-14x slower than materializing the CDF)
     diff = jnp.eye(k + 1, k, -1, dtype=dt) - jnp.eye(k + 1, k, dtype=dt)
     dcdf = cdf @ diff
-    if window >= n_bins:
+    if dense:
         return wch.T @ dcdf
     return _place(wch, dcdf, j0, n_bins)
 
@@ -664,168 +697,105 @@ def _place_jvp(n_bins, primals, tangents):
 
 
 @eqx.filter_jit
-def _double_jit(
-    tri,
-    normals,
-    areas,
-    mat_ids,
-    pairs,
-    lit,
-    seen,
-    pose,
-    materials,
-    sensor,
-    sigma,
-    start,
-    width,
-    *,
-    n_bins,
-    projection,
-    brdf,
-    terms,
-):
-    from ._frames import perpendicular_unit  # noqa: PLC0415
+def _macro_jit(pairs, pose, materials, sensor, sigma, start, width, *, n_bins, projection, brdf):
+    from ._macro import macro_profile  # noqa: PLC0415
 
-    dt = tri.dtype
+    dt = pairs.tri.dtype
     rot = quat_to_matrix(pose.quaternion.astype(dt))
-    rt = rot.T
-    u_in, u_out = rt @ sensor.laser_dir, rt @ sensor.receiver_dir
-    x_tx, x_rx = rt @ sensor.frame_tx, rt @ sensor.frame_rx
-    cen = tri.mean(axis=1)
-    i, j = pairs[:, 0], pairs[:, 1]
-    d = cen[j] - cen[i]
-    r2 = jnp.sum(d * d, axis=-1)
-    r = jnp.sqrt(r2)
-    k_ij = d / r[:, None]
-    ni, nj = normals[i], normals[j]
-    x_ij = perpendicular_unit(k_ij)
-    n_p = pairs.shape[0]
+    return macro_profile(
+        pairs,
+        rot,
+        pose.position,
+        materials,
+        sensor,
+        sigma,
+        start,
+        width,
+        n_bins=n_bins,
+        projection=projection,
+        brdf=brdf,
+    )
 
-    def mats(ids):
-        return jax.tree_util.tree_map(lambda a: a[ids], materials)
 
-    m1 = brdf(
-        jnp.broadcast_to(u_in, (n_p, 3)),
-        k_ij,
-        ni,
-        mats(mat_ids[i]),
-        frame_in=jnp.broadcast_to(x_tx, (n_p, 3)),
-        frame_out=x_ij,
-        wavelength=sensor.wavelength,
-        terms=terms,
+def _scene_macro(scene: Scene, pairs, mats, brdf, dt) -> Array:
+    """``(16, n_bins)`` macro double bounce of ``scene`` (concrete pose and pulse) from host
+    pairs and materials stacked in ``dt``."""
+    cast = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, dt), t)  # noqa: E731
+    bins, pulse = scene.bins, scene.pulse
+    shift = 0.5 * C_LIGHT * float(pulse.t0)
+    return _macro_jit(
+        pairs,
+        cast(scene.pose),
+        mats,
+        cast(scene.sensor),
+        jnp.asarray(0.5 * C_LIGHT * float(pulse.sigma_t), dt),
+        jnp.asarray(float(bins.start) - shift, dt),
+        jnp.asarray(bins.width, dt),
+        n_bins=bins.n_bins,
+        projection=None,
+        brdf=_unchecked_if_concrete(brdf, mats, scene.pose),
     )
-    m2 = brdf(
-        -k_ij,
-        jnp.broadcast_to(u_out, (n_p, 3)),
-        nj,
-        mats(mat_ids[j]),
-        frame_in=x_ij,
-        frame_out=jnp.broadcast_to(x_rx, (n_p, 3)),
-        wavelength=sensor.wavelength,
-        terms=terms,
-    )
-    g = (
-        (ni @ u_in)
-        * jnp.sum(ni * k_ij, -1)
-        * areas[i]
-        * lit
-        * (-jnp.sum(nj * k_ij, -1))
-        * (nj @ u_out)
-        * areas[j]
-        * seen
-        / r2
-    )
-    m = (m2 @ m1).reshape(n_p, 16) * g[:, None]
-    w = m if projection is None else m @ projection.astype(m.dtype)
-    w_world = rot @ (0.5 * (u_in + u_out))
-    # path laser -> i -> j -> receiver, one-way range relative to the reference
-    depth = -0.5 * (cen[i] @ u_in + cen[j] @ u_out) + 0.5 * r - pose.position.astype(dt) @ w_world
-    edges = start + width * jnp.arange(n_bins + 1, dtype=dt)
-    cdf = 0.5 * jax.lax.erfc(-(edges[None, :] - depth[:, None]) / (sigma * math.sqrt(2.0)))
-    diff = jnp.eye(n_bins + 1, n_bins, -1, dtype=dt) - jnp.eye(n_bins + 1, n_bins, dtype=dt)
-    return w.T @ (cdf @ diff)
 
 
 def double_bounce(
-    scene: Scene, *, brdf: Callable | None = None, terms=None, dtype=None, max_pairs: int = 200_000
+    scene: Scene,
+    *,
+    brdf: Callable | None = None,
+    dtype=None,
+    options=None,
+    pairs=None,
 ) -> Profile:
-    """Macro-scale double bounce between facets (e.g. panel against body), summed
-    incoherently, as a Mueller :class:`Profile` to add to :func:`simulate`'s.
+    """The macro double bounce alone (:mod:`ppr._macro`): light reflected by one surface of
+    the object onto another (a panel against the body) before it returns, summed
+    incoherently, as a Mueller :class:`Profile` (what ``simulate(multibounce=True)`` adds to
+    the single bounce).
 
-    Point-to-point transport between facet centroids (PHYSICS.md section 4: at macroscopic
-    separations the coherent enhancement is lost, so intensities add):
+    **Arguments:**
 
-        J2 = sum_(i,j) M_j(-k_ij -> u_out) M_i(u_in -> k_ij) (n_i.u_in)(n_i.k_ij) A_i l_i
-             (-n_j.k_ij)(n_j.u_out) A_j s_j / r_ij^2
+    - `brdf`: Mueller BRDF (default :func:`ppr.mueller_brdf`); glossy parts
+      (``m >= options.glossy_m``) take the image method only with the model BRDF.
+    - `dtype`: kernel float dtype.
+    - `options`: :class:`ppr.MacroOptions` (accuracy knobs).
+    - `pairs`: ready :class:`ppr.MacroPairs` at the scene's pose (default: built here).
 
-    with ``k_ij`` the unit vector from centroid ``i`` to ``j``, the intermediate beam's
-    frame ``perpendicular_unit(k_ij)``, ``l_i`` the lit and ``s_j`` the receiver-visible
-    fractions and the pair's mutual visibility by a centroid ray
-    (:func:`ppr._visibility.facet_pairs`). Each pair is placed at its centroid path range and
-    spread by the Gaussian pulse (bin-integrated). Accuracy: exact as facets shrink relative
-    to their separation and to the BRDF lobe width; with mirror-like lobes (large m) the
-    centroid sampling under-resolves the specular dihedral return - subdivide, and treat the
-    result as an estimate. No gradients through the pair selection (host, like visibility).
-    """
-    from ._visibility import facet_pairs  # noqa: PLC0415
+    Glossy pairs: the Laplace convolution of the two lobes over the exact clipped overlap
+    (relative error ~``0.3/m`` on a 90 deg aluminium dihedral, tests/test_macro.py); broad
+    pairs converge with the quadrature knobs (bench/bench_macro.py). No gradients through the
+    pair selection and visibility (host, like the single bounce's)."""
+    from ._macro import part_exponents, pose_pairs  # noqa: PLC0415
 
     brdf = _default_brdf() if brdf is None else brdf
     mesh, sensor, bins, pulse, pose = scene.mesh, scene.sensor, scene.bins, scene.pulse, scene.pose
     for x, what in ((pose.quaternion, "pose"), (pulse.sigma_t, "pulse")):
         _check_concrete(x, what)
     rot = np.asarray(quat_to_matrix(np.asarray(pose.quaternion, np.float64)))
-    caster = VisibilityCaster(mesh, scene.vis_samples)
-    pairs, lit, seen = facet_pairs(
-        caster,
-        rot.T @ np.asarray(sensor.laser_dir, np.float64),
-        rot.T @ np.asarray(sensor.receiver_dir, np.float64),
-        max_pairs=max_pairs,
-    )
     dt = jnp.result_type(float) if dtype is None else dtype
-    arrays = mesh_arrays(mesh, mesh.n_faces, dt)
-    n_p = len(pairs)
-    cap = capacity_for(max(n_p, 1))
-    pad = cap - n_p
-    # padding pairs: (0, 1) with zero fractions -> zero weight (areas and directions finite)
-    pp = np.concatenate([pairs, np.tile([[0, min(1, mesh.n_faces - 1)]], (pad, 1))]).astype(
-        np.int32
-    )
-    if mesh.n_faces == 1:
-        pp[:] = 0
-    lit_p = np.concatenate([lit, np.zeros(pad)])
-    seen_p = np.concatenate([seen, np.zeros(pad)])
+    sigma_r = 0.5 * C_LIGHT * float(pulse.sigma_t)
+    if pairs is None:
+        caster = VisibilityCaster(mesh, scene.vis_samples)
+        pairs, _ = pose_pairs(
+            mesh,
+            caster,
+            rot.T @ np.asarray(sensor.laser_dir, np.float64),
+            rot.T @ np.asarray(sensor.receiver_dir, np.float64),
+            part_exponents(scene.materials),
+            brdf,
+            options,
+            bins=(sigma_r, float(bins.width), bins.n_bins),
+            dtype=dt,
+        )
     mats = stack_materials(scene.materials)
     mats = jax.tree_util.tree_map(
         lambda a: a.astype(jnp.result_type(dt, jnp.complex64) if jnp.iscomplexobj(a) else dt), mats
     )
-    cast = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, dt), t)  # noqa: E731
-    shift = 0.5 * C_LIGHT * float(pulse.t0)
-    out = _double_jit(
-        arrays.tri,
-        arrays.normals,
-        arrays.areas,
-        arrays.material_ids,
-        jnp.asarray(pp),
-        jnp.asarray(lit_p, dt),
-        jnp.asarray(seen_p, dt),
-        cast(pose),
-        mats,
-        cast(sensor),
-        jnp.asarray(0.5 * C_LIGHT * float(pulse.sigma_t), dt),
-        jnp.asarray(float(bins.start) - shift, dt),
-        jnp.asarray(bins.width, dt),
-        n_bins=bins.n_bins,
-        projection=None,
-        brdf=brdf,
-        terms=terms,
-    )
+    out = _scene_macro(scene, pairs, mats, brdf, dt)
     centres = bins.centres()
     return Profile(
         data=out.reshape(4, 4, bins.n_bins),
         range_m=jnp.asarray(centres),
         time_s=jnp.asarray(2.0 * centres / C_LIGHT),
         edges_m=jnp.asarray(bins.edges()),
-        visibility=jnp.asarray(lit),
+        visibility=jnp.zeros(mesh.n_faces),
         reference_range_m=float(bins.reference_range),
         kind="mueller",
         labels=("double",),
@@ -872,6 +842,37 @@ def _check_concrete(x, what):
         )
 
 
+def _simulate_macro(scene, caster, rot, brdf, multibounce, options, dt, offset):
+    """Host part of :func:`simulate`'s macro double bounce: ``(MacroPairs or None, range
+    interval of its paths or None)`` (``offset``: the position and pulse shift of ranges)."""
+    if multibounce is False:
+        return None, None
+    from ._macro import MacroOptions, macro_geometry, part_exponents, pose_pairs  # noqa: PLC0415
+
+    mesh, sensor = scene.mesh, scene.sensor
+    opt = MacroOptions() if options is None else options
+    if multibounce == "auto" and macro_geometry(mesh, plates=opt.plates).convex:
+        return None, None  # no facing surfaces: exactly zero
+    if caster is None:
+        caster = VisibilityCaster(mesh, scene.vis_samples)
+    u_in = rot.T @ np.asarray(sensor.laser_dir, np.float64)
+    u_out = rot.T @ np.asarray(sensor.receiver_dir, np.float64)
+    pairs, info = pose_pairs(
+        mesh,
+        caster,
+        u_in,
+        u_out,
+        part_exponents(scene.materials),
+        brdf,
+        opt,
+        dtype=dt,  # every bin (no static windows): one program for any bins and poses
+    )
+    if multibounce == "auto" and info["glossy"] + info["broad"] == 0:
+        return None, None
+    span = info["range"]
+    return pairs, None if span is None else (span[0] - offset, span[1] - offset)
+
+
 def simulate(
     scene: Scene,
     *,
@@ -882,6 +883,8 @@ def simulate(
     terms=None,
     prune: bool = True,
     dtype=None,
+    multibounce: bool | str = "auto",
+    macro_options=None,
 ) -> Profile:
     """Simulate the range-resolved return of ``scene``.
 
@@ -896,10 +899,20 @@ def simulate(
     - `brdf`: Mueller BRDF callable (default :func:`ppr.mueller_brdf`); `terms` passed to it.
     - `prune`: drop back-facing and invisible facets before the kernel (same result).
     - `dtype`: kernel float dtype (default: the default float, float32 unless x64 is on).
+    - `multibounce`: add the macro double bounce between the object's surfaces
+      (:mod:`ppr._macro`; e.g. solar panels against the body). ``"auto"`` (default) leaves it
+      out exactly where it is zero: no two surfaces of the mesh face each other (a convex
+      mesh), or none of the facing pairs is lit, seen and, for glossy pairs, within
+      ``LOBE_CUT`` of sending light to the receiver (the skipped lobe overlaps are below
+      ``exp(-LOBE_CUT / 2)`` of their peak). ``True`` always evaluates it, ``False`` never.
+    - `macro_options`: :class:`ppr.MacroOptions` (accuracy knobs of the double bounce).
 
     Raises ``ValueError`` (before computing anything) if the range gate does not contain every
-    visible facet's depth interval +- ``COVER_NSIG`` pulse sigmas.
+    visible facet's depth interval +- ``COVER_NSIG`` pulse sigmas (and the double-bounce
+    paths' ranges when they are included).
     """
+    if multibounce not in (True, False, "auto"):
+        raise ValueError(f"multibounce must be True, False or 'auto', got {multibounce!r}")
     if states is not None and channels is not None:
         raise ValueError("give states or channels, not both")
     brdf = _default_brdf() if brdf is None else brdf
@@ -909,6 +922,7 @@ def simulate(
     rot = np.asarray(quat_to_matrix(np.asarray(pose.quaternion, np.float64)))
     u_in = np.asarray(sensor.laser_dir, np.float64)
     u_out = np.asarray(sensor.receiver_dir, np.float64)
+    caster = None
     if visibility is None:
         caster = VisibilityCaster(mesh, scene.vis_samples)
         vis = caster.fractions(rot.T @ u_in, rot.T @ u_out)
@@ -959,9 +973,16 @@ def simulate(
     depth = -(tri @ rot.T @ w) - pos @ w + shift
     keep = vis > 0 if prune else np.ones(mesh.n_faces, bool)
     edges = bins.edges()
+    dt = jnp.result_type(float) if dtype is None else dtype
+    macro, span = _simulate_macro(
+        scene, caster, rot, brdf, multibounce, macro_options, dt, pos @ w - shift
+    )
+    spans = [] if span is None else [span]
     if np.any(vis > 0):
-        lo = depth[vis > 0].min() - COVER_NSIG * sigma_r
-        hi = depth[vis > 0].max() + COVER_NSIG * sigma_r
+        spans.append((depth[vis > 0].min(), depth[vis > 0].max()))
+    if spans:
+        lo = min(a for a, _ in spans) - COVER_NSIG * sigma_r
+        hi = max(b for _, b in spans) + COVER_NSIG * sigma_r
         if lo < edges[0] or hi > edges[-1]:
             raise ValueError(
                 f"range bins [{edges[0]:.4g}, {edges[-1]:.4g}] m do not cover the visible object "
@@ -976,7 +997,6 @@ def simulate(
     sub = Mesh(
         mesh.vertices, np.asarray(mesh.faces)[keep], np.asarray(mesh.material_ids)[keep], mesh.parts
     )
-    dt = jnp.result_type(float) if dtype is None else dtype
     arrays = mesh_arrays(sub, capacity_for(int(keep.sum())), dt)
     vis_k = np.zeros(arrays.valid.shape[0])
     vis_k[: int(keep.sum())] = vis[keep]
@@ -1007,6 +1027,11 @@ def simulate(
         brdf=brdf,
         terms=terms,
     )
+    if macro is not None:
+        # the double bounce as its own program, all 16 elements, projected here: simulate
+        # calls that differ in states, channels or bin width share its compilation
+        m16 = _scene_macro(scene, macro, mats, brdf, dt)
+        out = out + (m16 if proj is None else jnp.asarray(proj, dt).T @ m16)
     data = out.reshape(*out_shape, bins.n_bins)
     centres = bins.centres()
     return Profile(

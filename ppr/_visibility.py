@@ -121,37 +121,3 @@ class VisibilityCaster:
         out = np.zeros(self.n_faces)
         out[faces] = ok.mean(axis=1)
         return out
-
-
-def facet_pairs(caster: VisibilityCaster, laser_dir_body, receiver_dir_body, max_pairs=None):
-    """Host helper for the macro double bounce: facet pairs ``(i, j)`` such that the light
-    can go laser -> i -> j -> receiver, judged at the centroids: ``i`` lit (fraction
-    ``lit_i > 0``), ``j`` visible from the receiver (``seen_j > 0``), the two facing each
-    other, and the centroid-to-centroid ray from ``i`` first hitting ``j``.
-
-    Returns ``(pairs (P, 2) int32, lit (P,), seen (P,))`` (fractions of the first and second
-    facet), sorted by ``i``; ``max_pairs`` raises if exceeded (no silent truncation).
-    """
-    u_in = np.asarray(laser_dir_body, np.float64)
-    u_out = np.asarray(receiver_dir_body, np.float64)
-    lit = caster.fractions(u_in, u_in)
-    seen = caster.fractions(u_out, u_out)
-    n = caster.normals
-    cen = caster.points.mean(axis=1)  # the barycentric pattern is centroid-symmetric
-    ii = np.flatnonzero(lit > 0)
-    jj = np.flatnonzero(seen > 0)
-    if len(ii) == 0 or len(jj) == 0:
-        return np.zeros((0, 2), np.int32), np.zeros(0), np.zeros(0)
-    i, j = np.meshgrid(ii, jj, indexing="ij")
-    i, j = i.ravel(), j.ravel()
-    d = cen[j] - cen[i]
-    facing = (np.einsum("pk,pk->p", n[i], d) > 0) & (np.einsum("pk,pk->p", n[j], d) < 0) & (i != j)
-    i, j, d = i[facing], j[facing], d[facing]
-    if len(i):
-        origins = cen[i] + caster._offset * n[i]
-        first = np.asarray(caster._ray.intersects_first(origins, d), np.int64)
-        ok = first == j
-        i, j = i[ok], j[ok]
-    if max_pairs is not None and len(i) > max_pairs:
-        raise ValueError(f"{len(i)} facet pairs exceed max_pairs={max_pairs}")
-    return np.stack([i, j], 1).astype(np.int32), lit[i], seen[j]

@@ -613,8 +613,15 @@ def cmd_simulate(args) -> int:
     with outputs(args.out, SIMULATE_OUTPUTS, args.overwrite) as out:
         t0 = time.perf_counter()
         try:
+            multibounce = {"auto": "auto", "on": True, "off": False}[
+                getattr(args, "multibounce", "auto")
+            ]
             prof = ppr.simulate(
-                scene, states=states, terms=terms, dtype=_dtype(args.dtype)
+                scene,
+                states=states,
+                terms=terms,
+                dtype=_dtype(args.dtype),
+                multibounce=multibounce,
             )
             data = np.asarray(prof.data, float)
         except ValueError as err:
@@ -1961,6 +1968,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--dtype", choices=["float32", "float64"], default="float32", help="kernel float precision"
+    )
+    p.add_argument(
+        "--multibounce",
+        choices=["auto", "on", "off"],
+        default="auto",
+        help="macro double bounce between the object's surfaces (panel against body): auto "
+        "includes it where surfaces face each other",
     )
     p.set_defaults(func=cmd_simulate)
 

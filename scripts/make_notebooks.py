@@ -229,6 +229,18 @@ for i in range(4):
         ax.set_xlim(lo, hi)
 for ax in axes[-1]:
     ax.set_xlabel("range [m]")""",
+    """md:## The panel-body folds: the macro double bounce
+Light that meets two surfaces of the satellite before it returns (a panel and the body side
+it meets at a right angle) is part of `ppr.simulate`'s profile by default
+(`multibounce="auto"`: included wherever two surfaces face each other; a convex mesh has
+none). `ppr.double_bounce(scene)` returns that part alone: a 90 deg fold retro-reflects, so
+over a wide range of attitudes it comes back at the fold's range (docs/physics/macro_double_bounce.md).""",
+    """dbl = np.asarray(ppr.double_bounce(scene).data)
+print(f"double bounce: {dbl[0, 0].sum() / M[0, 0].sum():.2%} of the M00 energy at this attitude")
+fig, ax = plt.subplots(figsize=(8, 3.2))
+ax.plot(r, M[0, 0], label="total (single + double)")
+ax.plot(r, dbl[0, 0], label="double bounce")
+ax.set_xlim(lo, hi); ax.set_xlabel("range [m]"); ax.set_ylabel("M00 per bin"); ax.legend();""",
     """md:## Stokes profiles and the degree of polarization
 For transmitted horizontal (H) and right-circular (R: clockwise for an observer looking
 toward the laser, `S3 = -1` in ppr's Stokes sign; see `docs/physics/conventions.md`) light:

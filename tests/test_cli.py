@@ -131,6 +131,8 @@ def test_simulate_end_to_end(tmp_path):
             "single",
             "--states",
             "H,V",
+            "--multibounce",  # plumbing only: the double bounce is tests/test_macro.py's
+            "off",
             "--set",
             "visibility.samples_per_face=1",
         )

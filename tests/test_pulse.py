@@ -293,7 +293,11 @@ def test_joint_rotation_of_object_and_sensor_leaves_profile_unchanged():
     sensor0 = ppr.Sensor.make(
         (0.2, -0.1, -1.0), (1.0, 0.3, 0.0), bistatic_angle=0.05, bistatic_azimuth=0.7
     )
-    p0 = ppr.simulate(_scene(mesh, q0, sensor=sensor0, materials=mats), brdf=glossy_fresnel_mueller)
+    p0 = ppr.simulate(
+        _scene(mesh, q0, sensor=sensor0, materials=mats),
+        brdf=glossy_fresnel_mueller,
+        multibounce=False,
+    )
     g = _random_rotation(4)
     rg = np.asarray(ppr.quat_to_matrix(g))
     sensor1 = ppr.Sensor(
@@ -304,7 +308,11 @@ def test_joint_rotation_of_object_and_sensor_leaves_profile_unchanged():
         532e-9,
     )
     q1 = np.asarray(ppr._pose.quat_multiply(g, q0))
-    p1 = ppr.simulate(_scene(mesh, q1, sensor=sensor1, materials=mats), brdf=glossy_fresnel_mueller)
+    p1 = ppr.simulate(
+        _scene(mesh, q1, sensor=sensor1, materials=mats),
+        brdf=glossy_fresnel_mueller,
+        multibounce=False,
+    )
     d0, d1 = np.asarray(p0.data), np.asarray(p1.data)
     assert np.abs(d0[1:, 1:]).max() > 1e-3 * np.abs(d0[0, 0]).max()  # polarizing: frames matter
     # same facets, same visibility (ray casts in the body frame), float64 rounding
@@ -344,7 +352,8 @@ def test_mirror_image_scene_gives_mirrored_mueller_profile(mesh_fn, mat):
         else [ppr.Material(0.94 + 6.42j, 40.0), ppr.Material(1.5, 300.0), ppr.Material(2.6, 3.0)]
     )
     scenes = [_scene(mesh, qq, materials=mats, width=0.01, n_bins=64) for qq in (q, q_mirror)]
-    m0, m1 = (np.asarray(ppr.simulate(s).data) for s in scenes)
+    # single bounce (the double bounce's parity: tests/test_macro.py)
+    m0, m1 = (np.asarray(ppr.simulate(s, multibounce=False).data) for s in scenes)
     d = np.diag([1.0, 1.0, -1.0, -1.0])
     scale = np.abs(m0).max()
     # convex: exact. Self-shadowing: a partly lit face is weighted by its ray-sampled lit
@@ -380,7 +389,7 @@ def test_half_turn_about_line_of_sight_is_exact_for_monostatic_data():
 
     def sim(qq, sensor=None, terms=None):
         sc = _scene(mesh, qq, sensor=sensor, materials=mats, width=0.01, n_bins=64)
-        return np.asarray(ppr.simulate(sc, terms=terms).data)
+        return np.asarray(ppr.simulate(sc, terms=terms, multibounce=False).data)
 
     m0, m1, m4 = sim(q), sim(q_half), sim(quarter)
     scale = np.abs(m0).max()
@@ -458,16 +467,20 @@ def test_pruning_and_channel_selection_agree():
         materials=mats,
         sensor=ppr.Sensor.make((0, 0, -1.0), bistatic_angle=0.02),
     )
-    full = ppr.simulate(sc, brdf=glossy_fresnel_mueller)
-    unpruned = ppr.simulate(sc, brdf=glossy_fresnel_mueller, prune=False)
+    full = ppr.simulate(sc, brdf=glossy_fresnel_mueller, multibounce=False)
+    unpruned = ppr.simulate(sc, brdf=glossy_fresnel_mueller, prune=False, multibounce=False)
     # pruning drops only zero-weight facets: identical up to summation order
     np.testing.assert_allclose(np.asarray(unpruned.data), np.asarray(full.data), atol=1e-15)
-    st = ppr.simulate(sc, brdf=glossy_fresnel_mueller, states=["H", "V", "D", "R"])
+    st = ppr.simulate(
+        sc, brdf=glossy_fresnel_mueller, states=["H", "V", "D", "R"], multibounce=False
+    )
     m = np.asarray(full.data)
     for i, name in enumerate(st.labels):
         expect = np.einsum("ijb,j->ib", m, np.asarray(STOKES_STATES[name]))
         np.testing.assert_allclose(np.asarray(st.data[i]), expect, atol=1e-15)
-    ch = ppr.simulate(sc, brdf=glossy_fresnel_mueller, channels=[(0, 0), (3, 3), (1, 2)])
+    ch = ppr.simulate(
+        sc, brdf=glossy_fresnel_mueller, channels=[(0, 0), (3, 3), (1, 2)], multibounce=False
+    )
     np.testing.assert_allclose(np.asarray(ch.data), m[[0, 3, 1], [0, 3, 2]], atol=1e-15)
     assert full.range_m.shape == (256,) and full.time_s[1] - full.time_s[0] == pytest.approx(
         2 * 0.005 / C_LIGHT
@@ -701,8 +714,8 @@ def test_no_retrace_for_new_poses_materials_and_vmap_matches_loop():
 
 def test_float32_in_float32_out():
     sc = _scene(shapes.cubesat_with_panels(3), _random_rotation(6))
-    p64 = ppr.simulate(sc, brdf=glossy_fresnel_mueller)
-    p32 = ppr.simulate(sc, brdf=glossy_fresnel_mueller, dtype=jnp.float32)
+    p64 = ppr.simulate(sc, brdf=glossy_fresnel_mueller, multibounce=False)
+    p32 = ppr.simulate(sc, brdf=glossy_fresnel_mueller, dtype=jnp.float32, multibounce=False)
     assert p32.data.dtype == jnp.float32
     scale = float(np.abs(p64.data).max())
     # float32 kernel: depths/sigma ~ 1e2 with eps 1e-7 plus closed-form branch error ~3e-5
@@ -749,7 +762,12 @@ def test_real_brdf_wiring_energy_and_frames():
     sensor = ppr.Sensor.make((0.1, 0.0, -1.0), (1.0, 0.2, 0.0), bistatic_angle=0.02)
     q = _random_rotation(21)
     terms = ("single",)
-    p = ppr.simulate(_scene(mesh, q, sensor=sensor, materials=mats), dtype=jnp.float32, terms=terms)
+    p = ppr.simulate(
+        _scene(mesh, q, sensor=sensor, materials=mats),
+        dtype=jnp.float32,
+        terms=terms,
+        multibounce=False,
+    )
     assert p.data.dtype == jnp.float32
     tot = np.asarray(p.total, np.float64)
     rot = np.asarray(ppr.quat_to_matrix(q))
@@ -953,54 +971,3 @@ def test_face_subset_bad_input():
         ppr.FaceSubset.of(arrays, vis, capacity=4)
     sub = ppr.FaceSubset.of(arrays, vis)
     assert sub.n_faces == 8 and np.asarray(sub.vis)[6:].max() == 0.0
-
-
-def _perpendicular_squares_form_factor():
-    """View factor between two perpendicular unit squares sharing an edge (Hottel), 0.20004."""
-    w = h = 1.0
-    a = w * np.arctan(1 / w) + h * np.arctan(1 / h) - np.hypot(w, h) * np.arctan(1 / np.hypot(w, h))
-    s = w * w + h * h
-    b = np.log(
-        (1 + w * w)
-        * (1 + h * h)
-        / (1 + s)
-        * (w * w * (1 + s) / ((1 + w * w) * s)) ** (w * w)
-        * (h * h * (1 + s) / ((1 + h * h) * s)) ** (h * h)
-    )
-    return (a + b / 4) / (np.pi * w)
-
-
-def test_macro_double_bounce_dihedral_form_factor_and_reciprocity():
-    """Two Lambertian 0.2 m squares in an L (90 deg dihedral), fully lit and seen: the double
-    bounce is (1/pi) A F [cos_in(A) cos_out(B) + cos_in(B) cos_out(A)] with the analytic
-    view factor F; the centroid point-to-point sum converges to it (first order, from the
-    shared edge) and is reciprocal (laser and receiver swapped)."""
-    from ppr._pulse import double_bounce
-
-    ui = np.array([1.0, 0.3, 1.0]) / np.linalg.norm([1.0, 0.3, 1.0])
-    uo = np.array([0.7, -0.2, 1.0]) / np.linalg.norm([0.7, -0.2, 1.0])
-    expect = (ui[2] * uo[0] + ui[0] * uo[2]) * 0.04 * _perpendicular_squares_form_factor() / np.pi
-    rot = np.asarray(ppr.quat_to_matrix(ppr.quat_from_axis_angle([0, 1, 0], np.pi / 2)))
-    errs = []
-    for n in (4, 8):
-        a = shapes.plate(0.2, subdivisions=n)
-        a = ppr.Mesh(np.asarray(a.vertices) + [0.1, 0, 0], a.faces, None, ("floor",))
-        b = shapes.plate(0.2, subdivisions=n)
-        b = ppr.Mesh(np.asarray(b.vertices) @ rot.T + [0, 0, 0.1], b.faces, None, ("wall",))
-        mesh = ppr._mesh.concatenate([a, b])
-        sensor = ppr.Sensor.make(-ui, (0, 1.0, 0), receiver_dir=uo)
-        p = double_bounce(_scene(mesh, sensor=sensor, samples=4), brdf=lambertian_mueller)
-        errs.append(float(p.total[0, 0]) / expect - 1)
-        if n == 4:
-            swapped = ppr.Sensor.make(-uo, (0, 1.0, 0), receiver_dir=ui)
-            p2 = double_bounce(_scene(mesh, sensor=swapped, samples=4), brdf=lambertian_mueller)
-            # reciprocity of the pair sum: float64 rounding
-            assert float(p2.total[0, 0]) == pytest.approx(float(p.total[0, 0]), rel=1e-12)
-            # the double-bounce path is longer than the single-bounce one
-            single = ppr.simulate(_scene(mesh, sensor=sensor, samples=4), brdf=lambertian_mueller)
-            r = np.asarray(p.range_m)
-            mean2 = (r * np.asarray(p.data[0, 0])).sum() / float(p.total[0, 0])
-            mean1 = (r * np.asarray(single.data[0, 0])).sum() / float(single.total[0, 0])
-            assert mean2 > mean1 + 0.05
-    # measured +5.0 % (n = 4) and +2.6 % (n = 8): the edge singularity converges at first order
-    assert 0 < errs[1] < errs[0] < 0.06 and errs[1] < 0.6 * errs[0], errs
