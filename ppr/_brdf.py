@@ -95,7 +95,7 @@ from ._frames import (
 )
 from ._fresnel import fresnel_mueller_params
 from ._material import Material
-from ._microfacet import mean_cosine_n, visibility, visibility_one_material
+from ._microfacet import mean_cosine_n, visibility_over_cos, visibility_over_cos_one_material
 from ._safe import float_dtype, tiny
 from ._types import Array, Float
 
@@ -155,7 +155,9 @@ def _geometry3(ki: Vec, ko: Vec, nr: Vec):
     # float32 when both are grazing, ~1e-20, and opposite); h.n = (ci + co) / |.| > 0
     hs = tuple(a + b for a, b in zip(ki_s, ko_s, strict=True))
     big = jnp.maximum(jnp.maximum(jnp.abs(hs[0]), jnp.abs(hs[1])), jnp.abs(hs[2]))
-    big = jnp.where(big > 0, big, 1.0)
+    # the scale is a constant for differentiation (h does not depend on it): its own
+    # derivative, -c / big^2, underflows big^2 to 0 in float32 at k.n ~ 1e-20 (inf, then NaN)
+    big = jax.lax.stop_gradient(jnp.where(big > 0, big, 1.0))
     hs = tuple(c / big for c in hs)
     inv = 1.0 / jnp.sqrt(_d3(hs, hs))
     h = tuple(c * inv for c in hs)
@@ -183,16 +185,44 @@ def _azimuth_factor3(ki: Vec, ko: Vec, nr: Vec, ci: Array, co: Array) -> Array:
     ti = tuple(a - ci * b for a, b in zip(ki, nr, strict=True))
     to = tuple(a - co * b for a, b in zip(ko, nr, strict=True))
     qi, qo = _d3(ti, ti), _d3(to, to)
-    thr = tiny(dt) * 1e6
+    # projections below |t|^2 = eps: the direction is along the normal, where P = 1 and f does
+    # not enter the joint visibility; a ~tiny threshold let the tangent of 1/sqrt(q) (q^-1.5)
+    # overflow in float32 for q ~ 1e-32
+    thr = float(np.finfo(dt).eps)
     ok = (qi > thr) & (qo > thr)
     ri = 1.0 / jnp.sqrt(jnp.where(ok, qi, 1.0))
     ro = 1.0 / jnp.sqrt(jnp.where(ok, qo, 1.0))
     u = tuple(a * ri + b * ro for a, b in zip(ti, to, strict=True))
     q = _d3(u, u)
-    q_ok = ok & (q > thr)
+    q_ok = ok & (q > tiny(dt) * 1e6)
     f = 0.5 * jnp.sqrt(jnp.where(q_ok, q, 1.0))
     f = jnp.where(q_ok, f, jnp.where(ok, 0.0, 1.0))
     return jnp.clip(f, 0.0, 1.0)
+
+
+def _c_cap(dt) -> float:
+    """Cosine at which the ``1 / (k.n)`` divergence of the BRDF toward grazing backscatter
+    (Ashikhmin's joint visibility ``P(k|k) = P(k) ~ k.n`` over ``(k.n)^2``) is held: ``1e2
+    sqrt(tiny)``, 1.1e-17 in float32 (1.5e-152 in float64), where the derivative ``1 / c^2``
+    (9e33) still leaves float32 room for the other factors. Below it the factor keeps its
+    value at the cap; a float32 cosine that small is below the rounding of ``k.n`` itself
+    (~6e-8) unless the direction was built exactly."""
+    return float(np.sqrt(np.finfo(dt).tiny)) * 1e2
+
+
+def _log_capped(c: Array) -> Array:
+    """``log(max(c, _c_cap))`` (``c`` positive where used)."""
+    return jnp.log(jnp.maximum(c, _c_cap(c.dtype)))
+
+
+def _visibility_over_cos(m: Array, m0, c: Array) -> Array:
+    """``V = P(k) / (k.n)``, finite down to ``k.n -> 0`` (ppr._microfacet continues
+    ``<h.k>+`` linearly below its smallest resolved cosine). One material in float32: from a
+    per-call table over the incidence (as accurate as the float32 quadrature, 3.4x faster;
+    ppr._microfacet)."""
+    if m0 is not None and jnp.ndim(m0) == 0 and np.finfo(c.dtype).bits == 32:
+        return visibility_over_cos_one_material(m0, c)
+    return visibility_over_cos(m, c)
 
 
 def _single_scalar3(ki, ko, nr, m, m0=None):
@@ -205,20 +235,13 @@ def _single_scalar3(ki, ko, nr, m, m0=None):
     """
     dt = ki[0].dtype
     valid, ki_s, ko_s, ci, co, h = _geometry3(ki, ko, nr)
-    # V = P(k)/(k.n): finite down to k.n -> 0 (ppr._microfacet continues <h.k>+ linearly
-    # below its smallest resolved cosine)
-    if m0 is not None and jnp.ndim(m0) == 0 and np.finfo(dt).bits == 32:
-        # one material in float32: P(k) from a per-call table over the incidence (as
-        # accurate as the float32 quadrature, 3.4x faster; ppr._microfacet)
-        vi = visibility_one_material(m0, ci) / ci
-        vo = visibility_one_material(m0, co) / co
-    else:
-        vi = visibility(m, ci) / ci
-        vo = visibility(m, co) / co
+    vi, vo = _visibility_over_cos(m, m0, ci), _visibility_over_cos(m, m0, co)
     f = _azimuth_factor3(ki_s, ko_s, nr, ci, co)
     # min(P, P') / (ci co) = min(V / co, V' / ci) in log space: XLA's algebraic simplifier
-    # rewrites a / b / c as a / (b * c), which underflows in float32 at ci, co ~ 1e-20
-    lci, lco = jnp.log(ci), jnp.log(co)
+    # rewrites a / b / c as a / (b * c), which underflows in float32 at ci, co ~ 1e-20. The
+    # factor diverges like 1 / (k.n) toward grazing backscatter (f = 1) for small m; its
+    # cosine is held at _c_cap so that it and its derivative (1 / c^2) stay in range
+    lci, lco = _log_capped(ci), _log_capped(co)
     t = tiny(dt)
     log_min = jnp.minimum(jnp.log(jnp.maximum(vi, t)) - lco, jnp.log(jnp.maximum(vo, t)) - lci)
     g = (1.0 - f) * vi * vo + f * jnp.exp(log_min)
@@ -336,16 +359,14 @@ def _mono_core(k_in, normal, material, frame_in, frame_out, wavelength, names) -
     cross = None  # coefficient of diag(0, 0, 1, 1)
     m00 = None
     if "single" in names:
-        if jnp.ndim(m0) == 0 and np.finfo(dt).bits == 32:
-            v = visibility_one_material(m0, c_s) / c_s
-        else:
-            v = visibility(m, c_s) / c_s
-        # p(h) P(k) / c^2 = p V / c in log space (float32: c ~ 1e-20 at grazing)
+        v = _visibility_over_cos(m, m0, c_s)
+        # p(h) P(k) / c^2 = p V / c in log space (float32: c ~ 1e-20 at grazing), its 1 / c
+        # held at _c_cap as in the general kernel
         log_s = (
             jnp.log((m + 1.0) / (2.0 * math.pi))
             + _log_lobe3(m, ki, nr)
             + jnp.log(jnp.maximum(v, tiny(dt)))
-            - jnp.log(c_s)
+            - _log_capped(c_s)
         )
         scal = jnp.where(valid, jnp.exp(log_s) / (4.0 * mean_cosine_n(m)), 0.0)
         if material.white:

@@ -191,7 +191,7 @@ import numpy as np
 
 from ._frames import A_STOKES, mueller_rotator, perpendicular_unit, rotation_cos_sin_2a
 from ._fresnel import fresnel_amplitudes_re
-from ._safe import float_dtype, safe_sqrt, tiny
+from ._safe import float_dtype, safe_atan2, safe_sqrt, tiny
 from ._types import Array, ArrayLike, Complex, Float
 
 __all__ = [
@@ -238,7 +238,13 @@ def _sneg(a):
 
 
 def _snormalize(v, fallback, thr):
-    """normalize(v) where |v|^2 > thr, else ``fallback`` (zero gradient through v there)."""
+    """normalize(v) where |v|^2 > thr, else ``fallback`` (zero gradient through v there).
+
+    ``thr`` must keep the derivative of ``v / |v|`` (``|v|^-3`` inside ``rsqrt``'s tangent)
+    finite: at least ``eps^2`` (``|v|`` at rounding level). A threshold near ``tiny`` let
+    ``|v|^2 ~ 1e-34`` through in float32 (a cross product of nearly parallel unit vectors
+    with a 1e-16 out-of-plane component) and ``rsqrt``'s tangent overflowed to inf, then NaN.
+    """
     sq = _sdot(v, v)
     ok = sq > thr
     inv = jax.lax.rsqrt(jnp.where(ok, sq, 1.0))
@@ -362,11 +368,16 @@ def _path_jones(k, kp, d1, e, n_re, n_im, white, thr, probe=None):
             rs1r, rs1i, rp1r, rp1i = one, zero, zero, zero
         else:
             rs1r, rs1i, rp1r, rp1i = zero, zero, one, zero
-    # facet s/p frames; fallbacks (normal incidence on a facet) use e, which is _|_ k and k'
-    s1, _ = _snormalize(_scross(k, d1), e, thr)
+    # facet s/p frames; fallbacks (normal incidence on a facet) use e, which is _|_ k and k'.
+    # The fallback takes over below |s|^2 = eps (not ~tiny): at normal incidence on a facet
+    # r_p = -r_s and the facet's operator does not depend on s; near it the dependence is
+    # O(|s|^2) (r_s + r_p = O(t^2)), so the switch costs ~eps in value, and the gradient
+    # through s (~ rounding / |s|) stays small, as in ppr._frames._facet_frames3
+    ceps = float(np.finfo(k[0].dtype).eps)
+    s1, _ = _snormalize(_scross(k, d1), e, ceps)
     p_in1 = _scross(_sneg(k), s1)
     p_out1 = _scross(d1, s1)
-    s2, _ = _snormalize(_scross(_sneg(d1), kp), e, thr)
+    s2, _ = _snormalize(_scross(_sneg(d1), kp), e, ceps)
     p_in2 = _scross(d1, s2)
     p_out2 = _scross(kp, s2)
     y_in = _scross(_sneg(k), e)
@@ -582,7 +593,15 @@ def _phi_nodes(c, s, m, tp, wp):
     ok = s > 1e-6 * c
     lam = jnp.where(ok, c * (a + b * jnp.sqrt(m + 1.0)) / jnp.where(ok, s, 1.0), 1e6)
     lam = jnp.minimum(lam, 1e6)
-    L = jnp.log1p(0.5 * math.pi / lam)
+    # L = log1p(pi / (2 lam)); for lam < 1 as log(lam + pi/2) - log(lam): the quotient's
+    # derivative is formed with lam^2, which underflows in float32 at k.n ~ 1e-20 (inf, NaN)
+    small = lam < 1.0
+    lam_s = jnp.where(small, lam, 1.0)
+    L = jnp.where(
+        small,
+        jnp.log(lam_s + 0.5 * math.pi) - jnp.log(lam_s),
+        jnp.log1p(0.5 * math.pi / jnp.where(small, 1.0, lam)),
+    )
     d = ex(lam) * jnp.expm1(ex(L) * tp)  # (..., nq)
     wd = ex(L) * (d + ex(lam)) * wp / (2.0 * math.pi)
     sd, cd = jnp.sin(d), jnp.cos(d)
@@ -624,8 +643,12 @@ def _azimuth_f(a, d, nq, thr):
     pa = tuple(x - _sdot(a, nq) * y for x, y in zip(a, nq, strict=True))
     pd = tuple(x - _sdot(d, nq) * y for x, y in zip(d, nq, strict=True))
     fb = tuple(jnp.zeros_like(pd[0]) for _ in range(3))
-    ua, oka = _snormalize(pa, fb, thr * 1e6)
-    ud, okd = _snormalize(pd, fb, thr * 1e6)
+    # below |projection|^2 = eps the direction is along the normal, where P = 1 and f does
+    # not enter the joint visibility (and an eps threshold keeps d(v/|v|) finite, see
+    # _snormalize)
+    ceps = float(np.finfo(pa[0].dtype).eps)
+    ua, oka = _snormalize(pa, fb, max(thr * 1e6, ceps))
+    ud, okd = _snormalize(pd, fb, max(thr * 1e6, ceps))
     sm = tuple(x + y for x, y in zip(ua, ud, strict=True))
     f = 0.5 * safe_sqrt(jnp.clip(_sdot(sm, sm), 0.0, 4.0))
     return jnp.where(oka & okd, jnp.clip(f, 0.0, 1.0), 1.0)
@@ -639,7 +662,10 @@ def _rho(p_a, p_d, f):
     num = p_a - joint
     den = p_a * (1.0 - p_d)
     ok = den > 1e-30
-    return jnp.where(ok, jnp.clip(num / jnp.where(ok, den, 1.0), 0.0, 1.0), 1.0)
+    # both divided first by den held constant for differentiation: the quotient's derivative
+    # is otherwise formed with den^2, which underflows in float32 at grazing (P(a) ~ k.n)
+    s = jax.lax.stop_gradient(jnp.where(ok, den, 1.0))
+    return jnp.where(ok, jnp.clip((num / s) / jnp.where(ok, den / s, 1.0), 0.0, 1.0), 1.0)
 
 
 def _accumulate(k, kp, normal, e, m, n_re, n_im, *, order, inner_order, white, coef=None):
@@ -719,12 +745,12 @@ def _half_paths(k, kp, normal, e, m, n_re, n_im, *, reverse, order, coef, white,
     # panel ends in t (module docstring, "Quadrature"): d1.n = R cos(2t - alpha),
     # R = sqrt(c^2 + s^2 cos^2 phi), alpha = atan2(s cos phi, c) in [-pi/2, pi/2]
     scp = ex(s) * cph  # (..., P)
-    alpha = jnp.arctan2(scp, ex(c))
+    alpha = safe_atan2(scp, ex(c))
     R2 = ex(c) ** 2 + scp**2
     t_max = jnp.minimum(0.5 * math.pi, 0.5 * math.pi + alpha)  # shadow boundary h1.k = 0
     t_0 = 0.5 * alpha + 0.25 * math.pi  # horizon of d1 (d1.n = 0)
     # h2.n = k'.n - d1.n > 0 fails for |2t - alpha| < beta, beta = acos(c' / R) (if c' < R)
-    beta = jnp.arctan2(safe_sqrt(jnp.clip(R2 - ex(cp) ** 2, 0.0, None)), ex(cp))
+    beta = safe_atan2(safe_sqrt(jnp.clip(R2 - ex(cp) ** 2, 0.0, None)), ex(cp))
     t_a = jnp.clip(0.5 * (alpha - beta), 0.0, t_0)
     t_b = jnp.clip(0.5 * (alpha + beta), 0.0, t_0)
     lc = _log_cos_pow(ex(m), (t_a, t_b, t_0, t_max), thr)  # u = cos^(m+1) t at the ends
@@ -758,7 +784,10 @@ def _half_paths(k, kp, normal, e, m, n_re, n_im, *, reverse, order, coef, white,
     c1 = jnp.clip(_sdot(kq, h1), 0.0, 1.0)
     d1 = tuple(2.0 * c1 * hi - ki for hi, ki in zip(h1, kq, strict=True))
     fb = (jnp.zeros_like(c1), jnp.zeros_like(c1), jnp.ones_like(c1))
-    h2, ok2 = _snormalize(tuple(a - b for a, b in zip(kpq, d1, strict=True)), fb, thr)
+    # |k' - d1| below rounding (eps) has no direction (and keeps d(v/|v|) finite: _snormalize)
+    h2, ok2 = _snormalize(
+        tuple(a - b for a, b in zip(kpq, d1, strict=True)), fb, float(np.finfo(dt).eps) ** 2
+    )
     p2, v2, log_p2 = _lobe_pow(mq, h2, nq, _sdot(h2, nq), thr)
     # balance weight p1 / (p1 + p2) (the other half, parametrized by h2, carries p2 / (p1+p2));
     # p1 = cos^m t = u^(m / (m+1)) up to the common (m+1)/(2 pi). As a logistic function of

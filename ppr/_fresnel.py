@@ -70,9 +70,18 @@ def complex_sqrt_re(re: Array, im: Array) -> tuple[Array, Array]:
 
 
 def _cdiv(a: Array, b: Array, c: Array, d: Array) -> tuple[Array, Array]:
-    """(a + ib) / (c + id) with value 0 and zero gradient where |c + id| is ~0."""
-    den = c * c + d * d
-    ok = den > tiny(den.dtype) * 1e6
+    """(a + ib) / (c + id) with value 0 and zero gradient where |c + id| is ~0.
+
+    All four are divided first by ``max(|c|, |d|)``, held constant for differentiation (the
+    quotient does not depend on it): the derivative of a quotient is formed with its
+    denominator squared, and ``|c + id|^4`` underflowed in float32 (an infinite, then NaN
+    gradient) for a facet seen at grazing incidence with ``n = 1`` (``c + id ~ 1e-20``).
+    """
+    big = jnp.maximum(jnp.abs(c), jnp.abs(d))
+    ok = big > tiny(big.dtype) * 1e3
+    scale = jax.lax.stop_gradient(jnp.where(ok, big, 1.0))
+    a, b, c, d = a / scale, b / scale, c / scale, d / scale
+    den = c * c + d * d  # in [1, 2] where ok
     den_s = jnp.where(ok, den, 1.0)
     re = (a * c + b * d) / den_s
     im = (b * c - a * d) / den_s

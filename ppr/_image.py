@@ -312,10 +312,12 @@ def evaluate_mueller(
     if n == 0:
         return out
     from ._brdf import mueller_brdf  # noqa: PLC0415
+    from ._material import stack_materials  # noqa: PLC0415
 
     arrays = [np.asarray(a, float) for a in (k_in, k_out, normal, frame_in, frame_out)]
     names = _host_terms(terms, arrays[0], arrays[1])
-    mats = _stack_materials([_cast_material(m, dtype) for m in materials])
+    # padded to 8 parts: meshes with different part counts share a compilation
+    mats = stack_materials([_cast_material(m, dtype) for m in materials], multiple=8)
     idx_all = np.asarray(material_idx, np.int32)
 
     def evaluate(ki, ko, nr, fi, fo, idx, mats):
@@ -359,25 +361,6 @@ def _host_terms(terms, k_in: np.ndarray, k_out: np.ndarray):
         return terms
     bs = backscatter_terms(mueller_brdf, terms)
     return terms if bs is None else bs
-
-
-def _stack_materials(materials: Sequence):
-    """Stack per-part materials (same structure, scalar fields) along a new leading axis."""
-    import equinox as eqx
-    import jax
-    import jax.numpy as jnp
-
-    cleaned = []
-    for mat in materials:
-        if dataclasses.is_dataclass(mat) and hasattr(mat, "name"):
-            mat = dataclasses.replace(mat, name="")  # static label: avoid retracing per name
-        cleaned.append(mat)
-    # pad to a multiple of 8 slots so meshes with different part counts share a compilation
-    cleaned += [cleaned[-1]] * (-len(cleaned) % 8)
-    arrays = [eqx.filter(m, eqx.is_array) for m in cleaned]
-    static = eqx.filter(cleaned[0], eqx.is_array, inverse=True)
-    stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *arrays)
-    return eqx.combine(stacked, static)
 
 
 def render_mueller_image(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -102,3 +104,40 @@ class Material(eqx.Module):
     def dtype(self):
         """Real float dtype the material computes in."""
         return jnp.finfo(self.n.dtype).dtype
+
+
+def stack_materials(materials: Sequence[Material], *, multiple: int = 1) -> Material:
+    """One batched :class:`Material` (leading axis = part index) from per-part materials.
+
+    Every field is stacked (strongly typed: a weak type would change the jit cache key); the
+    static ``name`` becomes ``"stacked"`` (so that names do not retrace programs) and the
+    static ``white`` flag is kept. ``white`` selects the BRDF's program (the ideal white
+    reflector has no index), so it must be the same for every part: a mix is a
+    ``ValueError`` naming the parts. ``multiple``: pad the part axis with copies of the last
+    part to a multiple of this (callers with different part counts then share a
+    compilation; the padding parts are never indexed).
+    """
+    mats = list(materials)
+    if not mats:
+        raise ValueError("stack_materials: need at least one material")
+    for i, mat in enumerate(mats):
+        if not isinstance(mat, Material):
+            raise ValueError(
+                f"stack_materials: part {i} is a {type(mat).__name__}, not a ppr.Material"
+            )
+    white = [bool(mat.white) for mat in mats]
+    if any(white) and not all(white):
+        idx_w = [i for i, w in enumerate(white) if w]
+        idx_r = [i for i, w in enumerate(white) if not w]
+        raise ValueError(
+            f"stack_materials: parts {idx_w} are ideal white reflectors (Material.ideal_white) "
+            f"and parts {idx_r} are not; one batch of parts takes one of the two BRDF "
+            "programs: render them in separate calls"
+        )
+    mats += [mats[-1]] * (-len(mats) % max(int(multiple), 1))
+
+    def st(field):
+        a = jnp.stack([jnp.asarray(getattr(mat, field)) for mat in mats])
+        return a.astype(a.dtype)
+
+    return Material(st("n"), st("m"), st("corr_length"), name="stacked", white=white[0])

@@ -520,6 +520,30 @@ def visibility_one_material(
     return jnp.clip(safe_div(base, base + corr, fill=1.0), 0.0, 1.0)
 
 
+def _over_cos(m: Array, c: Array, corr: Array) -> Array:
+    """``P(k) / (k . n) = <h.n> / <h.k>+ = <h.n> / (c <h.n> + corr)``: no division by ``c``
+    (finite with a finite derivative down to ``c = 0``, where ``<h.k>+ > 0``)."""
+    hn = (m + 1.0) / (m + 2.0)
+    return safe_div(hn, c * hn + corr, fill=0.0)
+
+
+def visibility_over_cos(m: Array, c: Array, *, order: int | None = None) -> Array:
+    """``P(k) / (k . n)`` (:func:`visibility` over the cosine) as ``<h.n> / <h.k>+``.
+
+    Dividing ``P`` by ``c`` instead gives the same value, but the derivative of a quotient is
+    formed with ``c^2``, which underflows in float32 below ``c ~ 1e-19`` (an infinite, then NaN
+    gradient). ``m``, ``c``: arrays of one float dtype, ``c`` in ``[0, 1]``."""
+    m, c = jnp.broadcast_arrays(m, c)
+    return _over_cos(m, c, _correction(m, c, order))
+
+
+def visibility_over_cos_one_material(m0: Array, c: Array) -> Array:
+    """:func:`visibility_over_cos` for one scalar ``m0`` (the per-call table of
+    :func:`visibility_one_material`)."""
+    n = TABLE_NODES[np.finfo(c.dtype).bits]
+    return _over_cos(m0, c, _correction_one_material(m0, c, n, _default_order(c.dtype)))
+
+
 def mean_cosine_plus(
     m: Shaped[ArrayLike, "..."], cos_theta: Shaped[ArrayLike, "..."], *, order: int | None = None
 ) -> Float[Array, "..."]:

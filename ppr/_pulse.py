@@ -56,7 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._conventions import C_LIGHT
-from ._material import Material
+from ._material import Material, stack_materials
 from ._mesh import MeshArrays, capacity_for, mesh_arrays
 from ._pose import quat_to_matrix
 from ._scene import Pose, RangeBins, Scene, Sensor
@@ -239,19 +239,6 @@ def _default_brdf():
 
 
 # ----------------------------------------------------------------------------- kernel
-
-
-def stack_materials(materials: Sequence[Material]) -> Material:
-    """One batched :class:`Material` (leading axis = part index) from per-part materials."""
-    mats = list(materials)
-    if not mats:
-        raise ValueError("need at least one material")
-
-    def st(field):  # strongly typed (weak types would change the jit cache key)
-        a = jnp.stack([jnp.asarray(getattr(m, field)) for m in mats])
-        return a.astype(a.dtype)
-
-    return Material(st("n"), st("m"), st("corr_length"), name="stacked")
 
 
 def window_size(max_depth_extent: float, sigma_r: float, width: float, n_bins: int) -> int:

@@ -11,6 +11,7 @@ run time but not when folding constants.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -87,6 +88,21 @@ def safe_pow(base: Array, expo: Array) -> Array:
     val = jnp.exp(expo * lb)
     zero_val = jnp.where(expo > 0, 0.0, 1.0)
     return jnp.where(ok, val, zero_val)
+
+
+def safe_atan2(y: Array, x: Array) -> Array:
+    """``atan2(y, x)`` whose derivative stays finite when both arguments are tiny.
+
+    The derivative ``(x dy - y dx) / (x^2 + y^2)`` is formed with ``x^2 + y^2``, which
+    underflows to 0 in float32 once both are below ~1e-19 (an infinite, then NaN gradient).
+    ``atan2`` is invariant under a common positive scale, so both are divided first by
+    ``max(|x|, |y|)`` held constant for differentiation; 0 (zero gradient) at ``x = y = 0``.
+    """
+    x, y = jnp.asarray(x), jnp.asarray(y)
+    big = jnp.maximum(jnp.abs(x), jnp.abs(y))
+    ok = big > tiny(float_dtype(x, y))
+    scale = jax.lax.stop_gradient(jnp.where(ok, big, 1.0))
+    return jnp.where(ok, jnp.arctan2(y / scale, x / scale), 0.0)
 
 
 def safe_atan2_angle(cos_a: Array, sin_a: Array) -> Array:

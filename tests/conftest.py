@@ -87,7 +87,7 @@ def _compile_level(request):
 # two xdist workers share them from the start instead of one worker finishing a long test
 # alone at the end (xdist's "load" scheduler hands out the collected order round-robin).
 SLOW_FIRST = (
-    "test_double.py::test_stiff_cases_finite_values_and_gradients_and_float32_matches_float64",
+    "test_grazing.py::test_grazing_and_stiff_geometry_finite_values_and_gradients_float32_matches_float64",
     "test_notebooks.py::test_notebook_runs[04_inversion_mcmc]",  # 92
     "test_cli.py::test_invert_end_to_end",  # 79
     "test_notebooks.py::test_notebook_runs[01_brdf_tour]",  # 74

@@ -27,10 +27,10 @@ from ppr._polarimetry import cloude_eigenvalues
 Z = np.array([0.0, 0.0, 1.0])
 
 # The core model of this file (issue 2): single bounce + multiple-scattering remainder. Tests
-# of numerics and machinery (stiff cases, float32, JVP, vmap, validation) run on it; the
-# default terms add the double bounce, whose own stiff-case, float32, reciprocity and
-# realizability tests are in tests/test_double.py (compiling the double term costs ~10 s per
-# distinct jit, so it is not repeated here).
+# of numerics and machinery (float32, JVP, vmap, validation) run on it; the default terms add
+# the double bounce, whose own float32, reciprocity and realizability tests are in
+# tests/test_double.py (compiling the double term costs ~10 s per distinct jit, so it is not
+# repeated here). Stiff and grazing geometry of every term: tests/test_grazing.py.
 CORE = ("single", "multiple")
 
 
@@ -245,66 +245,7 @@ def test_m0_near_lambertian():
     assert np.max(np.abs(np.diff(grid, axis=-2)) / grid[:, 1:]) < 0.35
 
 
-# ----------------------------------------------------------------------------- stiff cases
-
-
-def _stiff_batch():
-    ms = [0.0, 1e-3, 1.0, 1e3, 5e3, 1e4, 1e6]
-    incid = np.deg2rad([0.0, 89.9, 89.999])
-    idx = [1.5, 1.0, 1.0 + 10j, 0.2 + 7j]
-    rows = []
-    for m in ms:
-        for th in incid:
-            for n_index in idx:
-                k = _dir(np.array(th), np.array(0.0))
-                spec = np.array([-k[0], 0.0, k[2]])
-                rows.append((m, n_index, k, k))  # exact backscatter
-                rows.append((m, n_index, k, spec))  # specular (mirror) direction
-                rows.append((m, n_index, k, _dir(np.array(np.deg2rad(40.0)), np.array(2.0))))
-    # exactly tangent / exact forward geometry (degenerate half vector) / tiny cosines
-    for m in ms:
-        rows.append((m, 1.5, np.array([1.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0])))
-        rows.append((m, 1.0 + 10j, np.array([1.0, 0.0, 0.0]), _unit([0.2, 0.1, 1.0])))
-        rows.append((m, 0.2 + 7j, _unit([1.0, 0.0, 1e-20]), _unit([-1.0, 0.0, 1e-20])))
-        rows.append((m, 1.5, _unit([1.0, 0.0, 1e-20]), _unit([1.0, 0.0, 1e-20])))
-    m = np.array([r[0] for r in rows])
-    n = np.array([r[1] for r in rows], complex)
-    ki = np.stack([r[2] for r in rows])
-    ko = np.stack([r[3] for r in rows])
-    return m, n, ki, ko
-
-
-@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
-def test_stiff_cases_finite_values_and_gradients(dtype):
-    m, n, ki, ko = _stiff_batch()
-    cdt = jnp.complex64 if dtype == jnp.float32 else jnp.complex128
-    W = jnp.asarray(np.random.default_rng(4).normal(size=(4, 4)), dtype)
-
-    def total(m, n_re, n_im, ki, ko):
-        mat = Material(n=(n_re + 1j * n_im).astype(cdt), m=m)
-        M = mueller_brdf(ki, ko, jnp.asarray(Z, dtype), mat, terms=CORE)
-        return jnp.sum(M * W), M
-
-    args = tuple(jnp.asarray(a, dtype) for a in (m, n.real, n.imag, ki, ko))
-    grads, M = jax.jit(jax.grad(total, argnums=(0, 1, 2, 3, 4), has_aux=True))(*args)
-    M = np.asarray(M)
-    assert M.dtype == dtype
-    assert np.all(np.isfinite(M))
-    # cosines of 1e-20 (last rows): values must be finite; their float32 gradients are NaN
-    # (known, open: d/dm through the visibility at k.n = 1e-20), so they are excluded there
-    tiny_any = (ki[:, 2] > 0) & (ki[:, 2] < 1e-19)
-    keep = ~tiny_any if dtype == jnp.float32 else np.ones(len(m), bool)
-    for g in grads:
-        assert g.dtype == dtype
-        assert np.all(np.isfinite(np.asarray(g)[keep]))
-    # exactly tangent rows give 0
-    tangent = np.abs(ki[:, 2]) == 0.0
-    assert np.all(M[tangent] == 0.0)
-    # cosines of 1e-20 are not grazing: at the specular direction (h = n, the lobe's peak) the
-    # scaled products keep a positive value in float32. (At exact backscatter there h.n = 1e-20
-    # and the single lobe (h.n)^m underflows to 0 for m >~ 2 in either dtype, as it should.)
-    tiny_spec = (ki[:, 2] > 0) & (ki[:, 2] < 1e-19) & (ko[:, 2] < 1e-19) & (ko[:, 0] == -ki[:, 0])
-    assert tiny_spec.sum() == len(set(m.tolist())) and np.all(M[tiny_spec, 0, 0] > 0)
+# stiff and grazing cases (finite values and gradients): tests/test_grazing.py
 
 
 def test_float32_matches_float64():

@@ -178,3 +178,20 @@ def test_bad_library_file(tmp_path, old, new, needle):
         load_library(bad)
     msg = str(err.value)
     assert str(bad) in msg and needle in msg and "\n" not in msg
+
+
+def test_stack_materials_keeps_the_white_flag_and_rejects_mixtures():
+    """``stack_materials`` (the one implementation behind ``simulate``, ``double_bounce`` and
+    the image tools) stacks every field, keeps the static ``white`` flag, pads to a
+    multiple on request, and refuses to mix the ideal white reflector with real materials
+    (one batch takes one BRDF program), naming the parts."""
+    from ppr import stack_materials
+
+    white = stack_materials([Material.ideal_white(3.0), Material.ideal_white(50.0, 1e-5)])
+    assert white.white and np.asarray(white.m).tolist() == [3.0, 50.0]
+    assert np.asarray(white.corr_length).tolist() == [5e-6, 1e-5]
+    real = stack_materials([Material(1.5, 2.0), Material(0.94 + 6.42j, 7.0)], multiple=8)
+    assert not real.white and real.m.shape == (8,) and real.n.dtype == np.complex128
+    np.testing.assert_array_equal(np.asarray(real.m), [2.0, 7.0] + [7.0] * 6)
+    with pytest.raises(ValueError, match=r"parts \[1\] are ideal white .* parts \[0, 2\]"):
+        stack_materials([Material(1.5, 2.0), Material.ideal_white(3.0), Material(2.0, 1.0)])

@@ -971,3 +971,49 @@ def test_face_subset_bad_input():
         ppr.FaceSubset.of(arrays, vis, capacity=4)
     sub = ppr.FaceSubset.of(arrays, vis)
     assert sub.n_faces == 8 and np.asarray(sub.vis)[6:].max() == 0.0
+
+
+def test_ideal_white_plate_monostatic_return_and_double_bounce_flag():
+    """A plate of ``Material.ideal_white(m)`` at normal incidence, monostatic, through
+    ``simulate`` and the real BRDF. The single bounce at exact backscatter off a facet seen
+    at normal incidence is ``p(n) P(k) F / (4 <h.n> (k.n)^2)`` with the Blinn-Phong density
+    ``p(n) = (m + 1) / (2 pi)``, ``P(k) = 1`` (no shadowing at normal incidence), ``F = 1``
+    (the ideal white reflector) and ``<h.n> = (m + 1) / (m + 2)``: ``(m + 2) / (8 pi)`` per
+    sr. The renderer weights a facet by ``(n.u_in)(n.u_out) A = A`` and spreads it with a
+    bin-integrated unit-area pulse (bins covering +-50 sigma: sum 1), so the time-integrated
+    M00 is ``(m + 2) / (8 pi) A``. At m = 1000 the other terms vanish: the double term at
+    backscatter needs two facets tilted ~45 deg (weight ~2^-m, 0 beyond the table's
+    M_MAX = 200) and the multiple-scattering remainder ``~ D(mu = 1)^2`` is far below
+    1e-20 of it. The facet is a perfect mirror: no depolarization, ``|M_ii| = M00``.
+
+    ``double_bounce`` gets the flag too: with a stand-in BRDF that is Lambertian for a white
+    material and 0 otherwise, a white dihedral returns exactly what the Lambertian stand-in
+    returns (before, stacking dropped the flag and both paths rendered 0)."""
+    from ppr._pulse import double_bounce
+
+    m, side = 1000.0, 0.5
+    mesh = shapes.plate(side)
+    white = ppr.Material.ideal_white(m)
+    p = ppr.simulate(_scene(mesh, materials=[white], width=0.002, n_bins=256, samples=4))
+    expect = (m + 2.0) / (8.0 * np.pi) * side * side
+    total = np.asarray(p.total)
+    # float64 rounding of the lobe, the visibility ratio and the bin sums
+    assert total[0, 0] == pytest.approx(expect, rel=1e-12)
+    np.testing.assert_allclose(np.abs(np.diag(total)), expect, rtol=1e-12)
+    np.testing.assert_allclose(total - np.diag(np.diag(total)), 0.0, atol=1e-12 * expect)
+
+    def white_lambertian(k_in, k_out, normal, material, **kw):
+        return lambertian_mueller(k_in, k_out, normal, material, **kw) * float(material.white)
+
+    rot = np.asarray(ppr.quat_to_matrix(ppr.quat_from_axis_angle([0, 1, 0], np.pi / 2)))
+    a = shapes.plate(0.2, subdivisions=2)
+    a = ppr.Mesh(np.asarray(a.vertices) + [0.1, 0, 0], a.faces, None, ("floor",))
+    b = shapes.plate(0.2, subdivisions=2)
+    b = ppr.Mesh(np.asarray(b.vertices) @ rot.T + [0, 0, 0.1], b.faces, None, ("wall",))
+    dihedral = ppr._mesh.concatenate([a, b])
+    sensor = ppr.Sensor.make(-np.array([1.0, 0.3, 1.0]) / np.linalg.norm([1.0, 0.3, 1.0]))
+    scene = _scene(dihedral, sensor=sensor, materials=[white, white], samples=4)
+    got = double_bounce(scene, brdf=white_lambertian)
+    ref = double_bounce(scene, brdf=lambertian_mueller)
+    assert float(ref.total[0, 0]) > 0
+    np.testing.assert_array_equal(np.asarray(got.data), np.asarray(ref.data))
