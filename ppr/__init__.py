@@ -48,6 +48,7 @@ from ._pulse import (
     tent_gaussian_cdf,
     window_size,
 )
+from ._resources import shipped_config, shipped_configs_dir
 from ._scene import Pose, Pulse, RangeBins, Scene, Sensor, load_scene, load_sensor
 from ._symmetry import MeshSymmetry, mesh_symmetries, symmetry_label
 from ._visibility import VisibilityCaster
@@ -110,5 +111,7 @@ __all__ = [
     "stack_materials",
     "tent_gaussian_cdf",
     "window_size",
+    "shipped_config",
+    "shipped_configs_dir",
 ]
 __version__ = "0.1.0"

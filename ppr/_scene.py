@@ -437,8 +437,8 @@ class VisibilityConfig(StrictModel):
 class SceneConfig(StrictModel):
     """``configs/scenes/*.toml``: exactly one of ``shape`` / ``mesh``; ``materials`` maps
     every mesh part to a library material (``"name"`` or ``"name/finish"``, see
-    :func:`ppr.load_material`) or an inline material; ``sensor`` names a file
-    in ``configs/sensors/`` (or a path relative to the scene file)."""
+    :func:`ppr.load_material`) or an inline material; ``sensor`` is a sensor file relative
+    to the scene file, or the name of a shipped sensor (``configs/sensors/``)."""
 
     sensor: str
     shape: ShapeConfig | None = None
@@ -476,15 +476,23 @@ def _material_from_config(spec, wavelength: float, where: str) -> Material:
 
 
 def _find_sensor(name: str, scene_path: Path) -> Path:
-    cands = [scene_path.parent / name, scene_path.parent / f"{name}.toml"]
-    root = scene_path.parent.parent / "sensors"
-    cands += [root / name, root / f"{name}.toml"]
-    pkg = Path(__file__).resolve().parent.parent / "configs" / "sensors"
-    cands += [pkg / f"{name}.toml"]
+    """``sensor = name``: a file relative to the scene file (``.toml`` may be left out), else
+    a shipped sensor (``configs/sensors/<name>.toml``, :func:`ppr.shipped_config`)."""
+    p = Path(name).expanduser()
+    if not p.is_absolute():
+        p = scene_path.parent / p
+    cands = [p, p.with_name(p.name + ".toml")]
+    if "/" not in name and "\\" not in name:
+        from ._resources import shipped_configs_dir  # noqa: PLC0415
+
+        cands.append(shipped_configs_dir() / "sensors" / f"{name}.toml")
     for c in cands:
         if c.is_file():
             return c
-    raise ConfigError(f"{scene_path}: sensor = {name!r}: no such sensor config (looked in {root})")
+    looked = ", ".join(str(c) for c in cands)
+    raise ConfigError(
+        f"{scene_path}: sensor = {name!r}: no such sensor config (looked for {looked})"
+    )
 
 
 def sensor_from_config(

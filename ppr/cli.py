@@ -33,8 +33,7 @@ import pydantic
 from . import _outputs
 from ._config import ConfigError, StrictModel, load_toml_model, parse_override
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-CONFIG_DIR = REPO_ROOT / "configs"
+from ._resources import shipped_config
 
 
 class CLIError(Exception):
@@ -232,10 +231,30 @@ class ImageConfig(StrictModel):
 
 
 # ============================================================================== helpers
+# config fields holding paths, and the words that are not paths there
+PATH_KEYS = {
+    "scene": (),
+    "mesh": ("example",),
+    "mesh.path": (),
+    "database": (),
+    "database_path": (),
+    "observations": ("simulate",),
+    "observation.source": ("simulate",),
+    "mcmc": (),
+}
+
+
 def _overrides(args) -> dict:
+    """``--set`` overrides; a relative path given on the command line is relative to the
+    current folder (made absolute here), one written in a config file to that file."""
     out = {}
     for text in args.set or []:
         key, value = parse_override(text)
+        is_path = key in PATH_KEYS and isinstance(value, str) and value not in PATH_KEYS[key]
+        if key == "sensor" and isinstance(value, str):  # a shipped sensor's name, or a file
+            is_path = "/" in value or value.endswith(".toml")
+        if is_path:
+            value = str(Path(value).expanduser().absolute())
         out[key] = value
     return out
 
@@ -243,17 +262,14 @@ def _overrides(args) -> dict:
 def _config_path(args, default_name: str) -> Path:
     if args.config is not None:
         return Path(args.config)
-    default = CONFIG_DIR / "cli" / default_name
-    if not default.is_file():
-        raise CLIError(f"no --config given and the default {default} does not exist")
-    return default
+    return shipped_config(f"cli/{default_name}")
 
 
 def _resolve_path(value: str, config_path: Path) -> Path:
+    """A path written in a config: relative to the config file (``--set`` values were made
+    absolute against the current folder by :func:`_overrides`)."""
     p = Path(value).expanduser()
-    if p.is_absolute() or p.exists():
-        return p
-    return config_path.parent / p
+    return p if p.is_absolute() else config_path.parent / p
 
 
 def _progress(args) -> bool:
@@ -606,7 +622,9 @@ SIMULATE_OUTPUTS = ["simulate.npz", "simulate.json", "simulate.png"]
 def cmd_simulate(args) -> int:
     import ppr
 
-    cfg_path = Path(args.config) if args.config else CONFIG_DIR / "scenes" / "cubesat3u_panels.toml"
+    cfg_path = (
+        Path(args.config) if args.config else shipped_config("scenes/cubesat3u_panels.toml")
+    )
     states, terms = _simulate_flags(args)
     _maybe_x64(args.dtype)
     scene = ppr.load_scene(cfg_path, _overrides(args))
@@ -897,7 +915,7 @@ def cmd_database_build(args) -> int:
     import inversion
 
     cfg_path = (
-        Path(args.config) if args.config else CONFIG_DIR / "databases" / "synthetic_small.toml"
+        Path(args.config) if args.config else shipped_config("databases/synthetic_small.toml")
     )
     spec = inversion.load_spec(cfg_path, _overrides(args))
     _shards_ok(args)
@@ -1048,7 +1066,7 @@ def cmd_report(args) -> int:
 class ClassifyConfig(StrictModel):
     """``ppr classify``: top-k database candidates for observations."""
 
-    database: str
+    database: str | None = None
     observations: str = "simulate"
     attribute: Literal["shape", "material", "finish", "attitude"] = "shape"
     weights: Literal["uniform", "channel", "range", "fisher"] = "fisher"
@@ -1112,6 +1130,11 @@ def cmd_classify(args) -> int:
 
     cfg_path = _config_path(args, "classify.toml")
     cfg = load_toml_model(ClassifyConfig, cfg_path, _overrides(args))
+    if cfg.database is None:
+        raise ConfigError(
+            f"{cfg_path}: database: not given; pass the database to classify against, e.g. "
+            "--set database=out/database/database.zarr (what `ppr database build` writes)"
+        )
     dbp = _resolve_path(cfg.database, cfg_path)
     bank = load_bank(cfg.database, cfg_path, "database")
     if cfg.max_shift_bins is not None and cfg.max_shift_bins > bank.n_bins - 1:
@@ -1662,7 +1685,7 @@ def cmd_demo(args) -> int:
         )
     if not 4 <= args.pixels <= 2048:
         raise CLIError(f"--pixels {args.pixels}: the image size must lie in [4, 2048] pixels")
-    cfg_path = CONFIG_DIR / "cli" / "image.toml"
+    cfg_path = shipped_config("cli/image.toml")
     cfg = inputs = None
     if "image" in only:  # validate the image's config before drawing anything
         cfg = load_toml_model(
@@ -1883,6 +1906,21 @@ its own figures; other files in --out are kept). Steps whose library part is not
 this build are listed as skipped."""
 
 
+def version_text() -> str:
+    """``ppr X (jax Y, jaxlib Z, numpy W, Python V)`` from the installed distributions'
+    metadata (nothing imported, so ``ppr --version`` is instant)."""
+    from importlib import metadata
+
+    def ver(dist: str) -> str:
+        try:
+            return metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            return "not installed"
+
+    deps = ", ".join(f"{d} {ver(d)}" for d in ("jax", "jaxlib", "numpy"))
+    return f"ppr {ver('ppr')} ({deps}, Python {sys.version.split()[0]})"
+
+
 class _Parser(argparse.ArgumentParser):
     """Usage errors as one line (``ppr simulate: error: ...``), exit status 2."""
 
@@ -1903,6 +1941,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--debug", action="store_true", help="show tracebacks instead of one-line errors"
+    )
+    parser.add_argument(
+        "--version", action="version", version=version_text(), help="ppr and JAX versions"
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 

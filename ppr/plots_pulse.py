@@ -20,34 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
-_SCENE = Path(__file__).resolve().parent.parent / "configs" / "scenes" / "cubesat3u_panels.toml"
-
 
 def _scene():
-    from . import shapes
-    from ._library import load_material
-    from ._pose import quat_from_axis_angle, quat_multiply
-    from ._scene import Pose, Pulse, RangeBins, Scene, Sensor, load_scene
+    from ._resources import shipped_config
+    from ._scene import load_scene
 
-    if _SCENE.is_file():
-        return load_scene(_SCENE)
-    q = quat_multiply(
-        quat_from_axis_angle([0, 1, 0], np.radians(20)),
-        quat_from_axis_angle([1, 0, 0], np.radians(30)),
-    )
-    mats = tuple(
-        load_material(n, 532e-9, finish=f)
-        for n, f in (("aluminium", "brushed"), ("cover_glass", None), ("white_paint_tio2", None))
-    )
-    return Scene(
-        shapes.cubesat_with_panels(3),
-        mats,
-        Pose(np.asarray(q)),
-        Sensor.make(),
-        Pulse.gaussian(100e-12, 20e-12),
-        RangeBins.centred(0.005, 256, 1e6),
-        16,
-    )
+    return load_scene(shipped_config("scenes/cubesat3u_panels.toml"))
 
 
 def pulse_figures(out_dir: str | os.PathLike, *, brdf=None, terms=None) -> list[Path]:
