@@ -86,7 +86,7 @@ STAGES: dict[str, list[tuple[str, str, str]]] = {
     ],
     "database": [("inversion", "build_database", "build")],
     "simulate": [("ppr", "simulate", "simulate")],
-    "image": [("ppr.cli", "run_image", "image")],
+    "image": [("ppr.cli.image", "run_image", "image")],
 }
 
 CHILD = r"""

@@ -8,110 +8,28 @@ Conventions (directions, frames, Stokes handedness, complex index sign, units) a
 :mod:`ppr._conventions`. The library never enables ``jax_enable_x64``; dtypes follow inputs.
 """
 
-from . import _polarimetry as polarimetry
-from . import microfacet, shapes
-from ._brdf import mueller_brdf
-from ._double_table import PSI_MAX as BACKSCATTER_PSI_MAX
-from ._frames import jones_to_mueller, mueller_rotator
-from ._fresnel import fresnel_amplitudes, fresnel_mueller_params
-from ._library import load_material, material_names
-from ._macro import (
-    MacroGeometry,
-    MacroOptions,
-    MacroPairs,
-    macro_geometry,
-    macro_pairs,
-    stack_macro_pairs,
-)
-from ._material import Material
-from ._mesh import FaceSubset, Mesh, MeshArrays, check_mesh, load_mesh, mesh_arrays, subdivide
-from ._polarimetry import (
-    cloude_eigenvalues,
-    degree_of_polarization,
-    depolarization_index,
-    diattenuation,
-    is_realizable,
-    lu_chipman,
-    polarizance,
-    retardance,
-)
-from ._pose import matrix_to_quat, quat_from_axis_angle, quat_to_matrix
-from ._pulse import (
-    Profile,
-    backscatter_terms,
-    double_bounce,
-    near_backscatter,
-    render,
-    sensor_terms,
-    simulate,
-    stack_materials,
-    tent_gaussian_cdf,
-    window_size,
-)
-from ._resources import shipped_config, shipped_configs_dir
-from ._scene import Pose, Pulse, RangeBins, Scene, Sensor, load_scene, load_sensor
-from ._symmetry import MeshSymmetry, mesh_symmetries, symmetry_label
-from ._visibility import VisibilityCaster
-
-__all__ = [
-    "Material",
-    "fresnel_amplitudes",
-    "fresnel_mueller_params",
-    "jones_to_mueller",
-    "mueller_rotator",
-    "load_material",
-    "material_names",
-    "polarimetry",
-    "cloude_eigenvalues",
-    "degree_of_polarization",
-    "depolarization_index",
-    "diattenuation",
-    "is_realizable",
-    "lu_chipman",
-    "polarizance",
-    "retardance",
-    "microfacet",
-    "mueller_brdf",
-    "shapes",
-    "Mesh",
-    "MeshArrays",
-    "FaceSubset",
-    "check_mesh",
-    "load_mesh",
-    "mesh_arrays",
-    "subdivide",
-    "matrix_to_quat",
-    "quat_from_axis_angle",
-    "quat_to_matrix",
-    "MeshSymmetry",
-    "mesh_symmetries",
-    "symmetry_label",
-    "Pose",
-    "Pulse",
-    "RangeBins",
-    "Scene",
-    "Sensor",
-    "load_scene",
-    "load_sensor",
-    "VisibilityCaster",
-    "Profile",
-    "double_bounce",
-    "MacroGeometry",
-    "MacroOptions",
-    "MacroPairs",
-    "macro_geometry",
-    "macro_pairs",
-    "stack_macro_pairs",
-    "render",
-    "simulate",
-    "backscatter_terms",
-    "BACKSCATTER_PSI_MAX",
-    "near_backscatter",
-    "sensor_terms",
-    "stack_materials",
-    "tent_gaussian_cdf",
-    "window_size",
-    "shipped_config",
-    "shipped_configs_dir",
-]
 __version__ = "0.1.0"
+
+
+def _load_public():
+    import importlib
+
+    return importlib.import_module("ppr._public")
+
+
+def __getattr__(name: str):
+    # The public names live in ppr._public; importing it imports JAX and the library, so it
+    # happens on their first use, not on `import ppr` (the `ppr` command's entry stays light).
+    if name.startswith("_") and name != "__all__":
+        raise AttributeError(f"module 'ppr' has no attribute {name!r}")
+    public = _load_public()
+    names = getattr(public, "__all__", None)  # None while ppr._public itself imports
+    if names is None or (name != "__all__" and name not in names):
+        raise AttributeError(f"module 'ppr' has no attribute {name!r}")
+    globals().update({n: getattr(public, n) for n in names})
+    globals()["__all__"] = list(names)
+    return globals()[name]
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_load_public().__all__))

@@ -31,13 +31,16 @@ This module uses the standard library only (no JAX), so it is cheap to import.
 from __future__ import annotations
 
 import contextlib
+import datetime
 import errno
 import glob
 import json
 import os
+import platform
 import secrets
 import shutil
 import socket
+import sys
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 
@@ -218,6 +221,31 @@ def recover(out: str | os.PathLike) -> list[Path]:
             shutil.rmtree(stage, ignore_errors=True)
             handled.append(stage)
     return handled
+
+
+# ------------------------------------------------------------------------ provenance
+def provenance(config=None, command_line: Sequence[str] | None = None) -> dict:
+    """What made an output, for its JSON sidecar: the ppr, JAX, jaxlib, NumPy and Python
+    versions (from the installed distributions' metadata), the command line, the time (UTC,
+    ISO 8601) and the resolved ``config`` (JSON values)."""
+    from importlib import metadata
+
+    def version(dist: str) -> str | None:
+        try:
+            return metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            return None
+
+    return {
+        "ppr": version("ppr"),
+        "jax": version("jax"),
+        "jaxlib": version("jaxlib"),
+        "numpy": version("numpy"),
+        "python": platform.python_version(),
+        "command_line": list(sys.argv if command_line is None else command_line),
+        "time_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "config": config,
+    }
 
 
 # ------------------------------------------------------------------------ validation

@@ -371,28 +371,40 @@ def check_sensor_fields(
 
 
 class PulseConfig(StrictModel):
-    fwhm_ps: float = pydantic.Field(gt=0)
-    jitter_ps: float = pydantic.Field(default=0.0, ge=0)
+    fwhm_ps: float = pydantic.Field(gt=0, description="full width at half maximum")
+    jitter_ps: float = pydantic.Field(default=0.0, ge=0, description="rms receiver jitter")
 
 
 class BinsConfig(StrictModel):
-    width_mm: float = pydantic.Field(gt=0)
-    count: int = pydantic.Field(gt=0, le=1_000_000)
-    start_m: float | None = None  # default: centred on the reference point
+    width_mm: float = pydantic.Field(gt=0, description="bin width (one-way range)")
+    count: int = pydantic.Field(gt=0, le=1_000_000, description="number of bins")
+    start_m: float | None = pydantic.Field(
+        None, description="range of the first bin's edge (default: centred on the reference)"
+    )
 
 
 class SensorConfig(StrictModel):
     """``configs/sensors/*.toml``."""
 
-    wavelength_nm: float = pydantic.Field(gt=0, lt=1e6)  # nanometres
-    line_of_sight: Vec3 = [0.0, 0.0, -1.0]
-    polarization_reference: Vec3 = [1.0, 0.0, 0.0]
-    bistatic_angle_urad: float = pydantic.Field(default=0.0, ge=0, lt=1.5e6)
-    bistatic_azimuth_deg: float = 0.0
-    receiver_direction: Vec3 | None = None
-    reference_range_km: float = pydantic.Field(default=1000.0, ge=0)
-    pulse: PulseConfig
-    bins: BinsConfig
+    wavelength_nm: float = pydantic.Field(gt=0, lt=1e6, description="laser wavelength")
+    line_of_sight: Vec3 = pydantic.Field(
+        [0.0, 0.0, -1.0], description="laser propagation direction (sensor -> object, world)"
+    )
+    polarization_reference: Vec3 = pydantic.Field(
+        [1.0, 0.0, 0.0], description="sensor x axis (world), projected per beam"
+    )
+    bistatic_angle_urad: float = pydantic.Field(
+        default=0.0, ge=0, lt=1.5e6, description="angle between laser and receiver directions"
+    )
+    bistatic_azimuth_deg: float = pydantic.Field(0.0, description="azimuth of that offset")
+    receiver_direction: Vec3 | None = pydantic.Field(
+        None, description="receiver direction instead of bistatic_angle_urad (world)"
+    )
+    reference_range_km: float = pydantic.Field(
+        default=1000.0, ge=0, description="range of the body origin (time zero of the bins)"
+    )
+    pulse: PulseConfig = pydantic.Field(description="Gaussian pulse")
+    bins: BinsConfig = pydantic.Field(description="range bins")
 
     @pydantic.model_validator(mode="after")
     def _geometry(self):
@@ -407,15 +419,19 @@ class SensorConfig(StrictModel):
 
 
 class ShapeConfig(StrictModel):
-    name: str
-    params: dict[str, float | int | str | list[float]] = {}
+    name: str = pydantic.Field(description="a ppr.shapes name (sphere, cubesat, ...)")
+    params: dict[str, float | int | str | list[float]] = pydantic.Field(
+        {}, description="its parameters (metres)"
+    )
 
 
 class MeshFileConfig(StrictModel):
-    path: str
-    scale: float = pydantic.Field(default=1.0, gt=0)
-    on_degenerate: Literal["error", "drop"] = "error"
-    part_names: dict[str, str] = {}
+    path: str = pydantic.Field(description='a mesh file trimesh reads (mesh = "file" also works)')
+    scale: float = pydantic.Field(default=1.0, gt=0, description="file units -> metres")
+    on_degenerate: Literal["error", "drop"] = pydantic.Field(
+        "error", description="zero-area faces: an error, or dropped"
+    )
+    part_names: dict[str, str] = pydantic.Field({}, description="rename parts: file -> config")
 
 
 class InlineMaterial(StrictModel):
@@ -426,12 +442,16 @@ class InlineMaterial(StrictModel):
 
 
 class PoseConfig(StrictModel):
-    quaternion: Annotated[list[float], pydantic.Field(min_length=4, max_length=4)] = [1.0, 0, 0, 0]
-    position_m: Vec3 = [0.0, 0.0, 0.0]
+    quaternion: Annotated[list[float], pydantic.Field(min_length=4, max_length=4)] = pydantic.Field(
+        [1.0, 0, 0, 0], description="body -> world, [w, x, y, z], unit norm"
+    )
+    position_m: Vec3 = pydantic.Field([0.0, 0.0, 0.0], description="body origin (world)")
 
 
 class VisibilityConfig(StrictModel):
-    samples_per_face: int = pydantic.Field(default=16, ge=1, le=4096)
+    samples_per_face: int = pydantic.Field(
+        default=16, ge=1, le=4096, description="visibility rays per face (a perfect square)"
+    )
 
 
 class SceneConfig(StrictModel):
@@ -440,12 +460,22 @@ class SceneConfig(StrictModel):
     :func:`ppr.load_material`) or an inline material; ``sensor`` is a sensor file relative
     to the scene file, or the name of a shipped sensor (``configs/sensors/``)."""
 
-    sensor: str
-    shape: ShapeConfig | None = None
-    mesh: MeshFileConfig | None = None
-    materials: dict[str, str | InlineMaterial]
-    pose: PoseConfig = PoseConfig()
-    visibility: VisibilityConfig = VisibilityConfig()
+    sensor: str = pydantic.Field(
+        description="a sensor file relative to the scene file (.toml may be left out), or a "
+        'shipped sensor\'s name ("default", "leo_aberration_1064")'
+    )
+    shape: ShapeConfig | None = pydantic.Field(
+        None, description="a parametric shape; exactly one of [shape] and [mesh]"
+    )
+    mesh: MeshFileConfig | None = pydantic.Field(None, description="a mesh file")
+    materials: dict[str, str | InlineMaterial] = pydantic.Field(
+        description='mesh part -> library material ("name" or "name/finish", '
+        "configs/materials.toml) or inline {n_real, n_imag, m, corr_length_m}"
+    )
+    pose: PoseConfig = pydantic.Field(PoseConfig(), description="attitude and position")
+    visibility: VisibilityConfig = pydantic.Field(
+        VisibilityConfig(), description="macro shadowing (embree rays)"
+    )
 
     @pydantic.field_validator("mesh", mode="before")
     @classmethod
@@ -464,10 +494,8 @@ def _material_from_config(spec, wavelength: float, where: str) -> Material:
         return Material(
             complex(spec.n_real, spec.n_imag), spec.m, spec.corr_length_m, name="inline"
         )
-    try:
-        from ._library import load_material  # noqa: PLC0415 - optional until the library lands
-    except ImportError as exc:  # pragma: no cover - depends on the material library
-        raise ConfigError(f"{where}: material {spec!r} needs ppr.load_material ({exc})") from None
+    from ._library import load_material  # noqa: PLC0415
+
     name, slash, finish = spec.partition("/")
     try:
         return load_material(name, wavelength, finish=finish if slash else None)

@@ -1,4 +1,4 @@
-"""Demo figures (the ``ppr demo`` CLI runs every ``*_figures(out_dir)`` function it knows)."""
+"""BRDF demo figures (``ppr demo`` writes them with the double-bounce, pulse and image ones)."""
 
 from __future__ import annotations
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -59,7 +60,7 @@ def test_help_lists_every_command(capsys):
 )
 def test_subcommand_help_explains_units(capsys, cmd, units):
     assert run(cmd, "--help") == 0
-    text = capsys.readouterr().out
+    text = " ".join(capsys.readouterr().out.split())  # as read, whatever the wrapping
     for u in units:
         assert u in text, (cmd, u)
     if cmd != "demo":
@@ -69,6 +70,73 @@ def test_subcommand_help_explains_units(capsys, cmd, units):
 
 def test_no_command_is_usage_error(capsys):
     assert run() == 2
+
+
+def _command_modules():
+    from ppr.cli import _app
+
+    return _app.COMMANDS
+
+
+@pytest.mark.parametrize("module", _command_modules(), ids=lambda m: m.NAME)
+def test_help_examples_validate_against_their_schemas(module, capsys):
+    """Every command line a --help shows (its examples and its --set example) parses and
+    its config validates whole against the command's schema (nothing is computed)."""
+    from ppr.cli import _app
+
+    parser = _app.build_parser()
+    assert run(*module.NAME.split(), "--help") == 0
+    text = capsys.readouterr().out
+    commands = list(module.EXAMPLES) + [f"ppr {module.NAME} --set {module.SET_EXAMPLE}"]
+    for example in module.EXAMPLES:
+        assert example in text, example
+    assert f"--set {module.SET_EXAMPLE}" in " ".join(text.split())
+    for example in commands:
+        args = parser.parse_args(shlex.split(example)[1:])
+        cfg_path, cfg = args.load(args)
+        assert Path(cfg_path).is_file() and cfg is not None, example
+
+
+def test_version_names_ppr_and_jax(capsys):
+    from importlib import metadata
+
+    assert run("--version") == 0
+    line = capsys.readouterr().out.strip()
+    assert line.startswith(f"ppr {metadata.version('ppr')} (jax {metadata.version('jax')}")
+
+
+def test_ctrl_c_during_startup_is_one_line_exit_130(capsys, monkeypatch):
+    from ppr.cli import _app
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(_app, "build_parser", interrupted)
+    assert run("brdf", "--help") == 130
+    assert error_line(capsys) == "ppr: interrupted"
+
+
+OBJ_NAMED = "o {name}\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
+
+
+def test_paths_in_a_config_are_relative_to_it_and_set_paths_to_the_cwd(tmp_path, monkeypatch):
+    """docs/configs.md: a config's relative paths resolve against its own folder, whatever
+    the working folder; a --set path against the working folder."""
+    from ppr.cli import _app
+    from ppr.cli.image import image_inputs
+
+    there, here = tmp_path / "configs", tmp_path / "work"
+    there.mkdir()
+    here.mkdir()
+    (there / "m.obj").write_text(OBJ_NAMED.format(name="beside_config"))
+    (here / "m.obj").write_text(OBJ_NAMED.format(name="in_cwd"))
+    cfg = _write(there / "img.toml", 'mesh = "m.obj"\n[materials]\ndefault = "gold"\n')
+    monkeypatch.chdir(here)
+    parser = _app.build_parser()
+    for extra, part in (([], "beside_config"), (["--set", "mesh=m.obj"], "in_cwd")):
+        args = parser.parse_args(["image", "-c", str(cfg), *extra])
+        mesh = image_inputs(*reversed(args.load(args)))[0]
+        assert mesh.part_names == (part,), (extra, mesh.part_names)
 
 
 # ---------------------------------------------------------------------------- end to end
@@ -91,6 +159,14 @@ def test_brdf_end_to_end(tmp_path):
         assert z["depolarization_index"].shape == (2, 3)
     summary = json.loads((out / "brdf.json").read_text())
     assert summary["n_geometries"] == 6
+    # provenance: what ran, with which versions, and the resolved config (defaults filled in)
+    prov = summary["provenance"]
+    assert prov["command_line"] == ["ppr", "brdf", "-q", "-c", str(cfg), "-o", str(out)]
+    assert prov["config"]["wavelength_nm"] == 532.0 and prov["config"]["plane"] == "in"
+    assert prov["config"]["incidence_deg"] == [0.0, 45.0]
+    import jax
+
+    assert prov["jax"] == jax.__version__ and prov["numpy"] == np.__version__
     assert (out / "brdf.png").stat().st_size > 1000
 
 
@@ -311,6 +387,21 @@ def test_subprocess_smoke(tmp_path):
         timeout=120,
     )
     assert ok.returncode == 0 and "simulate" in ok.stdout
+    # the entry point is light: importing it (and `ppr --version`) loads neither JAX nor the
+    # library, so Ctrl-C during start-up is caught by main() like any interruption
+    light = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sys, ppr.cli; assert 'jax' not in sys.modules, 'jax imported'; "
+            "sys.argv = ['ppr', '--version']; ppr.cli.main()",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+    assert light.returncode == 0 and light.stdout.startswith("ppr "), light.stderr
 
 
 # ------------------------------------------------------------------------- inversion side

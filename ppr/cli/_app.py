@@ -1,0 +1,143 @@
+"""The ``ppr`` parser and the run loop: one-line errors, exit statuses, the compilation
+cache, Ctrl-C and SIGTERM rolling back the outputs being written."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import pydantic
+
+from . import _common as c
+from . import brdf, classify, database, demo, image, invert, report, simulate
+from ._help import paragraph
+
+COMMANDS = (demo, brdf, image, simulate, database, classify, invert, report)
+
+
+def version_text() -> str:
+    """``ppr X (jax Y, jaxlib Z, numpy W, Python V)`` from the installed distributions'
+    metadata (nothing imported, so ``ppr --version`` is instant)."""
+    from importlib import metadata
+
+    def ver(dist: str) -> str:
+        try:
+            return metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            return "not installed"
+
+    deps = ", ".join(f"{d} {ver(d)}" for d in ("jax", "jaxlib", "numpy"))
+    return f"ppr {ver('ppr')} ({deps}, Python {sys.version.split()[0]})"
+
+
+def build_parser() -> c.Parser:
+    parser = c.Parser(
+        prog="ppr",
+        description=paragraph(
+            "Pulse Polarization Ranging: polarized microfacet BRDF, pulse synthesis and "
+            "inversion. Every command reads a TOML config (the shipped defaults, or --config), "
+            "accepts --set overrides and writes its results into --out. `ppr COMMAND --help` "
+            "lists every config field with its default and unit."
+        ),
+        formatter_class=c.Formatter,
+        epilog=paragraph(
+            "Exit status: 0 success; 2 bad config/override/input or existing output; 130 "
+            "interrupted (Ctrl-C), 143 terminated. A failed or interrupted run leaves the "
+            "previous outputs in --out as they were."
+        ),
+    )
+    parser.add_argument(
+        "--debug", action="store_true", help="show tracebacks instead of one-line errors"
+    )
+    parser.add_argument(
+        "--version", action="version", version=version_text(), help="ppr and JAX versions"
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for command in COMMANDS:
+        command.register(sub)
+    return parser
+
+
+def enable_compile_cache() -> None:
+    """Persistent XLA compilation cache for repeated ``ppr`` runs (the CLI is a program, so it
+    may set JAX config; the library never does). ``PPR_JAX_CACHE=0`` turns it off,
+    ``PPR_JAX_CACHE_DIR`` moves it (default ``~/.cache/ppr/jax``).
+
+    Every program is cached, also those compiling in under a second (JAX's default keeps only
+    those above 1 s): a command compiles dozens of small programs (eager ops on concrete
+    arrays, unpadding, parameter maps). JAX never persists executables with host callbacks,
+    so the programs the commands run check their inputs on the host and carry none
+    (:class:`inversion.SimulatorModel` renders with the unchecked BRDF)."""
+    if os.environ.get("PPR_JAX_CACHE", "1") == "0":
+        return
+    import jax
+
+    if jax.config.jax_compilation_cache_dir:
+        return
+    default = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "ppr" / "jax"
+    jax.config.update(
+        "jax_compilation_cache_dir", os.environ.get("PPR_JAX_CACHE_DIR", str(default))
+    )
+    if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that outputs are rolled back as on Ctrl-C."""
+
+
+@contextlib.contextmanager
+def _sigterm_raises():
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _command_name(args) -> str:
+    sub = getattr(args, "database_command", None)
+    return f"{args.command} {sub}" if sub else str(args.command)
+
+
+USER_ERRORS = (c.ConfigError, c.CLIError, ValueError, pydantic.ValidationError)
+
+
+def run(argv: Sequence[str] | None = None) -> int:
+    """Parse ``argv`` and run the command (see :func:`ppr.cli.main`)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "func", None) is None:
+        (getattr(args, "_sub", None) or parser).print_help(sys.stderr)
+        raise SystemExit(2)
+    c.COMMAND_LINE = ["ppr", *(sys.argv[1:] if argv is None else [str(a) for a in argv])]
+    name = _command_name(args)
+    try:
+        with _sigterm_raises():
+            enable_compile_cache()
+            return int(args.func(args) or 0)
+    except KeyboardInterrupt as err:
+        if args.debug:
+            raise
+        what = "terminated" if isinstance(err, Terminated) else "interrupted"
+        note = getattr(args, "_interrupt_note", None) or "previous outputs were left as they were"
+        print(f"ppr {name}: {what}; {note}", file=sys.stderr)
+        raise SystemExit(143 if isinstance(err, Terminated) else 130) from None
+    except USER_ERRORS as err:
+        if args.debug:
+            raise
+        print(f"ppr {name}: error: {c.one_line(err)}", file=sys.stderr)
+        raise SystemExit(2) from None

@@ -1,0 +1,308 @@
+"""What every ``ppr`` command shares: config loading with ``--set`` overrides and the path
+rule, the common flags, errors, JSON summaries with provenance, small schema types.
+
+Light on purpose (pydantic, NumPy and the standard library): the parser is built from these
+before JAX is imported."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Annotated, Any, Literal, TypeVar
+
+import numpy as np
+import pydantic
+
+from .. import _outputs
+from .._config import ConfigError, StrictModel, load_toml_model, parse_override
+from .._resources import shipped_config
+
+__all__ = [
+    "CLIError",
+    "ConfigError",
+    "StrictModel",
+    "add_common",
+    "config_path",
+    "load_config",
+    "overrides",
+    "resolve_path",
+    "write_json",
+]
+
+Outputs = _outputs.Outputs
+outputs = _outputs.outputs
+
+
+class CLIError(Exception):
+    """A usage error (existing output, missing input) reported as one line, exit status 2."""
+
+
+# ================================================================================ configs
+Vec3 = tuple[float, float, float]
+PositiveFloat = Annotated[float, pydantic.Field(gt=0.0)]
+# random seeds: NumPy's generators take non-negative integers only
+Seed = Annotated[int, pydantic.Field(ge=0, description="random seed")]
+
+_T = TypeVar("_T")
+NonEmpty = Annotated[list[_T], pydantic.Field(min_length=1)]  # lists the user must not empty
+
+
+def _distinct(v: list) -> list:
+    dup = sorted({x for x in v if v.count(x) > 1})
+    if dup:
+        raise ValueError(f"{dup[0]!r} is listed twice")
+    return v
+
+
+TermName = Literal["single", "double", "multiple"]
+Terms = (
+    Literal["auto", "all"]
+    | Annotated[list[TermName], pydantic.Field(min_length=1), pydantic.AfterValidator(_distinct)]
+)
+TERMS_HELP = (
+    'BRDF terms: "auto" (the double term where it matters), "all", or a list of "single", '
+    '"double", "multiple"'
+)
+
+
+def terms_arg(terms):
+    """A config's ``terms`` as the library takes them (``None``: all)."""
+    if terms == "all":
+        return None
+    return tuple(terms) if isinstance(terms, list) else terms
+
+
+class Range(StrictModel):
+    """Evenly spaced values ``numpy.linspace(start, stop, num)``."""
+
+    start: float
+    stop: float
+    num: int = pydantic.Field(ge=1, le=100_000)
+
+    def values(self) -> np.ndarray:
+        return np.linspace(self.start, self.stop, self.num)
+
+
+# config fields holding paths, and the words that are not paths there (docs/configs.md)
+PATH_KEYS = {
+    "scene": (),
+    "mesh": ("example",),
+    "mesh.path": (),
+    "database": (),
+    "database_path": (),
+    "observations": ("simulate",),
+    "observation.source": ("simulate",),
+    "mcmc": ("default",),
+}
+
+
+def overrides(args) -> dict:
+    """``--set key.sub=value`` overrides (TOML values). A relative path given on the command
+    line is relative to the current folder (made absolute here); one written in a config file
+    is relative to that file (:func:`resolve_path`)."""
+    out = {}
+    for text in getattr(args, "set", None) or []:
+        key, value = parse_override(text)
+        is_path = key in PATH_KEYS and isinstance(value, str) and value not in PATH_KEYS[key]
+        if key == "sensor" and isinstance(value, str):  # a shipped sensor's name, or a file
+            is_path = "/" in value or value.endswith(".toml")
+        if is_path:
+            value = str(Path(value).expanduser().absolute())
+        out[key] = value
+    return out
+
+
+def config_path(args, default: str) -> Path:
+    """``--config`` if given, else the shipped default ``configs/<default>``."""
+    if getattr(args, "config", None) is not None:
+        return Path(args.config)
+    try:
+        return shipped_config(default)
+    except FileNotFoundError as err:
+        raise CLIError(f"no --config given and {err}") from None
+
+
+def load_config(args, model: type[StrictModel], default: str) -> tuple[Path, Any]:
+    """The command's config file (``--config`` or the shipped default) with its ``--set``
+    overrides, validated whole against ``model``."""
+    path = config_path(args, default)
+    return path, load_toml_model(model, path, overrides(args))
+
+
+def resolve_path(value: str, config_file: Path) -> Path:
+    """A path written in a config: relative to the config file (``--set`` values were made
+    absolute against the current folder by :func:`overrides`)."""
+    p = Path(value).expanduser()
+    return p if p.is_absolute() else config_file.parent / p
+
+
+def sub_model(model, data, cfg_path: Path, field: str):
+    """Validate a sub-table with another module's schema; errors name ``field``."""
+    try:
+        return model.model_validate(data)
+    except pydantic.ValidationError as err:
+        from .._config import format_validation_error
+
+        raise ConfigError(format_validation_error(err, str(cfg_path), data, field)) from None
+
+
+def resolve_material(spec: Any, wavelength: float, field: str, cfg_path: Path):
+    """A config material spec -> :class:`ppr.Material`; errors name the file and field.
+
+    Specs: a library name (``"aluminium"``, default finish) or ``"name/finish"``
+    (``"aluminium/rough"``; see configs/materials.toml), or an inline table
+    ``{n_real, n_imag, m, corr_length_m}`` as in scene configs."""
+    from .. import _scene
+    from .._library import load_material
+
+    if isinstance(spec, dict):
+        spec = sub_model(_scene.InlineMaterial, spec, cfg_path, field)
+        return _scene._material_from_config(spec, wavelength, f"{cfg_path}: {field}")
+    if not isinstance(spec, str):
+        raise ConfigError(
+            f"{cfg_path}: {field} = {spec!r}: expected a library material name ('name' or "
+            "'name/finish') or an inline table {n_real, n_imag, m, corr_length_m}"
+        )
+    name, slash, finish = spec.partition("/")
+    try:
+        return load_material(name, wavelength, finish if slash else None)
+    except (ValueError, KeyError) as err:
+        msg = str(err).strip(chr(39))
+        if "wavelength" in msg:
+            msg = f"at wavelength_nm = {wavelength * 1e9:g}: {msg}"
+        raise ConfigError(f"{cfg_path}: {field} = {spec!r}: {msg}") from None
+
+
+# ============================================================================== helpers
+def progress(args) -> bool:
+    return not getattr(args, "quiet", False)
+
+
+def say(args, msg: str) -> None:
+    if not getattr(args, "quiet", False):
+        print(msg, file=sys.stderr, flush=True)
+
+
+def wrote(args, command: str, names) -> None:
+    say(args, f"ppr {command}: wrote {', '.join(str(Path(args.out) / n) for n in names)}")
+
+
+def dtype(name: str):
+    return np.float32 if name == "float32" else np.float64
+
+
+def maybe_x64(dtype_name: str) -> None:
+    """float64 runs need JAX's x64 mode; the CLI is a program, so it may switch it on."""
+    if dtype_name == "float64":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+
+
+def one_line(err: BaseException) -> str:
+    msg = str(err).strip() or type(err).__name__
+    return " ".join(part.strip() for part in msg.splitlines() if part.strip())
+
+
+# ============================================================================ JSON outputs
+def jsonable(obj: Any) -> Any:
+    """``obj`` with arrays, paths, complex numbers and schemas turned into JSON values
+    (non-finite floats become ``null``)."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, np.generic):
+        return jsonable(obj.item())
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, complex):
+        return [obj.real, obj.imag]
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    if isinstance(obj, pydantic.BaseModel):
+        return jsonable(obj.model_dump())
+    if hasattr(obj, "__array__"):
+        return jsonable(np.asarray(obj))
+    return obj
+
+
+# the ``ppr`` command line being run (set by ppr.cli.main), recorded in every JSON output
+COMMAND_LINE: list[str] | None = None
+
+
+def write_json(path: Path, data: dict, config: Any = None) -> None:
+    """Write a command's JSON summary with its provenance (:func:`ppr._outputs.provenance`:
+    versions, the command line, the time, the resolved ``config``)."""
+    prov = _outputs.provenance(config=jsonable(config), command_line=COMMAND_LINE)
+    record = {**data, "provenance": prov}
+    path.write_text(json.dumps(jsonable(record), indent=2, allow_nan=False) + "\n")
+
+
+# =============================================================================== parser
+class Formatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions as written (generated, already wrapped); an option's default is shown
+    unless its help states it or there is none (flags, unset values)."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if (
+            "default" in text
+            or not action.option_strings
+            or action.default in (None, False, [], argparse.SUPPRESS)
+        ):
+            return text
+        return text + " (default: %(default)s)"
+
+
+class Parser(argparse.ArgumentParser):
+    """Usage errors as one line (``ppr simulate: error: ...``), exit status 2; the
+    description may be a callable, evaluated when the help is shown (it may import the
+    library to read its schemas)."""
+
+    def __init__(self, *args, describe=None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._describe = describe
+
+    def format_help(self):
+        if self._describe is not None:
+            self.description, self._describe = self._describe(), None
+        return super().format_help()
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def add_common(
+    p: argparse.ArgumentParser, default_config: str | None, out_default: str, set_example: str
+) -> None:
+    """``--config``, ``--set``, ``--out``, ``--overwrite``, ``--quiet``; ``set_example``: a
+    ``--set`` of this command's config (tested: tests/test_cli.py)."""
+    if default_config is not None:
+        p.add_argument(
+            "--config",
+            "-c",
+            metavar="TOML",
+            default=None,
+            help=f"config file (TOML); default: the shipped configs/{default_config}",
+        )
+    p.add_argument(
+        "--set",
+        "-s",
+        metavar="KEY=VALUE",
+        action="append",
+        default=[],
+        help="override a config field: dotted keys, TOML values, repeatable (e.g. --set "
+        f"{set_example}); relative paths are relative to the current folder",
+    )
+    p.add_argument("--out", "-o", metavar="DIR", default=out_default, help="output folder")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace existing outputs in --out (default: refuse)",
+    )
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars or messages")
