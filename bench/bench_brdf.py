@@ -5,7 +5,7 @@ formulas, in the same process.
 
 N random direction pairs (upper hemisphere), one material (aluminium 532 nm, m = 300),
 float32 and float64, terms "single" and "single"+"multiple". JAX: one jitted call per chunk of
-CHUNK pairs (STYLE.md s10), median of repeats after a warm-up, block_until_ready. NumPy: the
+CHUNK pairs (docs/DESIGN.md), median of repeats after a warm-up, block_until_ready. NumPy: the
 same formulas (Blinn-Phong lobe via |h - n|^2, <h.k>+ by the same sinh-substituted
 trapezoid rule and order as ppr._microfacet, on the elements that need it (boolean indexing,
 as ppr._microfacet compacts them; in float32, with one material, from the same per-call

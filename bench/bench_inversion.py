@@ -95,7 +95,7 @@ SHAPES = {
     "cubesat3u": (lambda: ppr.shapes.cubesat(3), "dihedral:4"),
     "cylinder": (lambda: ppr.shapes.cylinder(0.06, 0.25, sections=12), "dihedral:12"),
 }
-MATERIALS = {  # n at 532 nm, PHYSICS.md section 11
+MATERIALS = {  # n at 532 nm, docs/physics.md#materials
     "aluminium": 0.94 + 6.42j,
     "gold": 0.54 + 2.23j,
     "silica": 1.461 + 0.0j,

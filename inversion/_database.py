@@ -3,7 +3,8 @@ r"""Signature databases: shapes x attitudes x materials x finishes, on disk in z
 Layout of a database directory ``path`` (a zarr v3 group):
 
 - ``signatures`` (N, n_channels, n_bins) float32, chunked ``(chunk_rows, C, B)``: energy-
-  normalized signatures (each row sums to 1, PHYSICS.md s. 1: the gain drops out);
+  normalized signatures (each row sums to 1: the gain drops out,
+  docs/physics/pulse_and_measurement.md#what-is-measured);
 - ``energy`` (N,) float64: the total of the raw signature before normalization;
 - row parameters ``shape_id``, ``attitude_id``, ``material_id``, ``finish_id`` (int32) and
   ``quat`` (N, 4) float64 (body to sensor/world, scalar first);

@@ -3,7 +3,7 @@ r"""Inversion parameters: physical values and the unconstrained vector the solve
 Physical parameters (:class:`PhysicalParams`) are what the forward model takes and what the
 user reads: attitude quaternion, Blinn-Phong exponent ``m``, complex index ``n = n' + i n''``
 (one per material slot), surface correlation length, range offset (one-way metres) and
-overall gain. Optimistix has no bounded least-squares solver (STYLE.md section 7), so the
+overall gain. Optimistix has no bounded least-squares solver, so the
 solvers work on an unconstrained vector ``theta`` (:class:`Parametrisation`):
 
 =================  ==============================  ======================================

@@ -1287,7 +1287,7 @@ class PhysicalBounds:
     """Box bounds in physical units for :func:`refine_bounded` (``(low, high)`` pairs).
 
     Defaults: ``n'`` in [0.05, 5] (not [1, 5]: metals have ``n' < 1``, e.g. aluminium 0.94,
-    gold 0.54, silver 0.054 at 532 nm, PHYSICS.md section 11), ``n''`` in [0, 15], ``m`` in
+    gold 0.54, silver 0.054 at 532 nm, docs/physics.md#materials), ``n''`` in [0, 15], ``m`` in
     [0, 1e6], correlation length in [1e-8, 1e-2] m, range offset in [-1, 1] m, gain in
     :data:`~inversion._params.GAIN_RANGE` = [1e-6, 1e18] counts per (m^2 sr^-1) (wide: any
     real measurement is inside); the attitude rotation vector is bounded by

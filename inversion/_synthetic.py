@@ -38,7 +38,7 @@ from ppr._types import Array, Float
 
 from ._noise import MeasurementModel
 
-# name: (n_re, n_im, diffuse albedo rho_d); optical constants at 532 nm from PHYSICS.md s. 11
+# name: (n_re, n_im, diffuse albedo rho_d); optical constants at 532 nm: docs/physics.md#materials
 SYNTHETIC_MATERIALS: dict[str, tuple[float, float, float]] = {
     "aluminium": (0.94, 6.42, 0.03),
     "gold": (0.54, 2.23, 0.03),

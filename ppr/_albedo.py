@@ -1,6 +1,6 @@
 r"""White-surface directional albedo ``E(m, cos theta)`` of the BRDF's explicit terms.
 
-The multiple-scattering remainder (PHYSICS.md section 5) needs, for an ideal white surface
+The multiple-scattering remainder (docs/physics/energy.md) needs, for an ideal white surface
 (``F == 1``, :meth:`ppr.Material.ideal_white`), the directional albedo carried by the
 *explicit* terms (single bounce now; single + double once the double-bounce term exists)
 

@@ -13,7 +13,7 @@ point away from the surface (:mod:`ppr._conventions`). It is the sum of named te
     ``h = (k_in + k_out)/|k_in + k_out|``, Blinn-Phong ``p(h) = (m+1)/(2 pi) (h.n)^m`` and
     Ashikhmin visibility (:mod:`ppr._microfacet`), ``F_M`` the facet's Fresnel Mueller matrix
     in the beam frames (:func:`ppr._frames.facet_mueller_in_beam_frames`). The paper's eq. 4
-    drops the 4 and ``(k'.n)``; PHYSICS.md section 3 restores them.
+    drops the 4 and ``(k'.n)``; docs/physics/single_bounce.md restores them.
 
 ``"double"``
     The double-bounce term of ``ppr/_double.py`` (quadrature over the first facet's normal),
@@ -22,7 +22,7 @@ point away from the surface (:mod:`ppr._conventions`). It is the sum of named te
     backscatter (``"double:backscatter"`` forces the tables).
 
 ``"multiple"`` (:func:`multiple_scattering_term`)
-    Depolarizing remainder of the explicit terms (PHYSICS.md section 5),
+    Depolarizing remainder of the explicit terms (docs/physics/energy.md),
 
         f_ms = F_add c D(k) D(k') diag(1, 0, 0, 0),  c = 1 / (pi D_avg),
         D = 1 - E,  D_avg = 1 - E_avg = 2 int_0^1 D(mu) mu dmu,
@@ -128,7 +128,7 @@ def _dot(a: Array, b: Array) -> Array:
 
 
 # ---------------------------------------------------------------------------------------
-# structure-of-arrays kernels (vectors are tuples of three (...,) arrays; STYLE.md s10)
+# structure-of-arrays kernels (vectors are tuples of three (...,) arrays; docs/DESIGN.md)
 
 Vec = tuple[Array, Array, Array]
 
@@ -166,7 +166,7 @@ def _geometry3(ki: Vec, ko: Vec, nr: Vec):
 
 def _log_lobe3(m: Array, h: Vec, nr: Vec) -> Array:
     """``m log(h.n)`` accurate in float32 at m = 1e6: ``1 - h.n = |h - n|^2 / 2`` from the
-    difference vector (STYLE.md section 10), not from a rounded ``h.n``; 0 at m = 0."""
+    difference vector (docs/physics/numerics.md), not from a rounded ``h.n``; 0 at m = 0."""
     d = tuple(a - b for a, b in zip(h, nr, strict=True))
     one_minus = 0.5 * _d3(d, d)
     hn = _d3(h, nr)

@@ -1,7 +1,7 @@
 r"""Double-bounce term of the polarized microfacet BRDF, with coherent enhanced backscatter.
 
 This is the paper's eq. 13 (``f_double``) derived from the same microfacet statistics as the
-single-bounce term (PHYSICS.md sections 3-4), with the visibility of eq. 17 replaced (see
+single-bounce term (docs/physics/double_bounce.md), with the visibility of eq. 17 replaced (see
 "Two-facet visibility") and the Jones chain of eqs. 15-16 generalized to non-coplanar paths.
 
 Notation
@@ -139,7 +139,7 @@ Coherent enhanced backscatter
         gamma(psi) = exp(-ln 2 |k' - k|^2 / psi_h^2),   psi_h = lambda / (4 d),
 
     so ``gamma(0) = 1`` and ``gamma(psi_h) = 1/2`` (half width at half maximum ``psi_h``, the
-    cone width of PHYSICS.md section 4), ``d = material.corr_length``: 5 um at 532 nm gives
+    cone width of docs/physics/double_bounce.md), ``d = material.corr_length``: 5 um at 532 nm gives
     ``psi_h = 1.5 deg``. Differentiable in ``psi``, ``lambda`` and ``d``. Macroscopic dihedrals
     (d of cm) must be summed incoherently by the caller (``gamma ~ 0``).
 

@@ -68,7 +68,7 @@ def _dot(a: Array, b: Array) -> Array:
 
 def _stack3(v) -> Array:
     """Three ``(...,)`` components -> ``(..., 3)``, stacked on a leading axis and moved:
-    stacking directly on a trailing axis ran ~2x slower on XLA CPU (bench in STYLE.md s10)."""
+    stacking directly on a trailing axis ran ~2x slower on XLA CPU (docs/DESIGN.md)."""
     return jnp.moveaxis(jnp.stack(v, axis=0), 0, -1)
 
 
@@ -202,7 +202,7 @@ def jones_to_mueller(J: Complex[ArrayLike, "... 2 2"]) -> Float[Array, "... 4 4"
 
 # ---------------------------------------------------------------- facet helpers (SoA)
 # Internally vectors are tuples of three (...,) component arrays: reductions over a trailing
-# axis of length 3 ran ~10x slower than component arithmetic on XLA CPU (STYLE.md s10).
+# axis of length 3 ran ~10x slower than component arithmetic on XLA CPU (docs/DESIGN.md).
 
 Vec = tuple[Array, Array, Array]
 

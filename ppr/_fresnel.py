@@ -19,7 +19,7 @@ The Mueller matrix of the Jones matrix ``diag(r_s, r_p)`` is
 pinned by a test against :func:`ppr._frames.jones_to_mueller`).
 
 Everything is written with explicit real and imaginary parts (2-3x faster than complex dtypes
-on XLA CPU, STYLE.md section 10). The complex square root uses the cancellation-free form
+on XLA CPU, docs/DESIGN.md). The complex square root uses the cancellation-free form
 ``t = sqrt((|Re z| + |z|)/2)`` (:func:`complex_sqrt_re`), guarded by double ``where`` at
 ``z = 0`` (``n = 1`` at grazing, or a real ``n < 1`` at its critical angle), so values and
 gradients are finite for all ``0 <= cos t <= 1``, real or complex ``n``.

@@ -5,7 +5,7 @@ Public as :mod:`ppr.microfacet`. All functions broadcast over their arguments, a
 input float dtype (float32 in, float32 out). ``cos_theta = k . n`` of a unit direction ``k`` in
 the upper hemisphere; values outside ``[0, 1]`` are clamped.
 
-Normal distribution (PHYSICS.md section 3)
+Normal distribution (docs/physics/single_bounce.md)
     ``p(h) = (m + 1) / (2 pi) (h . n)^m`` on the upper hemisphere, normalized so that
     ``integral p(h) d omega_h = 1``; ``<h . n> = (m + 1) / (m + 2)``.
 

@@ -13,7 +13,7 @@ Radiometry
     radiant intensity per unit incident irradiance; its M00 is the bistatic radar cross
     section over 4 pi: ``sigma = 4 pi J_00``. The received Stokes energy is
     ``J S_tx E0 A_rx / R_rx^2`` (times pulse energy over beam area, aperture, and the two-way
-    atmospheric transmission, which the normalized signatures of PHYSICS.md section 1 drop).
+    atmosphere, dropped by normalized signatures: docs/physics/pulse_and_measurement.md).
     Back-facing facets (``n . u <= COS_MIN`` toward laser or receiver) contribute nothing.
 
 Range-area density of a facet

@@ -126,7 +126,7 @@ def _stiff():
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 def test_stiff_cases_finite_values_and_gradients(dtype):
-    """PHYSICS.md section 10 for the table path: normal incidence (a cusp |theta|: zero
+    """The stiff set (docs/physics/numerics.md), table path: normal incidence (a cusp |theta|: zero
     gradient there), grazing to 1e-4 deg and exactly 90 deg (0), m = 0, 1e-6, the table's end
     M_MAX and beyond (0), in float32 and float64; values and gradients in the directions,
     m and both parts of n finite."""

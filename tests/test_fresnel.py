@@ -50,7 +50,7 @@ def test_normal_incidence_glass():
 
 def test_brewster_glass():
     tb = np.arctan(1.5)
-    assert np.rad2deg(tb) == pytest.approx(56.31, abs=5e-3)  # PHYSICS.md quotes 2 decimals
+    assert np.rad2deg(tb) == pytest.approx(56.31, abs=5e-3)  # quoted to 2 decimals
     rs, rp = fresnel_amplitudes(1.5, np.cos(tb))
     assert abs(complex(rp)) < 1e-15  # exact zero up to rounding
     assert abs(complex(rs)) > 0.3

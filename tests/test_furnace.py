@@ -141,8 +141,8 @@ def test_white_furnace_all_terms():
 
 @pytest.mark.optimized  # runs large batches (tests/compile_level.py)
 def test_explicit_terms_never_exceed_one():
-    """single + double <= 1 (the flux entering bounce 2 is exactly 1 - E_single, PHYSICS.md
-    s4 / ppr/_double.py): the runtime quadrature must not overshoot (quadrature slack 2e-4)."""
+    """single + double <= 1 (the flux entering bounce 2 is exactly 1 - E_single, docs/physics/
+    double_bounce.md): the runtime quadrature must not overshoot (quadrature slack 2e-4)."""
     e1, _ = _white_grid()
     assert e1.max() <= 1.0 + 2e-4, (e1.max(), np.unravel_index(np.argmax(e1), e1.shape))
 

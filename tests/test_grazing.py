@@ -1,5 +1,5 @@
 """No NaN anywhere near the horizon: values and gradients of every BRDF term on a dense grid of
-grazing and stiff geometries, float32 and float64 (PHYSICS.md section 10's stiff cases).
+grazing and stiff geometries, float32 and float64 (docs/physics/numerics.md's stiff set).
 
 One jitted value-and-gradient program per dtype evaluates, on the same rows,
 

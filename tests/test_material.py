@@ -69,7 +69,7 @@ def test_required_materials_load_everywhere():
 
 
 def test_metal_values_match_physics_notes():
-    # PHYSICS.md section 11 (refractiveindex.info compilations), copied exactly
+    # docs/physics.md#materials (refractiveindex.info compilations), copied exactly
     expected = {
         ("aluminium", 532e-9): 0.94 + 6.42j,
         ("aluminium", 1064e-9): 1.38 + 10.25j,
@@ -97,7 +97,7 @@ def test_dielectrics_match_dispersion_formulas():
         # rutile ordinary ray, Devore (1951): n^2 = 5.913 + 0.2441 / (l^2 - 0.0803)
         n_rutile = math.sqrt(5.913 + 0.2441 / (wl * wl - 0.0803))
         assert index_entry("white_paint_tio2", wl * 1e-6).n == pytest.approx(n_rutile, abs=6e-4)
-    # PHYSICS.md: fused silica 1.461 / 1.450, rutile about 2.67 / 2.48
+    # docs/physics.md#materials: fused silica 1.461 / 1.450, rutile about 2.67 / 2.48
     assert index_entry("fused_silica", 532e-9).n == pytest.approx(1.461, abs=5e-4)
     assert index_entry("fused_silica", 1064e-9).n == pytest.approx(1.450, abs=5e-4)
 

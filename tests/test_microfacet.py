@@ -248,7 +248,7 @@ def test_joint_visibility_symmetry_and_limits():
 
 
 def _stiff_inputs(dtype):
-    """Every stiff (m, direction pair) combination of PHYSICS.md section 10."""
+    """Every stiff (m, direction pair) combination of docs/physics/numerics.md's stiff set."""
     thetas = [0.0, 89.9, 89.999, 90.0]
     dirs = [_dir(t, 0.0) for t in thetas] + [_dir(89.999, 180.0), _dir(90.0, 180.0)]
     rows = []

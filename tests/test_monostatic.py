@@ -8,7 +8,7 @@ term from the same backscatter table (``"double:backscatter"``). The monostatic 
 evaluates the same model in other algebra (every term as a function of ``k.n`` in the shared
 frames ``e = normalize(n x k)``, then one rotation), so the two agree to rounding: values and
 gradients, every term set, frame choice and material layout, including the stiff cases of
-PHYSICS.md section 10.
+docs/physics/numerics.md.
 """
 
 from __future__ import annotations
