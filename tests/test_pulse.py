@@ -326,7 +326,7 @@ def test_joint_rotation_of_object_and_sensor_leaves_profile_unchanged():
         (lambda: shapes.cylinder(0.06, 0.25, sections=12), ppr.Material(1.46, 3.0)),  # silica
         # non-convex, self-shadowing, three parts; subdivided so that partly shadowed faces
         # are small (on the 36-face mesh the per-face visibility weighting alone breaks the
-        # parity by ~14% of the peak: README, known limits)
+        # parity by ~14% of the peak: docs/limits.md)
         (lambda: shapes.cubesat_with_panels(3, max_edge=0.05), None),
     ],
     ids=["cubesat3u-aluminium", "cylinder-silica", "panels-subdivided"],
@@ -358,7 +358,7 @@ def test_mirror_image_scene_gives_mirrored_mueller_profile(mesh_fn, mat):
     scale = np.abs(m0).max()
     # convex: exact. Self-shadowing: a partly lit face is weighted by its ray-sampled lit
     # fraction, and the mirror image's faces are sampled at mirrored points only where the
-    # triangulation is mirror-symmetric: ~1e-4 of the peak here (README, known limits)
+    # triangulation is mirror-symmetric: ~1e-4 of the peak here (docs/limits.md)
     tol = 1e-12 if mat is not None else 3e-4
     np.testing.assert_allclose(
         m1, np.einsum("ij,jkb,kl->ilb", d, m0, d), rtol=0, atol=tol * scale
