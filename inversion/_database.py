@@ -13,7 +13,12 @@ Layout of a database directory ``path`` (a zarr v3 group):
   stated angular resolution, ``chunk_rows``, ``n_rows``;
 - ``_chunks/NNNNNN.json``: one completion marker per chunk, written atomically (temp file +
   fsync + rename) *after* the chunk's data, holding the BLAKE2b digest of its decoded
-  ``signatures`` and ``energy`` bytes.
+  ``signatures`` and ``energy`` bytes (``_chunks`` is an empty zarr group).
+
+Every array carries zarr v3 ``dimension_names`` (``row``, ``channel``, ``bin``,
+``quaternion_component``) and ``units`` / ``long_name`` attributes (the label indices also CF
+``flag_values`` / ``flag_meanings``), so ``xarray.open_zarr(path, consolidated=False)`` opens
+a database as a labelled dataset (no consolidated metadata: zarr v3 does not specify it).
 
 A chunk is valid iff its marker exists and the digest matches the data. Building skips valid
 chunks, so a build killed at any point and restarted recomputes only the missing (or
@@ -362,8 +367,58 @@ def _remove_stale_temp(folder: Path) -> None:
             tmp.unlink(missing_ok=True)
 
 
+MARKERS = "_chunks"  # folder (an empty zarr group) of the completion markers NNNNNN.json
+
+# dimension names of the arrays (zarr v3 ``dimension_names``, read by xarray)
+ARRAY_DIMS = {
+    "signatures": ("row", "channel", "bin"),
+    "energy": ("row",),
+    "shape_id": ("row",),
+    "attitude_id": ("row",),
+    "material_id": ("row",),
+    "finish_id": ("row",),
+    "quat": ("row", "quaternion_component"),
+}
+
+
+def _array_attrs(spec: DatabaseSpec, names: dict) -> dict[str, dict]:
+    """Per-array attributes: ``units`` (UDUNITS strings, "1" for dimensionless), a
+    ``long_name`` and, for the label indices, CF ``flag_values`` / ``flag_meanings``."""
+    raw = "m2 sr-1" if spec.model == "ppr" else "1"  # ppr.render's bin-integrated return
+    out = {
+        "signatures": {
+            "units": "1",
+            "long_name": "energy-normalized signature (each row sums to 1 over channels and bins)",
+            "bin_width_m": spec.sensor.bin_width_m,
+            "channels": spec.sensor.channels,
+        },
+        "energy": {
+            "units": raw,
+            "long_name": "total of the raw signature before normalization"
+            + ("" if spec.model == "ppr" else " (synthetic model: arbitrary units)"),
+        },
+        "attitude_id": {"units": "1", "long_name": "index of the attitude in its shape's grid"},
+        "quat": {
+            "units": "1",
+            "long_name": "attitude quaternion, body -> sensor (w, x, y, z)",
+        },
+    }
+    for key, label in (
+        ("shape_id", "shapes"),
+        ("material_id", "materials"),
+        ("finish_id", "finishes"),
+    ):
+        out[key] = {
+            "units": "1",
+            "long_name": f"index into names.{label}",
+            "flag_values": list(range(len(names[label]))),
+            "flag_meanings": " ".join(str(x).replace(" ", "_") for x in names[label]),
+        }
+    return out
+
+
 def _marker_path(path: Path, i: int) -> Path:
-    return path / "_chunks" / f"{i:06d}.json"
+    return path / MARKERS / f"{i:06d}.json"
 
 
 def _store_attrs(spec: DatabaseSpec, signature_fn) -> tuple[dict, list, dict]:
@@ -407,23 +462,49 @@ def init_database(spec: DatabaseSpec, path: str | Path, signature_fn=None) -> za
     if b is None:
         raise ValueError("signature_fn.sensor must state 'n_bins'")
     cr = spec.chunk_rows
+    labelled = _array_attrs(spec, attrs["names"])
     group.create_array(
         "signatures",
         shape=(n, c, b),
         chunks=(cr, c, b),
         dtype="float32",
         fill_value=0.0,
-        dimension_names=("row", "channel", "bin"),
+        dimension_names=ARRAY_DIMS["signatures"],
+        attributes=labelled["signatures"],
     )
-    group.create_array("energy", shape=(n,), chunks=(cr,), dtype="float64", fill_value=0.0)
+    group.create_array(
+        "energy",
+        shape=(n,),
+        chunks=(cr,),
+        dtype="float64",
+        fill_value=0.0,
+        dimension_names=ARRAY_DIMS["energy"],
+        attributes=labelled["energy"],
+    )
     for k in PARAM_KEYS:
-        a = group.create_array(k, shape=(n,), chunks=(max(n, 1),), dtype="int32", fill_value=0)
+        a = group.create_array(
+            k,
+            shape=(n,),
+            chunks=(max(n, 1),),
+            dtype="int32",
+            fill_value=0,
+            dimension_names=ARRAY_DIMS[k],
+            attributes=labelled[k],
+        )
         a[:] = rows[k]
     a = group.create_array(
-        "quat", shape=(n, 4), chunks=(max(n, 1), 4), dtype="float64", fill_value=0.0
+        "quat",
+        shape=(n, 4),
+        chunks=(max(n, 1), 4),
+        dtype="float64",
+        fill_value=0.0,
+        dimension_names=ARRAY_DIMS["quat"],
+        attributes=labelled["quat"],
     )
     a[:] = rows["quat"]
-    (path / "_chunks").mkdir(exist_ok=True)
+    # the completion markers' folder is a (empty) zarr group, so readers of the hierarchy
+    # (xarray.open_zarr) see a known component, not an unknown folder
+    group.create_group(MARKERS, attributes={"description": "chunk completion markers"})
     group.attrs.update(attrs)
     group.attrs["initialized"] = True  # last: a store without it is re-created
     return group
@@ -554,7 +635,7 @@ def build_database(
     n, cr, n_chunks = group.attrs["n_rows"], spec.chunk_rows, group.attrs["n_chunks"]
     mesh = device_mesh(devices)
     report = BuildReport(str(path), n, n_chunks, n_devices=mesh.devices.size)
-    _remove_stale_temp(path / "_chunks")
+    _remove_stale_temp(path / MARKERS)
     status = chunk_status(path, verify=verify)
     mine = [i for i in range(n_chunks) if i % num_shards == shard_index]
     todo = [i for i in mine if i not in set(status["done"])]

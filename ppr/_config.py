@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import math
 import tomllib
+import warnings
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 import pydantic
 
@@ -20,10 +21,54 @@ class ConfigError(ValueError):
     """A config file (or override) is invalid. ``str(err)`` is a single line."""
 
 
+class ConfigDeprecationWarning(FutureWarning):
+    """A config uses a deprecated key (shown once per key and process)."""
+
+
+# new key -> deprecated key, over every schema (error messages name the key as written)
+_WRITTEN_AS: dict[str, str] = {}
+_WARNED: set[tuple[str, str]] = set()
+
+
 class StrictModel(pydantic.BaseModel):
-    """Base schema: unknown keys are errors, NaN/inf floats are errors, models are frozen."""
+    """Base schema: unknown keys are errors, NaN/inf floats are errors, models are frozen.
+
+    ``renamed = {"old_key": ("new_key", factor)}``: a deprecated spelling still accepted
+    (its value times ``factor``, e.g. picoseconds -> seconds) with a
+    :class:`ConfigDeprecationWarning` once per key and process."""
 
     model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    renamed: ClassVar[dict[str, tuple[str, float]]] = {}
+
+    @classmethod
+    def __pydantic_init_subclass__(cls, **kwargs):
+        super().__pydantic_init_subclass__(**kwargs)
+        for old, (new, _) in cls.renamed.items():
+            _WRITTEN_AS[new] = old
+
+    @pydantic.model_validator(mode="before")
+    @classmethod
+    def _deprecated_keys(cls, data):
+        if not cls.renamed or not isinstance(data, dict):
+            return data
+        data = dict(data)
+        for old, (new, factor) in cls.renamed.items():
+            if old not in data:
+                continue
+            if new in data:
+                raise ValueError(f"give {new} or the deprecated {old}, not both")
+            value = data.pop(old)
+            number = isinstance(value, int | float) and not isinstance(value, bool)
+            data[new] = value * factor if number else value
+            if (cls.__name__, old) not in _WARNED:
+                _WARNED.add((cls.__name__, old))
+                unit = f" (x {factor:g})" if factor != 1 else ""
+                warnings.warn(
+                    f"config key {old!r} is deprecated; write {new!r}{unit}",
+                    ConfigDeprecationWarning,
+                    stacklevel=2,
+                )
+        return data
 
 
 def _find_nan(obj: Any, path: str = "") -> tuple[str, float] | None:
@@ -59,21 +104,25 @@ _TYPE_WORDS = {
 }
 
 
-def _user_path(loc: tuple, data: Any, prefix: str = "", missing: bool = False) -> str:
+def _user_path(
+    loc: tuple, data: Any, prefix: str = "", missing: bool = False
+) -> tuple[str, Any, bool]:
     """A pydantic error location as the user writes the field (``shapes[0].symmetry``),
-    skipping the tags pydantic adds for union members (``Range``, ``list[...]``, ``str``).
+    skipping the tags pydantic adds for union members (``Range``, ``list[...]``, ``str``);
+    with the value found there and whether a deprecated spelling was followed.
     ``missing``: the last part names a key absent from the data."""
-    path, node = prefix, data
+    path, node, aliased = prefix, data, False
     for i, part in enumerate(loc):
         last = i == len(loc) - 1
         if isinstance(part, int) and isinstance(node, list | tuple) and part < len(node):
             path, node = f"{path}[{part}]", node[part]
-        elif (
-            isinstance(part, str) and isinstance(node, dict) and (part in node or missing and last)
-        ):
-            path = f"{path}.{part}" if path else part
-            node = node.get(part)
-    return path
+        elif isinstance(part, str) and isinstance(node, dict):
+            if part not in node and _WRITTEN_AS.get(part) in node:
+                part, aliased = _WRITTEN_AS[part], True  # the user wrote the deprecated key
+            if part in node or missing and last:
+                path = f"{path}.{part}" if path else part
+                node = node.get(part)
+    return path, node, aliased
 
 
 def _type_mismatch(e: dict) -> bool:
@@ -112,8 +161,9 @@ def format_validation_error(
         data = {}
     items: dict[str, list] = {}
     for e in err.errors():
-        path = _user_path(tuple(e["loc"]), data, prefix, e["type"] == "missing")
-        items.setdefault(path, [e.get("input"), []])[1].append(e)
+        path, node, aliased = _user_path(tuple(e["loc"]), data, prefix, e["type"] == "missing")
+        value = node if aliased else e.get("input")  # as written, not converted
+        items.setdefault(path, [value, []])[1].append(e)
     paths = [
         p for p in items if not any(q != p and q.startswith(p) and q[len(p)] in ".[" for q in items)
     ]
@@ -163,7 +213,7 @@ def read_toml(path: str | Path) -> dict:
 
 
 def load_toml_model(model: type[M], path: str | Path, overrides: dict | None = None) -> M:
-    """Read a TOML file, apply dotted-key ``overrides`` (``{"pulse.fwhm_ps": 80}``), validate."""
+    """Read a TOML file, apply dotted-key ``overrides`` (``{"pulse.fwhm_s": 80e-12}``), validate."""
     data = read_toml(path)
     for key, value in (overrides or {}).items():
         node = data

@@ -371,16 +371,18 @@ def check_sensor_fields(
 
 
 class PulseConfig(StrictModel):
-    fwhm_ps: float = pydantic.Field(gt=0, description="full width at half maximum")
-    jitter_ps: float = pydantic.Field(default=0.0, ge=0, description="rms receiver jitter")
+    fwhm_s: float = pydantic.Field(gt=0, description="full width at half maximum, e.g. 100e-12")
+    jitter_s: float = pydantic.Field(default=0.0, ge=0, description="rms receiver jitter")
+    renamed = {"fwhm_ps": ("fwhm_s", 1e-12), "jitter_ps": ("jitter_s", 1e-12)}
 
 
 class BinsConfig(StrictModel):
-    width_mm: float = pydantic.Field(gt=0, description="bin width (one-way range)")
+    width_m: float = pydantic.Field(gt=0, description="bin width (one-way range), e.g. 0.005")
     count: int = pydantic.Field(gt=0, le=1_000_000, description="number of bins")
     start_m: float | None = pydantic.Field(
         None, description="range of the first bin's edge (default: centred on the reference)"
     )
+    renamed = {"width_mm": ("width_m", 1e-3)}
 
 
 class SensorConfig(StrictModel):
@@ -537,8 +539,8 @@ def sensor_from_config(
         )
     except ValueError as exc:
         raise ConfigError(f"{source}: {exc}") from None
-    pulse = Pulse.gaussian(cfg.pulse.fwhm_ps * 1e-12, cfg.pulse.jitter_ps * 1e-12)
-    width = cfg.bins.width_mm * 1e-3
+    pulse = Pulse.gaussian(cfg.pulse.fwhm_s, cfg.pulse.jitter_s)
+    width = cfg.bins.width_m
     start = -0.5 * width * cfg.bins.count if cfg.bins.start_m is None else cfg.bins.start_m
     bins = RangeBins(start, width, cfg.bins.count, cfg.reference_range_km * 1e3)
     return sensor, pulse, bins

@@ -51,7 +51,7 @@ def test_help_lists_every_command(capsys):
     [
         ("brdf", ["nanometres", "degrees", "1/sr"]),
         ("image", ["microradians", "metres", "1/sr", "[rad]"]),
-        ("simulate", ["picoseconds", "microradians", "m^2/sr"]),
+        ("simulate", ["seconds", "microradians", "metres", "m^2/sr"]),
         ("demo", ["--out"]),
         ("classify", ["bins", "sqrt of expected total counts"]),
         ("invert", ["degrees", "metres", "expected total counts"]),
@@ -497,9 +497,9 @@ INV_SENSOR = """wavelength_nm = 532.0
 line_of_sight = [0.0, 0.0, -1.0]
 polarization_reference = [1.0, 0.0, 0.0]
 [pulse]
-fwhm_ps = 100.0
+fwhm_s = 100e-12
 [bins]
-width_mm = 10.0
+width_m = 0.01
 count = 32
 """
 INV_SCENE = """sensor = "sensor.toml"

@@ -59,3 +59,33 @@ def test_parse_override_types():
     assert parse_override('name="x y"') == ("name", "x y")
     with pytest.raises(ConfigError):
         parse_override("novalue")
+
+
+def test_deprecated_key_is_converted_warns_once_and_errors_name_it(tmp_path, monkeypatch):
+    """An old spelling in another unit (picoseconds) is read as the SI key (seconds), with
+    one warning per key; an error at it names the key and the value as written."""
+    from ppr import _config
+    from ppr._config import ConfigDeprecationWarning
+    from ppr._scene import PulseConfig
+
+    monkeypatch.setattr(_config, "_WARNED", set())  # whatever warned earlier in this process
+
+    class Sensor(StrictModel):
+        pulse: PulseConfig
+
+    new = load_toml_model(Sensor, _write(tmp_path, "[pulse]\nfwhm_s = 100e-12\n"))
+    with pytest.warns(ConfigDeprecationWarning, match="'fwhm_ps' is deprecated; write 'fwhm_s'"):
+        old = load_toml_model(Sensor, _write(tmp_path, "[pulse]\nfwhm_ps = 100.0\n"))
+    assert old.pulse.fwhm_s == pytest.approx(new.pulse.fwhm_s, rel=1e-15)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once per key and process: no second warning
+        again = load_toml_model(Sensor, _write(tmp_path, "[pulse]\nfwhm_ps = 50.0\n"))
+        assert again.pulse.fwhm_s == pytest.approx(50e-12, rel=1e-15)
+        p = _write(tmp_path, "[pulse]\nfwhm_ps = -3.0\n")
+        with pytest.raises(ConfigError, match=r"pulse.fwhm_ps = -3.0: must be greater than 0"):
+            load_toml_model(Sensor, p)
+        p = _write(tmp_path, "[pulse]\nfwhm_ps = 3.0\nfwhm_s = 3e-12\n")
+        with pytest.raises(ConfigError, match="give fwhm_s or the deprecated fwhm_ps"):
+            load_toml_model(Sensor, p)

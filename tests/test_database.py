@@ -107,7 +107,8 @@ def test_resume_after_kill_is_byte_identical(reference, tmp_path):
     try:
         deadline = time.time() + 120
         while time.time() < deadline:
-            done = list((path / "_chunks").glob("*.json")) if (path / "_chunks").exists() else []
+            markers = path / "_chunks"
+            done = list(markers.glob("[0-9]*.json")) if markers.exists() else []
             if len(done) >= 2 or proc.poll() is not None:
                 break
             time.sleep(0.05)
@@ -224,3 +225,28 @@ def test_shipped_specs_parse(name):
     spec = load_spec(ROOT / "configs" / "databases" / f"{name}.toml")
     rows = enumerate_rows(spec)
     assert len(rows["quat"]) > 0 and spec.sensor.n_bins >= 64
+
+
+def test_opens_as_labelled_data_with_xarray(reference):
+    """The store is labelled data: xarray opens it with named dimensions, units and the
+    label names, and its values are the bank's (rows normalized to 1)."""
+    import xarray as xr
+
+    path, _ = reference
+    bank = load_database(path)
+    ds = xr.open_zarr(path, consolidated=False)
+    assert ds["signatures"].dims == ("row", "channel", "bin")
+    assert ds["quat"].dims == ("row", "quaternion_component")
+    for key in ("energy", "shape_id", "attitude_id", "material_id", "finish_id"):
+        assert ds[key].dims == ("row",), key
+    assert ds.sizes["row"] == len(bank) and ds.sizes["bin"] == SPEC["sensor"]["n_bins"]
+    assert ds["signatures"].attrs["units"] == "1" and ds["quat"].attrs["units"] == "1"
+    assert ds["signatures"].attrs["bin_width_m"] == SPEC["sensor"]["bin_width_m"]
+    np.testing.assert_array_equal(ds["signatures"].values, bank.signatures)
+    np.testing.assert_allclose(ds["signatures"].sum(("channel", "bin")), 1.0, rtol=1e-5)
+    # the label indices decode to the names through CF flag attributes
+    for key, names in (("shape_id", "shapes"), ("material_id", "materials")):
+        attrs = ds[key].attrs
+        assert attrs["flag_meanings"].split() == bank.names[names]
+        assert attrs["flag_values"] == list(range(len(bank.names[names])))
+    assert ds.attrs["spec"]["name"] == "tiny"  # the group's attributes come along

@@ -16,7 +16,7 @@ SCENES = "configs/scenes"
 def _write(tmp_path, text, name="scene.toml", sensor=True):
     if sensor:
         (tmp_path / "s.toml").write_text(
-            "wavelength_nm = 1064.0\n[pulse]\nfwhm_ps = 50.0\n[bins]\nwidth_mm = 4.0\ncount = 200\n"
+            "wavelength_nm = 1064.0\n[pulse]\nfwhm_s = 50e-12\n[bins]\nwidth_m = 4e-3\ncount = 200\n"
         )
     p = tmp_path / name
     p.write_text(text)
@@ -146,12 +146,12 @@ def test_config_errors_name_file_field_value(tmp_path, text, match):
 def test_sensor_config_errors(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text(
-        "wavelength_nm = 532.0\n[pulse]\nfwhm_ps = 0.0\n[bins]\nwidth_mm = 4.0\ncount = 200\n"
+        "wavelength_nm = 532.0\n[pulse]\nfwhm_s = 0.0\n[bins]\nwidth_m = 4e-3\ncount = 200\n"
     )
-    with pytest.raises(ConfigError, match=r"pulse.fwhm_ps = 0.0"):
+    with pytest.raises(ConfigError, match=r"pulse.fwhm_s = 0.0"):
         ppr.load_sensor(bad)
     bad.write_text(
-        "wavelength_nm = 532.0\n[pulse]\nfwhm_ps = 10.0\n[bins]\nwidth_mm = 4.0\ncount = 0\n"
+        "wavelength_nm = 532.0\n[pulse]\nfwhm_s = 10e-12\n[bins]\nwidth_m = 4e-3\ncount = 0\n"
     )
     with pytest.raises(ConfigError, match=r"bins.count = 0"):
         ppr.load_sensor(bad)

@@ -29,7 +29,7 @@ def help_text() -> str:
 
     return describe(
         "Build a signature database (shapes x attitudes x materials x finishes) chunk by chunk "
-        "into --out/database.zarr (zarr v3; opens with xarray.open_zarr). The build runs in "
+        "into --out/database.zarr (zarr v3; opens with xarray.open_zarr(path, consolidated=False)). The build runs in "
         "--out/database.zarr.partial and is moved to database.zarr only when every chunk is "
         "done and verified: rerunning the same command after an interruption computes only "
         "the missing chunks; with --overwrite the old database stays in place (and a config "
@@ -284,7 +284,7 @@ def _drop_empty_build(target: Path, made: list[Path]) -> None:
     folders made for it (a store with finished chunks is kept for resuming)."""
     if target.name.endswith(PARTIAL) and target.is_dir():
         chunks = target / "_chunks"
-        if not (chunks.is_dir() and any(chunks.glob("*.json"))):
+        if not (chunks.is_dir() and any(chunks.glob("[0-9]*.json"))):  # a chunk marker
             shutil.rmtree(target, ignore_errors=True)
     for p in made:  # innermost first
         with contextlib.suppress(OSError):
