@@ -34,6 +34,8 @@ def main(argv=None) -> int:
 
         return run(argv)
     except KeyboardInterrupt:  # during start-up; a running command reports its own
+        if "--debug" in (sys.argv[1:] if argv is None else [str(a) for a in argv]):
+            raise
         print("ppr: interrupted", file=sys.stderr)
         raise SystemExit(130) from None
 
