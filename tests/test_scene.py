@@ -16,7 +16,8 @@ SCENES = "configs/scenes"
 def _write(tmp_path, text, name="scene.toml", sensor=True):
     if sensor:
         (tmp_path / "s.toml").write_text(
-            "wavelength_nm = 1064.0\n[pulse]\nfwhm_s = 50e-12\n[bins]\nwidth_m = 4e-3\ncount = 200\n"
+            "wavelength_nm = 1064.0\n[pulse]\nfwhm_s = 50e-12\n[bins]\nwidth_m = 4e-3\n"
+            "count = 200\n"
         )
     p = tmp_path / name
     p.write_text(text)

@@ -29,7 +29,8 @@ def help_text() -> str:
 
     return describe(
         "Build a signature database (shapes x attitudes x materials x finishes) chunk by chunk "
-        "into --out/database.zarr (zarr v3; opens with xarray.open_zarr(path, consolidated=False)). The build runs in "
+        "into --out/database.zarr (zarr v3; opens with xarray.open_zarr(path, "
+        "consolidated=False)). The build runs in "
         "--out/database.zarr.partial and is moved to database.zarr only when every chunk is "
         "done and verified: rerunning the same command after an interruption computes only "
         "the missing chunks; with --overwrite the old database stays in place (and a config "
