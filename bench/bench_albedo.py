@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/bench_albedo.py
 
-Reference: the half-vector quadrature (ppr._albedo.albedo_nodes) at (n_phi, n_w) = (32, 16)
+Reference: the half-vector quadrature (ppr.brdf._albedo.albedo_nodes) at (n_phi, n_w) = (32, 16)
 at 48 random off-node points (m log-uniform in [0, 1e6], mu = U^2). Candidates:
 Catmull-Rom tables of nx x nv nodes (built here for the small sizes, the shipped table for the
 production size) and on-the-fly quadrature at lower orders. Error = max |E - E_ref|;
@@ -27,8 +27,8 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "scripts"))
 from make_albedo_tables import node_values  # noqa: E402
 
-from ppr import _albedo  # noqa: E402
-from ppr._brdf import explicit_terms  # noqa: E402
+from ppr.brdf import _albedo  # noqa: E402
+from ppr.brdf._brdf import explicit_terms  # noqa: E402
 
 OUT = os.path.join(os.path.dirname(__file__), "results")
 QUAD_CHUNK = 16  # E values per call in make_albedo_tables.node_values (its fixed chunk)

@@ -7,8 +7,8 @@ N random direction pairs (upper hemisphere), one material (aluminium 532 nm, m =
 float32 and float64, terms "single" and "single"+"multiple". JAX: one jitted call per chunk of
 CHUNK pairs (docs/DESIGN.md), median of repeats after a warm-up, block_until_ready. NumPy: the
 same formulas (Blinn-Phong lobe via |h - n|^2, <h.k>+ by the same sinh-substituted
-trapezoid rule and order as ppr._microfacet, on the elements that need it (boolean indexing,
-as ppr._microfacet compacts them; in float32, with one material, from the same per-call
+trapezoid rule and order as ppr.brdf._microfacet, on the elements that need it (boolean indexing,
+as ppr.brdf._microfacet compacts them; in float32, with one material, from the same per-call
 table over asin(cos) with cubic Hermite interpolation as ppr.mueller_brdf), Ashikhmin joint
 visibility, real-arithmetic Fresnel, frame rotations, Catmull-Rom albedo deficit),
 vectorized over the batch, on a subset (timing scaled per evaluation), checked against the
@@ -30,10 +30,10 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ppr import _albedo, _microfacet  # noqa: E402
-from ppr._brdf import explicit_terms, mueller_brdf  # noqa: E402
-from ppr._material import Material  # noqa: E402
-from ppr._microfacet import DEFAULT_ORDER, DEFAULT_ORDER_F32  # noqa: E402
+from ppr.brdf import _albedo, _microfacet  # noqa: E402
+from ppr.brdf._brdf import explicit_terms, mueller_brdf  # noqa: E402
+from ppr.brdf._microfacet import DEFAULT_ORDER, DEFAULT_ORDER_F32  # noqa: E402
+from ppr.materials._material import Material  # noqa: E402
 
 OUT = os.path.join(os.path.dirname(__file__), "results")
 CHUNK = 250_000
@@ -45,7 +45,7 @@ M_ROUGH = 300.0
 
 
 def np_mean_cosine_correction(m, c, order, dt):
-    """NumPy transcription of ppr._microfacet._correction_impl (value only)."""
+    """NumPy transcription of ppr.brdf._microfacet._correction_impl (value only)."""
     f64 = dt == np.float64
     big_m = m + 2.0
     c1 = (1e-5 if f64 else 3e-4) / np.sqrt(big_m)
@@ -58,7 +58,7 @@ def np_mean_cosine_correction(m, c, order, dt):
     out = np.zeros_like(c)
     if not np.any(needed):
         return out
-    # the quadrature only where it is needed (boolean indexing), as ppr._microfacet does
+    # the quadrature only where it is needed (boolean indexing), as ppr.brdf._microfacet does
     m = np.broadcast_to(m, c.shape)[needed]
     c, cq, s2, log_sm = c[needed], cq[needed], s2[needed], log_sm[needed]
     big_m = m + 2.0
@@ -81,7 +81,7 @@ def np_mean_cosine_correction(m, c, order, dt):
 
 
 def np_visibility_table(m, c, order, dt, n_nodes):
-    """NumPy transcription of ppr._microfacet.visibility_one_material (one m, float32 BRDF
+    """NumPy transcription of ppr.brdf._microfacet.visibility_one_material (one m, float32 BRDF
     path): the correction at n_nodes points equispaced in asin(c) by the same quadrature,
     its c-derivative there by central differences (the library uses the quadrature's
     partials), cubic Hermite per element."""

@@ -36,10 +36,11 @@ import numpy as np
 from _timing import median_time
 
 import ppr
-from ppr import _macro, shapes
-from ppr._conventions import C_LIGHT
-from ppr._mesh import concatenate
-from ppr._pulse import _macro_jit, lambertian_mueller, render, stack_materials, window_size
+from ppr.geometry import shapes
+from ppr.geometry._mesh import concatenate
+from ppr.optics.conventions import C_LIGHT
+from ppr.pulse import _macro
+from ppr.pulse._pulse import _macro_jit, lambertian_mueller, render, stack_materials, window_size
 
 jax.config.update("jax_enable_x64", True)
 
@@ -105,7 +106,7 @@ def macro(scene, options, dtype=jnp.float64, brdf=ppr.mueller_brdf, repeats=3):
     )
     sensor = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), scene.sensor)
     pose = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), scene.pose)
-    b = brdf if brdf is not ppr.mueller_brdf else ppr._brdf.mueller_brdf_unchecked
+    b = brdf if brdf is not ppr.mueller_brdf else ppr.brdf._brdf.mueller_brdf_unchecked
 
     n_r = pairs.r_i.shape[0]
     if n_r * pairs.r_k.shape[1] * pairs.r_k.shape[2] > 200_000:
@@ -146,7 +147,7 @@ def _run(pairs, pose, mats, sensor, scene, dtype, brdf):
 
 
 def lobe_reference(m, u, n_grid=241):
-    """Brute-force two-bounce lobe at retro-reflection (ppr._macro.two_bounce_lobe)."""
+    """Brute-force two-bounce lobe at retro-reflection (ppr.pulse._macro.two_bounce_lobe)."""
     n_a, n_b = np.array([0, 0, 1.0]), np.array([0, 1.0, 0])
     fr = np.array([1.0, 0, 0])
     return _macro.two_bounce_lobe(n_a, n_b, u, u, ppr.Material(AL, m), fr, fr, span=8.0, n=n_grid)
@@ -411,7 +412,7 @@ def throughput_section():
 
 def _compiled_render(arrays, stacked, sensor, window, qj, vj, mac):
     """(the jitted vmapped render, its compile seconds)."""
-    from ppr._brdf import mueller_brdf_unchecked
+    from ppr.brdf._brdf import mueller_brdf_unchecked
 
     def one(q, v, m):
         return render(
@@ -446,7 +447,7 @@ def triple_section(n_rays=200_000 if not QUICK else 40_000):
 
     mesh = shapes.cubesat_with_panels(3)
     tri = mesh.triangles()
-    area, nrm = ppr._mesh.face_areas_normals(tri)
+    area, nrm = ppr.geometry._mesh.face_areas_normals(tri)
     tm = trimesh.Trimesh(tri.reshape(-1, 3), np.arange(3 * len(tri)).reshape(-1, 3), process=False)
     ray = trimesh.ray.ray_pyembree.RayMeshIntersector(tm, scale_to_box=False)
     rng = np.random.default_rng(3)

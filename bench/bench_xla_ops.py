@@ -32,8 +32,8 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ppr._albedo import _cr_cubics, _cr_eval, _cr_weights  # noqa: E402
-from ppr._frames import rotate_mueller_44, rotate_mueller_flat  # noqa: E402
+from ppr.brdf._albedo import _cr_cubics, _cr_eval, _cr_weights  # noqa: E402
+from ppr.optics._frames import rotate_mueller_44, rotate_mueller_flat  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "bench"))
 from _timing import median_time  # noqa: E402

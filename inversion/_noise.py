@@ -8,8 +8,8 @@ Channels
         I_ga(b) = 1/2 (1, u_a) . M(b) . s_g
 
     for the range-resolved Mueller profile ``M(b)`` of the target (sensor frames, see
-    :mod:`ppr._conventions`). State names: ``H V D A R L`` (horizontal, vertical, +45, -45,
-    right and left circular), the names of ``ppr._pulse.STOKES_STATES``: ``R`` turns clockwise
+    :mod:`ppr.optics.conventions`). State names: ``H V D A R L`` (horizontal, vertical, +45, -45,
+    right and left circular), the names of ``ppr.pulse._pulse.STOKES_STATES``: ``R`` turns clockwise
     for an observer looking toward the source (Chipman's, Born & Wolf's and Hecht's
     right-circular), ppr's ``S3 = -1``; ``L`` is ``S3 = +1``. Channels are ordered
     generator-major. ``MeasurementModel.preset("full")`` uses ``{H, V, D, L}`` for both PSG and

@@ -81,9 +81,14 @@ class PprSignatures:
         self.n_bins, self.bin_width_m = int(n_bins), float(bin_width_m)
         self.pulse_fwhm_s, self.wavelength = float(pulse_fwhm_s), float(wavelength)
         self.dtype = dtype
-        cap = max(ppr._mesh.capacity_for(m.n_faces) for m in meshes)
+        from ppr.geometry import _mesh  # noqa: PLC0415
+
+        cap = max(_mesh.capacity_for(m.n_faces) for m in meshes)
         # one group capacity for all shapes (their arrays are stacked)
-        g_cap = min(cap, max(ppr._mesh.capacity_for(ppr._mesh.n_normal_groups(m)) for m in meshes))
+        g_cap = min(
+            cap,
+            max(_mesh.capacity_for(_mesh.n_normal_groups(m)) for m in meshes),
+        )
         arrays = [ppr.mesh_arrays(m, cap, dtype, group_capacity=g_cap) for m in meshes]
         self.arrays = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *arrays)
         self.capacity = cap
@@ -118,7 +123,7 @@ class PprSignatures:
             # every material and finish is concrete and checked above, attitudes are
             # normalized in the kernel: without the traced checks' host callback the compiled
             # kernel can come from the persistent compilation cache
-            from ppr._brdf import mueller_brdf_unchecked  # noqa: PLC0415
+            from ppr.brdf._brdf import mueller_brdf_unchecked  # noqa: PLC0415
 
             brdf = mueller_brdf_unchecked
         self.brdf = brdf
@@ -178,7 +183,7 @@ class PprSignatures:
         finish), or None without the double bounce."""
         if not self.multibounce:
             return None
-        from ppr._macro import batch_pairs  # noqa: PLC0415
+        from ppr.pulse._macro import batch_pairs  # noqa: PLC0415
 
         quat = np.asarray(quat, np.float64)
         rot = np.asarray(ppr.quat_to_matrix(quat / np.linalg.norm(quat, axis=-1, keepdims=True)))

@@ -1654,8 +1654,8 @@ class SimulatorModel:
         macro_options=None,
     ):
         import ppr
-        from ppr._conventions import C_LIGHT
-        from ppr._pulse import _default_brdf
+        from ppr.optics.conventions import C_LIGHT
+        from ppr.pulse._pulse import _default_brdf
 
         dt = jnp.result_type(float) if dtype is None else dtype
         mesh, sensor, pulse, bins = scene.mesh, scene.sensor, scene.pulse, scene.bins
@@ -1680,7 +1680,7 @@ class SimulatorModel:
             # the kernel's traced inputs are valid by construction (attitude normalized,
             # m = e^x, n'' = softplus): without the traced checks' host callback the solver
             # and sampler programs can go to JAX's persistent compilation cache
-            from ppr._brdf import mueller_brdf_unchecked  # noqa: PLC0415
+            from ppr.brdf._brdf import mueller_brdf_unchecked  # noqa: PLC0415
 
             brdf = mueller_brdf_unchecked
         self.scene = scene
@@ -1737,8 +1737,8 @@ class SimulatorModel:
         subset = ppr.FaceSubset.of(
             arrays,
             vis,
-            capacity=max(cap, ppr._mesh.subset_capacity(int(lit.sum()))),
-            group_capacity=max(g_cap, ppr._mesh.subset_capacity(n_groups)),
+            capacity=max(cap, ppr.geometry._mesh.subset_capacity(int(lit.sum()))),
+            group_capacity=max(g_cap, ppr.geometry._mesh.subset_capacity(n_groups)),
         )
         return subset if macro is None else (subset, macro)
 
@@ -1748,7 +1748,7 @@ class SimulatorModel:
         if not self.multibounce:
             return None
         import ppr
-        from ppr._macro import batch_pairs
+        from ppr.pulse._macro import batch_pairs
 
         q = np.asarray(phys.unit_quaternion(), np.float64)
         rot = np.asarray(ppr.quat_to_matrix(q))
@@ -1784,11 +1784,11 @@ class SimulatorModel:
         that every subset has the same shapes and the solvers compile once per model. Cached
         after the first call (~40 ms for 50 facets, ~130 ms for 500)."""
         if self._subset_caps is None:
-            from ppr._mesh import subset_capacity
+            from ppr.geometry._mesh import subset_capacity
 
             arrays = self.pure_model.arrays
             valid, grp = np.asarray(arrays.valid), np.asarray(arrays.normal_group)
-            from ppr._image import quaternion_to_matrix
+            from ppr.image._image import quaternion_to_matrix
 
             n_max, g_max = 1, 1
             for q in np.random.default_rng(0).normal(size=(n_poses, 4)):

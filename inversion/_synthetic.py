@@ -31,10 +31,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ppr._conventions import C_LIGHT
-from ppr._fresnel import fresnel_mueller_params
-from ppr._pose import quat_to_matrix
 from ppr._types import Array, Float
+from ppr.geometry._rotation import quat_to_matrix
+from ppr.optics._fresnel import fresnel_mueller_params
+from ppr.optics.conventions import C_LIGHT
 
 from ._noise import MeasurementModel
 

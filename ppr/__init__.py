@@ -5,7 +5,7 @@ Mueller matrices, double bounce with coherent enhanced backscatter, depolarizing
 scattering) and facet-sum pulse synthesis over triangle meshes.
 
 Conventions (directions, frames, Stokes handedness, complex index sign, units) are fixed in
-:mod:`ppr._conventions`. The library never enables ``jax_enable_x64``; dtypes follow inputs.
+:mod:`ppr.optics.conventions`. The library never enables ``jax_enable_x64``; dtypes follow inputs.
 """
 
 __version__ = "0.1.0"

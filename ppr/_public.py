@@ -2,24 +2,29 @@
 (``ppr/__init__.py`` keeps ``import ppr`` cheap, so the ``ppr`` command starts without JAX)."""
 
 
-from . import _polarimetry as polarimetry
-from . import microfacet, shapes
-from ._brdf import mueller_brdf
-from ._double_table import PSI_MAX as BACKSCATTER_PSI_MAX
-from ._frames import jones_to_mueller, mueller_rotator
-from ._fresnel import fresnel_amplitudes, fresnel_mueller_params
-from ._library import load_material, material_names
-from ._macro import (
-    MacroGeometry,
-    MacroOptions,
-    MacroPairs,
-    macro_geometry,
-    macro_pairs,
-    stack_macro_pairs,
+from . import microfacet
+from ._resources import shipped_config, shipped_configs_dir
+from .brdf._brdf import mueller_brdf
+from .brdf._double_table import PSI_MAX as BACKSCATTER_PSI_MAX
+from .geometry import shapes
+from .geometry._mesh import (
+    FaceSubset,
+    Mesh,
+    MeshArrays,
+    check_mesh,
+    load_mesh,
+    mesh_arrays,
+    subdivide,
 )
-from ._material import Material
-from ._mesh import FaceSubset, Mesh, MeshArrays, check_mesh, load_mesh, mesh_arrays, subdivide
-from ._polarimetry import (
+from .geometry._rotation import matrix_to_quat, quat_from_axis_angle, quat_to_matrix
+from .geometry._symmetry import MeshSymmetry, mesh_symmetries, symmetry_label
+from .geometry._visibility import VisibilityCaster
+from .materials._library import load_material, material_names
+from .materials._material import Material
+from .optics import _polarimetry as polarimetry
+from .optics._frames import jones_to_mueller, mueller_rotator
+from .optics._fresnel import fresnel_amplitudes, fresnel_mueller_params
+from .optics._polarimetry import (
     cloude_eigenvalues,
     degree_of_polarization,
     depolarization_index,
@@ -29,8 +34,15 @@ from ._polarimetry import (
     polarizance,
     retardance,
 )
-from ._pose import matrix_to_quat, quat_from_axis_angle, quat_to_matrix
-from ._pulse import (
+from .pulse._macro import (
+    MacroGeometry,
+    MacroOptions,
+    MacroPairs,
+    macro_geometry,
+    macro_pairs,
+    stack_macro_pairs,
+)
+from .pulse._pulse import (
     Profile,
     backscatter_terms,
     double_bounce,
@@ -42,10 +54,7 @@ from ._pulse import (
     tent_gaussian_cdf,
     window_size,
 )
-from ._resources import shipped_config, shipped_configs_dir
-from ._scene import Pose, Pulse, RangeBins, Scene, Sensor, load_scene, load_sensor
-from ._symmetry import MeshSymmetry, mesh_symmetries, symmetry_label
-from ._visibility import VisibilityCaster
+from .pulse._scene import Pose, Pulse, RangeBins, Scene, Sensor, load_scene, load_sensor
 
 __all__ = [
     "Material",

@@ -1,6 +1,7 @@
-"""Blinn-Phong microfacet lobe: NDF, lobe averages and visibility (see :mod:`ppr._microfacet`)."""
+"""Blinn-Phong microfacet lobe: NDF, lobe averages and visibility
+(see :mod:`ppr.brdf._microfacet`)."""
 
-from ._microfacet import (
+from .brdf._microfacet import (
     DEFAULT_ORDER,
     DEFAULT_ORDER_F32,
     joint_visibility,

@@ -3,9 +3,9 @@
     python scripts/make_albedo_tables.py                 # explicit terms implemented now
     python scripts/make_albedo_tables.py --terms single  # a given set of explicit terms
 
-For every grid node ``(m, mu)`` of :func:`ppr._albedo.grid_nodes` it integrates the M00 of
+For every grid node ``(m, mu)`` of :func:`ppr.brdf._albedo.grid_nodes` it integrates the M00 of
 ``ppr.mueller_brdf(..., Material.ideal_white(m), terms=<explicit terms>)`` times ``k'.n`` over
-the outgoing hemisphere with the half-vector quadrature of :func:`ppr._albedo.albedo_nodes`
+the outgoing hemisphere with the half-vector quadrature of :func:`ppr.brdf._albedo.albedo_nodes`
 (float64), stores the deficit ``D = 1 - E`` and its hemispherical average, and reports the
 quadrature's self-convergence (the same nodes at doubled order).
 """
@@ -23,9 +23,9 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ppr import _albedo  # noqa: E402
-from ppr._brdf import _single_scalar3, explicit_terms, mueller_brdf  # noqa: E402
-from ppr._material import Material  # noqa: E402
+from ppr.brdf import _albedo  # noqa: E402
+from ppr.brdf._brdf import _single_scalar3, explicit_terms, mueller_brdf  # noqa: E402
+from ppr.materials._material import Material  # noqa: E402
 
 NX, NV = 40, 48
 N_PHI, N_W = 24, 12

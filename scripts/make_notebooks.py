@@ -55,7 +55,7 @@ reflection as Mueller matrices rotated between the beams' frames and each facet'
 plus an energy-conserving depolarizing remainder for light scattered more than once. This
 notebook shows (1) Mueller maps over the outgoing hemisphere, (2) how depolarization grows
 with roughness and bistatic angle, (3) the Lu-Chipman quantities along a bistatic sweep and
-(4) the coherent enhancement peak of the double bounce near exact backscatter. Conventions: `ppr._conventions`; physics notes: `docs/physics.md`.""",
+(4) the coherent enhancement peak of the double bounce near exact backscatter. Conventions: `ppr.optics.conventions`; physics notes: `docs/physics.md`.""",
     SETUP,
     """md:## Materials from the library
 `configs/materials.toml` holds sourced optical constants at 532 and 1064 nm and finish presets
@@ -162,7 +162,7 @@ its incoherent part; away from `psi = 0` the factor follows `1 + gamma(psi)` in 
 channel divided by its own value at 5 deg (where `gamma` is already below 1e-3) is not the
 enhancement factor. Transmitted H; co-pol = analyzer H, cross-pol = analyzer V (frame vector:
 the lab y axis, perpendicular to the plane of incidence).""",
-    """from ppr._double import coherence_factor, double_bounce_term  # no public name for the incoherent part
+    """from ppr.brdf._double import coherence_factor, double_bounce_term  # no public name for the incoherent part
 psi = np.radians(np.linspace(0.0, 5.0, 11 if SMALL else 101))
 th = np.radians(30.0)
 k_out = np.stack([np.sin(th - psi), 0 * psi, np.cos(th - psi)], -1)
@@ -270,7 +270,7 @@ for w in widths:
     """md:## Attitude changes the signature
 Rotating the CubeSat about the line of sight leaves M00 unchanged (up to the polarization
 frame), but tilting it changes both the range profile and the polarization.""",
-    """from ppr._pose import quat_from_axis_angle, quat_multiply
+    """from ppr.geometry._rotation import quat_from_axis_angle, quat_multiply
 q0 = np.asarray(scene.pose.quaternion)
 fig, ax = plt.subplots(figsize=(8, 3.6))
 for deg in ([0, 20] if SMALL else [0, 10, 20, 40]):
@@ -404,14 +404,14 @@ complex index `n`, the range offset and the gain: a multi-start Levenberg-Marqua
 (optimistix) from perturbed starts (in practice: the classifier's top candidates), then the
 posterior with emcee (log-probability jitted and vectorized over walkers with `jax.vmap`).
 In small mode the forward model uses the simulator's cheap polarizing stand-in BRDF
-(`ppr._pulse.glossy_fresnel_mueller`, smooth in attitude, m and n) and a short chain, so the
+(`ppr.pulse._pulse.glossy_fresnel_mueller`, smooth in attitude, m and n) and a short chain, so the
 notebook runs in the test suite; set `PPR_SMALL=0` for the full BRDF and a converged chain.""",
     SETUP,
     """import inversion
 from inversion._noise import MeasurementModel
 from inversion._params import PhysicalParams, quat_angle_deg
 from inversion._refine import SimulatorModel
-from ppr._pulse import glossy_fresnel_mueller
+from ppr.pulse._pulse import glossy_fresnel_mueller
 
 n_bins = 32
 scene = ppr.Scene(ppr.shapes.cubesat(1), (ppr.Material(1.5, 10.0),), ppr.Pose([1.0, 0, 0, 0]),

@@ -1,9 +1,9 @@
-"""Physics and numerics of the assembled Mueller BRDF (ppr._brdf, issue 2).
+"""Physics and numerics of the assembled Mueller BRDF (ppr.brdf._brdf, issue 2).
 
 References are independent of the kernel: closed forms (monostatic backscatter), the
 reciprocity theorem (derived below), Cloude realizability, limits (mirror at large m,
-near-Lambertian at m = 0), an AoS reassembly from the public pieces of ppr._microfacet and
-ppr._frames, finite differences, loops vs vmap.
+near-Lambertian at m = 0), an AoS reassembly from the public pieces of ppr.brdf._microfacet and
+ppr.optics._frames, finite differences, loops vs vmap.
 """
 
 from __future__ import annotations
@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 
 import ppr
-from ppr import _albedo
-from ppr._brdf import mueller_brdf
-from ppr._frames import default_frame, facet_mueller_in_beam_frames, jones_to_mueller
-from ppr._material import Material
-from ppr._microfacet import joint_visibility, mean_cosine_n, ndf, visibility
-from ppr._polarimetry import cloude_eigenvalues
+from ppr.brdf import _albedo
+from ppr.brdf._brdf import mueller_brdf
+from ppr.brdf._microfacet import joint_visibility, mean_cosine_n, ndf, visibility
+from ppr.materials._material import Material
+from ppr.optics._frames import default_frame, facet_mueller_in_beam_frames, jones_to_mueller
+from ppr.optics._polarimetry import cloude_eigenvalues
 
 Z = np.array([0.0, 0.0, 1.0])
 
@@ -86,7 +86,7 @@ def test_reciprocity_transform_of_jones_transpose():
     """Derivation check. Reciprocity (Saxon) for the scattering dyadic: S(k_in -> k_out) seen
     from the reversed path is S^T. With reversed-path frames x_in' = x_out, x_out' = x_in the
     y axes flip (y = d x x with d reversed), so J_rev = D J^T D, D = diag(1, -1). In the
-    Stokes convention of ppr._conventions, Mueller(J^T) = diag(1,1,1,-1) M^T diag(1,1,1,-1)
+    Stokes convention of ppr.optics.conventions, Mueller(J^T) = diag(1,1,1,-1) M^T diag(1,1,1,-1)
     and Mueller(D X D) = diag(1,1,-1,-1) Mueller(X) diag(1,1,-1,-1), so
     M_rev = Q M^T Q with Q = diag(1, 1, -1, 1). Checked here on random Jones matrices."""
     rng = np.random.default_rng(0)
@@ -143,7 +143,8 @@ def test_realizable_random(dtype):
 
 def test_single_term_equals_assembly_of_public_pieces():
     """Single term = ndf(h.n) P(k|k') / (4 <h.n> (k.n)(k'.n)) x facet Mueller in the beam
-    frames, each piece from the public functions of ppr._microfacet / ppr._frames (AoS)."""
+    frames, each piece from the public functions of ppr.brdf._microfacet / ppr.optics._frames
+    (AoS)."""
     rng = np.random.default_rng(3)
     n = 200
     ki, ko = _random_upper(rng, n), _random_upper(rng, n)
@@ -328,10 +329,10 @@ def test_vmap_equals_loop_and_broadcasting():
     # broadcasting: (3, 1, 3) x (1, 4, 3) -> (3, 4, 4, 4)
     out = mueller_brdf(ki[:3, None], ko[None, :4], Z, Material(n=1.5, m=10.0), terms=CORE)
     assert out.shape == (3, 4, 4, 4)
-    # eager calls are padded to a bucket (ppr._brdf.eager_bucket; the comparisons with the
+    # eager calls are padded to a bucket (ppr.brdf._brdf.eager_bucket; the comparisons with the
     # traced vmap above check the padded results): (2, 6) is another shape of 12 rows, so
     # it reuses the program of (3, 4)
-    from ppr._brdf import _brdf_core
+    from ppr.brdf._brdf import _brdf_core
 
     n0 = _brdf_core._cache_size()
     out26 = mueller_brdf(ki[:2, None], ko[None, :6], Z, Material(n=1.5, m=10.0), terms=CORE)
@@ -345,10 +346,10 @@ def test_vmap_equals_loop_and_broadcasting():
 
 
 def test_eager_bucket_sizes():
-    """Eager calls pad their flattened batch to ppr._brdf.eager_bucket(n): at least n, at most
+    """Eager calls pad their flattened batch to ppr.brdf._brdf.eager_bucket(n): at least n, at most
     25 % more above 8 rows (the padded results are checked against the traced path in
     test_vmap_equals_loop_and_broadcasting)."""
-    from ppr._brdf import eager_bucket
+    from ppr.brdf._brdf import eager_bucket
 
     assert [eager_bucket(n) for n in (1, 8, 9, 17, 100, 4096, 4097)] == [
         8,
@@ -369,7 +370,7 @@ def test_terms_add_up_and_registry_errors():
     rng = np.random.default_rng(8)
     ki, ko = _random_upper(rng, 10), _random_upper(rng, 10)
     mat = Material(n=0.94 + 6.42j, m=3.0)
-    names = ppr._brdf.implemented_terms()
+    names = ppr.brdf._brdf.implemented_terms()
 
     @jax.jit  # one compilation for the full model and every term alone
     def full_and_parts(ki, ko):
@@ -380,7 +381,7 @@ def test_terms_add_up_and_registry_errors():
     np.testing.assert_allclose(np.asarray(full), np.asarray(parts), rtol=1e-13)
     with pytest.raises(ValueError, match="terms"):
         mueller_brdf(ki, ko, Z, mat, terms=("singel",))
-    if "double" not in ppr._brdf.implemented_terms():
+    if "double" not in ppr.brdf._brdf.implemented_terms():
         with pytest.raises(NotImplementedError, match="double"):
             mueller_brdf(ki, ko, Z, mat, terms=("double",))
     # the multiple term is depolarizing: only M00
@@ -462,7 +463,7 @@ def test_unchecked_variant_same_values_no_host_callback():
     written), and concrete bad input still raises."""
     import re
 
-    from ppr._brdf import mueller_brdf_unchecked
+    from ppr.brdf._brdf import mueller_brdf_unchecked
 
     rng = np.random.default_rng(5)
     k, kp = rng.normal(size=(2, 64, 3))
@@ -506,7 +507,7 @@ def test_white_material_is_perfect_conductor_facets():
     Mc = np.asarray(mueller_brdf(ki, ko, Z, Material(n=1 + 1e6j, m=20.0), terms="single"))
     scale = np.max(np.abs(Mw), axis=(-2, -1), keepdims=True) + 1e-300
     np.testing.assert_allclose(Mc / scale, Mw / scale, atol=1e-5)
-    assert math.isclose(float(ppr._brdf.fresnel_average(Material.ideal_white(1.0))), 1.0)
+    assert math.isclose(float(ppr.brdf._brdf.fresnel_average(Material.ideal_white(1.0))), 1.0)
 
 
 @pytest.mark.parametrize("dtype, tol", [(np.float32, 2e-5), (np.float64, 1e-12)])

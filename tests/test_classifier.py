@@ -208,7 +208,7 @@ def test_ppr_adapter_matches_simulate():
     import ppr
     from inversion._noise import MeasurementModel, measure
     from inversion._ppr_adapter import PprSignatures
-    from ppr._pulse import lambertian_mueller
+    from ppr.pulse._pulse import lambertian_mueller
 
     mm = MeasurementModel.preset("stokes")
     fn = PprSignatures(

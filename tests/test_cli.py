@@ -724,7 +724,7 @@ def test_ctrl_c_and_sigterm_keep_previous_outputs(tmp_path, capsys, monkeypatch)
     import signal
     import time
 
-    from ppr import _image
+    from ppr.image import _image
 
     cfg = _write(tmp_path / "b.toml", BRDF_OK)
     out = tmp_path / "out"

@@ -18,7 +18,7 @@ import numpy as np
 from compile_level import optimized, unoptimized
 
 from ppr import Material
-from ppr._brdf import mueller_brdf
+from ppr.brdf._brdf import mueller_brdf
 
 
 def _upper(rng, n):

@@ -66,7 +66,7 @@ def test_deprecated_key_is_converted_warns_once_and_errors_name_it(tmp_path, mon
     one warning per key; an error at it names the key and the value as written."""
     from ppr import _config
     from ppr._config import ConfigDeprecationWarning
-    from ppr._scene import PulseConfig
+    from ppr.pulse._scene import PulseConfig
 
     monkeypatch.setattr(_config, "_WARNED", set())  # whatever warned earlier in this process
 

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ppr._frames import (
+from ppr.optics._frames import (
     A_STOKES,
     facet_jones_in_beam_frames,
     facet_mueller_in_beam_frames,
@@ -145,7 +145,7 @@ def test_mirror_reverses_handedness_any_frame():
 
 
 def test_fresnel_normal_incidence_sign():
-    from ppr._fresnel import fresnel_amplitudes
+    from ppr.optics._fresnel import fresnel_amplitudes
 
     rs, rp = fresnel_amplitudes(1.5, 1.0)
     assert complex(rs) == pytest.approx(-0.2, abs=1e-15)
@@ -183,7 +183,7 @@ def test_named_circular_states_rotation_sense():
     # clockwise for an observer looking toward the source, i.e. left-handed about the
     # propagation direction d: ppr's S3 = -1. "L" is the opposite (S3 = +1; IEEE's right-hand).
     from inversion._noise import STATES
-    from ppr._pulse import STOKES_STATES
+    from ppr.pulse._pulse import STOKES_STATES
 
     assert STATES == STOKES_STATES  # one naming in ppr and inversion
     expect = {"R": -1, "L": +1}

@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 
 from ppr import Material, mueller_brdf
-from ppr import _double as D
-from ppr import _double_table as T
-from ppr._polarimetry import cloude_eigenvalues
-from ppr._pulse import backscatter_terms
-from ppr._sampling import bistatic_geometry
+from ppr.brdf import _double as D
+from ppr.brdf import _double_table as T
+from ppr.brdf._sampling import bistatic_geometry
+from ppr.optics._polarimetry import cloude_eigenvalues
+from ppr.pulse._pulse import backscatter_terms
 
 AL = 0.94 + 6.42j  # aluminium 532 nm
 AU = 0.47 + 2.4j  # gold 532 nm

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ppr._frames import (
+from ppr.optics._frames import (
     default_frame,
     facet_jones_in_beam_frames,
     facet_mueller_in_beam_frames,
@@ -17,8 +17,8 @@ from ppr._frames import (
     rotation_cos_sin,
     rotation_cos_sin_2a,
 )
-from ppr._fresnel import fresnel_amplitudes, fresnel_amplitudes_re, fresnel_mueller_params
-from ppr._fresnel import fresnel_mueller_params as pol_params
+from ppr.optics._fresnel import fresnel_amplitudes, fresnel_amplitudes_re, fresnel_mueller_params
+from ppr.optics._fresnel import fresnel_mueller_params as pol_params
 
 RNG = np.random.default_rng(7)
 METALS = [0.94 + 6.42j, 1.38 + 10.25j, 0.54 + 2.23j, 0.054 + 3.43j, 1 + 10j, 0.2 + 7j]
@@ -202,7 +202,7 @@ def test_facet_mueller_equals_rotated_jones():
     rows = jax.jit(facet_mueller_rows)(n.real, n.imag, *comps)
     np.testing.assert_allclose(np.array(rows).transpose(2, 0, 1), np.array(M), atol=1e-15)
     # realizable (Jones-derived): Cloude coherency has one eigenvalue M00, the rest ~0
-    from ppr._polarimetry import _COHERENCY_BASIS
+    from ppr.optics._polarimetry import _COHERENCY_BASIS
 
     H = 0.25 * np.einsum("nij,ijab->nab", np.array(M), _COHERENCY_BASIS)
     w = np.linalg.eigvalsh(H)
@@ -313,10 +313,10 @@ def _rotation_case(seed: int, n: int = 64):
 
 
 def test_rotate_mueller_flat_and_materialize():
-    """The (16, 36) monomial map of ppr._frames.rotate_mueller_flat equals the explicit
+    """The (16, 36) monomial map of ppr.optics._frames.rotate_mueller_flat equals the explicit
     product R(b) M R(a) of mueller_rotator matrices (any M, including non-physical), and
     materialize (identity dot) returns its inputs bit for bit."""
-    from ppr._frames import materialize, rotate_mueller_flat
+    from ppr.optics._frames import materialize, rotate_mueller_flat
 
     rng, M, cs, ref = _rotation_case(11)
     n = M.shape[0]
@@ -331,11 +331,11 @@ def test_rotate_mueller_flat_and_materialize():
 
 
 def test_rotate_mueller_44_and_store():
-    """ppr._frames.rotate_mueller_44 (column and row reversals against constant patterns) equals
-    the explicit product R(b) M R(a) of mueller_rotator matrices for any M, batched and
+    """ppr.optics._frames.rotate_mueller_44 (column and row reversals against constant patterns)
+    equals the explicit product R(b) M R(a) of mueller_rotator matrices for any M, batched and
     broadcast; store (identity dot on rows of gcd(size, 8)) returns its input bit for bit,
     sizes without a factor 2 included, and keeps gradients."""
-    from ppr._frames import rotate_mueller_44, store
+    from ppr.optics._frames import rotate_mueller_44, store
 
     rng, M, cs, ref = _rotation_case(12)
     got = jax.jit(rotate_mueller_44)(jnp.asarray(M), *cs)

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ppr import Material
-from ppr._brdf import mueller_brdf
+from ppr.brdf._brdf import mueller_brdf
 
 AL = 0.94 + 6.42j  # aluminium 532 nm
 INDICES = [AL, 1.5 + 0j, 0.2 + 7j, 1.0 + 10j, 1.0 + 0j]

@@ -1,4 +1,4 @@
-"""``ppr image`` / ``ppr._image``: per-pixel Mueller images against closed forms.
+"""``ppr image`` / ``ppr.image._image``: per-pixel Mueller images against closed forms.
 
 A sphere of one material seen along -z: the pixel at image coordinates (u, v) sees the
 sphere point with normal ``(u, v, sqrt(1 - u^2 - v^2))`` (radius 1), so its local incidence
@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 import ppr
-from ppr import _image, cli
+from ppr import cli
+from ppr.image import _image
 
 BRDF = ppr.mueller_brdf
 

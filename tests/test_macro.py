@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 
 import ppr
-from ppr import _macro, shapes
-from ppr._mesh import concatenate
-from ppr._pulse import _macro_jit, lambertian_mueller, stack_materials
+from ppr.geometry import shapes
+from ppr.geometry._mesh import concatenate
+from ppr.pulse import _macro
+from ppr.pulse._pulse import _macro_jit, lambertian_mueller, stack_materials
 
 N_BINS = 128
 WIDTH = 0.02  # 2.56 m gate: holds a 1 m dihedral seen from any direction
@@ -102,7 +103,7 @@ def _binned_pulse(r0, sigma):
 
 
 def _lobe_reference(n, m, u, normals):
-    """Brute-force two-bounce lobe at retro-reflection (:func:`ppr._macro.two_bounce_lobe`,
+    """Brute-force two-bounce lobe at retro-reflection (:func:`ppr.pulse._macro.two_bounce_lobe`,
     float64), in the frames of ``_scene``'s sensor (x reference projected off ``u``)."""
     x_ref = np.array([1.0, 0, 0]) - u[0] * u
     x_ref /= np.linalg.norm(x_ref)
@@ -184,7 +185,7 @@ def _square_view_factor():
 def test_broad_pairs_converge_to_the_lambertian_view_factor():
     """Lambertian (1/pi) squares in an L, fully lit and seen: the double bounce is
     (1/pi) A F [cos_in(A) cos_out(B) + cos_in(B) cos_out(A)] with the analytic view factor F.
-    The point-to-solid-angle nodes (:func:`ppr._macro.broad_nodes`) integrate it with errors
+    The point-to-solid-angle nodes (:func:`ppr.pulse._macro.broad_nodes`) integrate it with errors
     1.6e-3, 8.2e-5, 2.4e-6 for 1, 2, 4 sub-triangles per edge (rule 3, order 16): far faster
     than first order (centroid or area-to-area Gauss rules stop there, at the 1/r^2 of the
     shared edge). Through the kernel (level 2, order 12: 7.9e-5) the profile total agrees,
@@ -296,7 +297,7 @@ def test_mirror_image_attitude_gives_the_mirrored_double_bounce():
     mats = [ppr.Material(AL, 1e4)] * 3
     out = []
     for r in (rot, world @ rot @ sigma):
-        q = np.asarray(ppr._pose.matrix_to_quat(r))
+        q = np.asarray(ppr.geometry._rotation.matrix_to_quat(r))
         out.append(_double(_scene(_dihedral(), r.T @ np.array([0, 0, 1.0]), mats, q=q))[0])
     d = np.diag([1.0, 1.0, -1.0, -1.0])
     np.testing.assert_allclose(

@@ -8,14 +8,14 @@ import pytest
 
 from ppr import Material
 from ppr._config import ConfigError
-from ppr._fresnel import fresnel_mueller_params
-from ppr._library import (
+from ppr.materials._library import (
     finish_names,
     index_entry,
     load_library,
     load_material,
     material_names,
 )
+from ppr.optics._fresnel import fresnel_mueller_params
 
 REQUIRED = ["aluminium", "gold", "silver", "fused_silica", "white_paint_tio2", "kapton"]
 

@@ -7,9 +7,9 @@ from scipy.spatial.transform import Rotation
 
 import ppr
 from ppr import shapes
-from ppr._mesh import capacity_for
-from ppr._pose import check_quaternion, matrix_to_quat, quat_multiply
-from ppr._visibility import VisibilityCaster, barycentric_samples
+from ppr.geometry._mesh import capacity_for
+from ppr.geometry._rotation import check_quaternion, matrix_to_quat, quat_multiply
+from ppr.geometry._visibility import VisibilityCaster, barycentric_samples
 
 # ----------------------------------------------------------------------------- shapes
 
@@ -306,7 +306,7 @@ def _two_plates(offset_x):
     front = shapes.plate(1.0, part="front")
     front = ppr.Mesh(np.asarray(front.vertices) + [offset_x, 0, 1.0], front.faces, None, ("front",))
     back = shapes.plate(1.0, subdivisions=4, part="back")
-    return ppr._mesh.concatenate([front, back])
+    return ppr.geometry._mesh.concatenate([front, back])
 
 
 def test_hidden_plate_gets_zero_and_half_hidden_half():

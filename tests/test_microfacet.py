@@ -17,8 +17,8 @@ import mpmath as mp
 import numpy as np
 import pytest
 
-from ppr import _microfacet as _mfi
 from ppr import microfacet as mf
+from ppr.brdf import _microfacet as _mfi
 
 DATA = pathlib.Path(__file__).parent / "data"
 STIFF_M = [0.0, 1e-3, 1.0, 1e3, 5e3, 1e4, 1e6]
@@ -372,7 +372,7 @@ def _values_and_grads(m, c):
 @pytest.mark.parametrize("frac", [0.0, 0.03, 0.2, 0.4, 0.8])
 def test_compacted_quadrature_equals_whole_batch(reference, frac):
     """Large batches evaluate the quadrature only on the elements that need it (gathered into
-    a static capacity, ppr._microfacet._correction_impl). The skip must be exact: values and
+    a static capacity, ppr.brdf._microfacet._correction_impl). The skip must be exact: values and
     the custom-JVP partials equal the per-element evaluation of small chunks (which take the
     whole-batch path), for needed fractions landing in every capacity bucket, and the
     accuracy against mpmath is unchanged in the compacted path."""
@@ -397,7 +397,7 @@ def test_compacted_quadrature_equals_whole_batch(reference, frac):
 
 def test_node_axis_equals_node_loop(monkeypatch):
     """The quadrature sums its nodes either on a node axis (value-only calls of small
-    batches, ppr._microfacet.NODE_AXIS_MAX) or in a loop: the same sum in another order, so
+    batches, ppr.brdf._microfacet.NODE_AXIS_MAX) or in a loop: the same sum in another order, so
     the value and both partials agree to rounding in float64, on elements that need the
     correction (grazing, rough to smooth) and elements that do not."""
     rng = np.random.default_rng(5)
@@ -445,7 +445,7 @@ def test_vmap_over_batches_equals_flat_batch():
 
 @pytest.mark.parametrize("dtype, tol", [(np.float32, 2e-6), (np.float64, 1e-9)])
 def test_visibility_one_material_matches_mpmath(reference, dtype, tol):
-    """The per-material table (ppr._microfacet.visibility_one_material, used by the float32
+    """The per-material table (ppr.brdf._microfacet.visibility_one_material, used by the float32
     BRDF) against the mpmath grid (incidence to 89.999 deg, m from 0 to 1e6). float32: at the
     level of the float32 quadrature (measured 1.0e-6 vs 1.1e-6 on random cosines); float64
     with its 1024 nodes: 1e-9 (measured 5.5e-10)."""

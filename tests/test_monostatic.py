@@ -1,5 +1,5 @@
 """The exact-backscatter kernel of ``ppr.mueller_brdf`` (``k_out`` the same array as ``k_in``,
-``ppr._brdf._mono_core``).
+``ppr.brdf._brdf._mono_core``).
 
 Reference: the general kernel, which the rest of the suite checks against closed forms,
 quadrature, brute force and the white furnace, called with ``k_in`` and ``k_out`` as two
@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 
 from ppr import Material, mueller_brdf
-from ppr._brdf import _same_direction
-from ppr._polarimetry import cloude_eigenvalues
+from ppr.brdf._brdf import _same_direction
+from ppr.optics._polarimetry import cloude_eigenvalues
 
 AL = 0.94 + 6.42j  # aluminium 532 nm
 TIO2 = 2.67 + 0.0j

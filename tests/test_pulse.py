@@ -16,8 +16,8 @@ from scipy import integrate, stats
 
 import ppr
 from ppr import shapes
-from ppr._conventions import C_LIGHT
-from ppr._pulse import (
+from ppr.optics.conventions import C_LIGHT
+from ppr.pulse._pulse import (
     STOKES_STATES,
     glossy_fresnel_mueller,
     lambertian_mueller,
@@ -307,7 +307,7 @@ def test_joint_rotation_of_object_and_sensor_leaves_profile_unchanged():
         ),
         532e-9,
     )
-    q1 = np.asarray(ppr._pose.quat_multiply(g, q0))
+    q1 = np.asarray(ppr.geometry._rotation.quat_multiply(g, q0))
     p1 = ppr.simulate(
         _scene(mesh, q1, sensor=sensor1, materials=mats),
         brdf=glossy_fresnel_mueller,
@@ -345,7 +345,7 @@ def test_mirror_image_scene_gives_mirrored_mueller_profile(mesh_fn, mat):
 
     assert mesh_has_mirror(mesh, sigma[2])  # as a surface, parts included
     q = _random_rotation(11)
-    q_mirror = ppr._pose.matrix_to_quat(world @ np.asarray(ppr.quat_to_matrix(q)) @ sigma)
+    q_mirror = ppr.matrix_to_quat(world @ np.asarray(ppr.quat_to_matrix(q)) @ sigma)
     mats = (
         [mat]
         if mat is not None
@@ -431,7 +431,7 @@ def _stack(front_offset, back_sub=4):
         np.asarray(front.vertices) + [front_offset, 0, 0.2], front.faces, None, ("front",)
     )
     back = shapes.plate(1.0, subdivisions=back_sub, part="back")
-    return ppr._mesh.concatenate([front, back]), front, back
+    return ppr.geometry._mesh.concatenate([front, back]), front, back
 
 
 def test_hidden_plate_contributes_nothing_and_half_hidden_half():
@@ -606,8 +606,8 @@ def test_one_part_mesh_takes_the_one_material_path():
     """A one-part mesh rendered with materials listed for three parts uses its part's material
     unbatched (the BRDF's one-material fast paths: tabulated visibility, folded double table)
     and agrees with the per-element path; float32, full BRDF at backscatter."""
-    from ppr._brdf import mueller_brdf
-    from ppr._pulse import _render_jit, single_part
+    from ppr.brdf._brdf import mueller_brdf
+    from ppr.pulse._pulse import _render_jit, single_part
 
     mesh = shapes.sphere(0.3, subdivisions=2)
     arrays = ppr.mesh_arrays(mesh, dtype=jnp.float32)
@@ -628,7 +628,7 @@ def test_one_part_mesh_takes_the_one_material_path():
     kw = dict(n_bins=256, window=32, projection=None, brdf=mueller_brdf)
     rng = (jnp.float32(SIGMA_R), jnp.float32(-0.64), jnp.float32(0.005))
     fast = render(*args, *rng, **kw)
-    terms = ppr._pulse.sensor_terms(mueller_brdf, None, sensor)
+    terms = ppr.pulse._pulse.sensor_terms(mueller_brdf, None, sensor)
     per_element = _render_jit(*args, *rng, **kw, terms=terms, part=None)
     scale = float(jnp.abs(per_element[0]).max())
     np.testing.assert_allclose(np.asarray(fast), np.asarray(per_element), atol=2e-5 * scale)
@@ -638,7 +638,7 @@ def test_one_part_mesh_takes_the_one_material_path():
 def test_sort3_equals_jnp_sort_values_and_tangents_at_ties():
     """The select network that orders facet depths is a permutation: values and tangents as
     jnp.sort, including two and three equal depths (where min/max would split tangents)."""
-    from ppr._pulse import _sort3
+    from ppr.pulse._pulse import _sort3
 
     rng = np.random.default_rng(0)
     x = rng.normal(size=(200, 3))
@@ -755,7 +755,7 @@ def test_real_brdf_wiring_energy_and_frames():
     of mueller_brdf(k_in = laser, k_out = receiver, facet normal, frames = sensor frames)
     times cos_in cos_out A v, computed here directly in world coordinates. Single-bounce term
     only (the polarizing one; keeps the two compilations of the BRDF affordable)."""
-    from ppr._brdf import mueller_brdf
+    from ppr.brdf._brdf import mueller_brdf
 
     mesh = shapes.cubesat_with_panels(3)
     mats = [ppr.Material(0.94 + 6.42j, 200.0), ppr.Material(1.46, 2000.0), ppr.Material(2.67, 5.0)]
@@ -819,8 +819,8 @@ def test_concrete_render_drops_the_traced_checks_and_checks_on_the_host():
     through that path). The checks then run on the host: a material edited past its own
     checks (``eqx.tree_at``) or a non-finite pose still raise, naming the field. Traced
     materials or poses keep the traced checks."""
-    from ppr._brdf import mueller_brdf, mueller_brdf_unchecked
-    from ppr._pulse import _unchecked_if_concrete
+    from ppr.brdf._brdf import mueller_brdf, mueller_brdf_unchecked
+    from ppr.pulse._pulse import _unchecked_if_concrete
 
     mats = stack_materials([ppr.Material(0.94 + 6.42j, 20.0), ppr.Material(1.46, 3.0)])
     pose = ppr.Pose(_random_rotation(4))
@@ -851,14 +851,14 @@ def test_normal_groups_change_nothing_values_and_gradients():
     profile as one BRDF per facet (real mueller_brdf, default terms at backscatter: single +
     tabulated double + multiple; three materials; pruned facets; float64) and the same
     gradients in attitude, roughness and index (polarizing stand-in BRDF)."""
-    from ppr._brdf import mueller_brdf
+    from ppr.brdf._brdf import mueller_brdf
 
     mesh = shapes.cubesat_with_panels(3, max_edge=0.1)
     grouped = ppr.mesh_arrays(mesh)
     flat = ppr.mesh_arrays(mesh, group=False)
     # ~500 faces, 12 distinct (normal, part) pairs; each face's group normal is its own, bitwise
     cap = flat.normals.shape[0]
-    assert mesh.n_faces > 400 and ppr._mesh.n_normal_groups(mesh) == 12
+    assert mesh.n_faces > 400 and ppr.geometry._mesh.n_normal_groups(mesh) == 12
     assert grouped.group_normals.shape == (64, 3) and flat.group_normals.shape == (cap, 3)
     g_of = np.asarray(grouped.normal_group)[: mesh.n_faces]
     np.testing.assert_array_equal(
@@ -989,7 +989,7 @@ def test_ideal_white_plate_monostatic_return_and_double_bounce_flag():
     ``double_bounce`` gets the flag too: with a stand-in BRDF that is Lambertian for a white
     material and 0 otherwise, a white dihedral returns exactly what the Lambertian stand-in
     returns (before, stacking dropped the flag and both paths rendered 0)."""
-    from ppr._pulse import double_bounce
+    from ppr.pulse._pulse import double_bounce
 
     m, side = 1000.0, 0.5
     mesh = shapes.plate(side)
@@ -1010,7 +1010,7 @@ def test_ideal_white_plate_monostatic_return_and_double_bounce_flag():
     a = ppr.Mesh(np.asarray(a.vertices) + [0.1, 0, 0], a.faces, None, ("floor",))
     b = shapes.plate(0.2, subdivisions=2)
     b = ppr.Mesh(np.asarray(b.vertices) @ rot.T + [0, 0, 0.1], b.faces, None, ("wall",))
-    dihedral = ppr._mesh.concatenate([a, b])
+    dihedral = ppr.geometry._mesh.concatenate([a, b])
     sensor = ppr.Sensor.make(-np.array([1.0, 0.3, 1.0]) / np.linalg.norm([1.0, 0.3, 1.0]))
     scene = _scene(dihedral, sensor=sensor, materials=[white, white], samples=4)
     got = double_bounce(scene, brdf=white_lambertian)

@@ -24,8 +24,8 @@ from inversion._params import (
     rotvec_from_quat,
 )
 from inversion._refine import GaussianNoise, PoissonNoise, check_observation, refine
-from ppr._fresnel import fresnel_mueller_params
 from ppr._safe import safe_div, safe_pow
+from ppr.optics._fresnel import fresnel_mueller_params
 
 STATES = np.array([[1, 1, 0, 0], [1, -1, 0, 0], [1, 0, 1, 0], [1, 0, 0, 1]], float)
 
@@ -681,7 +681,7 @@ def _simulator_model(n_bins=32):
     import ppr
     from inversion._noise import MeasurementModel
     from inversion._refine import SimulatorModel
-    from ppr._pulse import glossy_fresnel_mueller
+    from ppr.pulse._pulse import glossy_fresnel_mueller
 
     mesh = ppr.shapes.cubesat(1)  # 0.1 m cube, 12 faces
     scene = ppr.Scene(

@@ -7,8 +7,8 @@ import pytest
 
 import ppr
 from ppr._config import ConfigError
-from ppr._conventions import C_LIGHT
-from ppr._scene import FWHM_TO_SIGMA
+from ppr.optics.conventions import C_LIGHT
+from ppr.pulse._scene import FWHM_TO_SIGMA
 
 SCENES = "configs/scenes"
 

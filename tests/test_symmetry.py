@@ -12,7 +12,7 @@ import pytest
 import trimesh
 
 import ppr
-from ppr._symmetry import _Faces
+from ppr.geometry._symmetry import _Faces
 
 ROT = trimesh.transformations.euler_matrix(0.3, -1.1, 2.0)[:3, :3]
 SHIFT = np.array([1.0, -2.0, 0.5])

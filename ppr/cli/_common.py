@@ -154,8 +154,8 @@ def resolve_material(spec: Any, wavelength: float, field: str, cfg_path: Path):
     Specs: a library name (``"aluminium"``, default finish) or ``"name/finish"``
     (``"aluminium/rough"``; see configs/materials.toml), or an inline table
     ``{n_real, n_imag, m, corr_length_m}`` as in scene configs."""
-    from .. import _scene
-    from .._library import load_material
+    from ..materials._library import load_material
+    from ..pulse import _scene
 
     if isinstance(spec, dict):
         spec = sub_model(_scene.InlineMaterial, spec, cfg_path, field)

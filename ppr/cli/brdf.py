@@ -115,7 +115,7 @@ def brdf_geometry(incidence_deg, bistatic_deg, plane: str):
 
 def polarimetry(mueller: np.ndarray) -> dict[str, np.ndarray]:
     """Depolarization index, polarizance, diattenuation, retardance of normalized matrices."""
-    from .._image import polarimetric_maps
+    from ..image._image import polarimetric_maps
 
     out = polarimetric_maps(mueller, np.ones(mueller.shape[:-2]))
     out.pop("reflectance")
@@ -137,7 +137,7 @@ def run(args) -> int:
     c.maybe_x64(cfg.dtype)
     mat = c.resolve_material(cfg.material, cfg.wavelength_nm * 1e-9, "material", cfg_path)
     with c.outputs(args.out, OUTPUTS, args.overwrite) as out:
-        from .. import _image
+        from ..image import _image
         from ..plots import plot_brdf_sweep
 
         bis = (

@@ -19,19 +19,19 @@ EXAMPLES = [
 
 
 def _brdf(out):
-    from ..demo import brdf_figures
+    from ..plots._demo import brdf_figures
 
     return brdf_figures(out)
 
 
 def _double(out):
-    from .._double import double_figures
+    from ..brdf._double import double_figures
 
     return double_figures(out)
 
 
 def _pulse(out):
-    from ..plots_pulse import pulse_figures
+    from ..plots._pulse import pulse_figures
 
     return pulse_figures(out)
 

@@ -43,7 +43,7 @@ class ViewConfig(c.StrictModel):
 
     @pydantic.model_validator(mode="after")
     def _geometry(self):
-        from .. import _scene
+        from ..pulse import _scene
 
         _scene.check_sensor_fields(
             self.line_of_sight,
@@ -84,7 +84,7 @@ class ImageConfig(c.StrictModel):
         None,
         description='a parametric shape (ppr.shapes), e.g. {name = "sphere", params = {radius '
         "= 0.5}}",
-        json_schema_extra={"schema": "ppr._scene:ShapeConfig"},
+        json_schema_extra={"schema": "ppr.pulse._scene:ShapeConfig"},
     )
     materials: dict[str, Any] = pydantic.Field(
         {},
@@ -95,7 +95,7 @@ class ImageConfig(c.StrictModel):
     pose: dict[str, Any] | None = pydantic.Field(
         None,
         description="body -> world attitude (quaternion [w, x, y, z]) and position",
-        json_schema_extra={"schema": "ppr._scene:PoseConfig"},
+        json_schema_extra={"schema": "ppr.pulse._scene:PoseConfig"},
     )
     view: ViewConfig | None = pydantic.Field(None, description="sensor geometry")
     render: RenderConfig = pydantic.Field(RenderConfig(), description="image settings")
@@ -147,7 +147,7 @@ def load(args):
 
 def part_mesh_from_ppr_mesh(mesh, smooth: bool = False):
     """Adapter from :class:`ppr.Mesh`-like objects (vertices, faces, material_ids, parts)."""
-    from .. import _image
+    from ..image import _image
 
     verts = np.asarray(mesh.vertices, float)
     faces = np.asarray(mesh.faces, np.int64)
@@ -167,9 +167,11 @@ def part_mesh_from_ppr_mesh(mesh, smooth: bool = False):
 
 def image_inputs(cfg: ImageConfig, cfg_path: Path):
     """Resolve an image config to ``(part mesh, materials, sensor, quaternion)``."""
-    from .. import _image, _scene, shapes
-    from .._mesh import load_mesh
-    from .._pose import check_quaternion
+    from ..geometry import shapes
+    from ..geometry._mesh import load_mesh
+    from ..geometry._rotation import check_quaternion
+    from ..image import _image
+    from ..pulse import _scene
 
     smooth = cfg.render.shading == "smooth"
     if cfg.scene is not None:
@@ -234,7 +236,7 @@ def image_inputs(cfg: ImageConfig, cfg_path: Path):
 def run_image(cfg: ImageConfig, cfg_path: Path, progress: bool = False, inputs=None):
     """Render the image a config describes (used by ``ppr image`` and ``ppr demo``);
     ``inputs``: :func:`image_inputs` of the config if already resolved."""
-    from .. import _image
+    from ..image import _image
 
     c.maybe_x64(cfg.render.dtype)
     mesh, mats, sensor, quat = image_inputs(cfg, cfg_path) if inputs is None else inputs
@@ -261,7 +263,7 @@ def run_image(cfg: ImageConfig, cfg_path: Path, progress: bool = False, inputs=N
 
 def write_image_outputs(img, cfg, cfg_path, out: c.Outputs, prefix: str = "image", seconds=None):
     """``image.npz``, the two PNGs and ``image.json`` (per-part means of the quantities)."""
-    from .. import _image
+    from ..image import _image
 
     np.savez_compressed(out.path(f"{prefix}.npz"), **img.arrays())
     what = cfg.scene or cfg.mesh or (cfg.shape or {}).get("name", "shape")

@@ -181,7 +181,7 @@ def run(args) -> int:
     chm = inversion.MeasurementModel.preset(cfg.channels).channel_matrix()
     brdf = None
     if cfg.brdf == "glossy":
-        from .._pulse import glossy_fresnel_mueller as brdf
+        from ..pulse._pulse import glossy_fresnel_mueller as brdf
     model = inversion.SimulatorModel(scene, chm, brdf=brdf, dense=True)
     mats = scene.materials
     truth = inversion.PhysicalParams(

@@ -22,7 +22,7 @@ EXAMPLES = [
 
 
 def help_text() -> str:
-    from .. import _scene
+    from ..pulse import _scene
 
     return describe(
         "Simulate the range-resolved return of a scene: the Gaussian pulse stretched by the "
@@ -78,7 +78,7 @@ def register(sub) -> None:
 
 def load(args):
     """The scene (``--config`` or the shipped default) with its overrides."""
-    from .. import _scene
+    from ..pulse import _scene
 
     path = c.config_path(args, DEFAULT_CONFIG)
     return path, _scene.load_scene(path, c.overrides(args))
@@ -86,8 +86,8 @@ def load(args):
 
 def flags(args) -> tuple[list[str] | None, Any]:
     """``--states`` and ``--terms`` checked before anything runs."""
-    from .._brdf import _resolve_terms
-    from .._pulse import STOKES_STATES
+    from ..brdf._brdf import _resolve_terms
+    from ..pulse._pulse import STOKES_STATES
 
     states = None
     if args.states is not None:
@@ -111,8 +111,8 @@ def flags(args) -> tuple[list[str] | None, Any]:
 
 
 def run(args) -> int:
-    from .. import _pulse
     from ..plots import plot_profiles
+    from ..pulse import _pulse
 
     states, terms = flags(args)
     c.maybe_x64(args.dtype)
@@ -186,8 +186,8 @@ def run(args) -> int:
 
 def _scene_config(cfg_path, args) -> dict:
     """The resolved scene config (file + overrides, defaults filled in) and its sensor's."""
-    from .. import _scene
     from .._config import load_toml_model
+    from ..pulse import _scene
 
     scene = load_toml_model(_scene.SceneConfig, cfg_path, c.overrides(args))
     sensor_file = _scene._find_sensor(scene.sensor, cfg_path)

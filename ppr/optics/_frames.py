@@ -27,9 +27,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._safe import float_dtype, safe_div
+from .._types import Array, ArrayLike, Complex, Float
 from ._fresnel import fresnel_amplitudes_re, fresnel_mueller_params, jax_complex
-from ._safe import float_dtype, safe_div
-from ._types import Array, ArrayLike, Complex, Float
 
 __all__ = [
     "A_STOKES",

@@ -13,14 +13,14 @@ from pathlib import Path
 import jax.numpy as jnp
 import pydantic
 
-from ._config import ConfigError, StrictModel, read_toml, validate_data
+from .._config import ConfigError, StrictModel, read_toml, validate_data
 from ._material import Material
 
 __all__ = ["DEFAULT_LIBRARY", "MaterialLibrary", "load_library", "load_material", "material_names"]
 
-_REPO_LIBRARY = Path(__file__).resolve().parent.parent / "configs" / "materials.toml"
+_REPO_LIBRARY = Path(__file__).resolve().parents[2] / "configs" / "materials.toml"
 # a wheel install carries a copy (pyproject: force-include) inside the package
-_PACKAGED_LIBRARY = Path(__file__).resolve().parent / "data" / "materials.toml"
+_PACKAGED_LIBRARY = Path(__file__).resolve().parents[1] / "data" / "materials.toml"
 DEFAULT_LIBRARY = _REPO_LIBRARY if _REPO_LIBRARY.is_file() else _PACKAGED_LIBRARY
 
 # wavelengths match when within this many nanometres

@@ -32,8 +32,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._safe import eps, safe_div, safe_sin_from_cos, safe_sqrt, tiny
-from ._types import Array, ArrayLike, Bool, Float
+from .._safe import eps, safe_div, safe_sin_from_cos, safe_sqrt, tiny
+from .._types import Array, ArrayLike, Bool, Float
 
 __all__ = [
     "LuChipman",

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._types import Array, Bool, Float, Int
+from .._types import Array, Bool, Float, Int
 
 AREA_RTOL = 1e-12
 """Faces with area below ``AREA_RTOL * (bounding-box diagonal)^2`` count as degenerate."""

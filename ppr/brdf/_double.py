@@ -189,10 +189,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._frames import A_STOKES, mueller_rotator, perpendicular_unit, rotation_cos_sin_2a
-from ._fresnel import fresnel_amplitudes_re
-from ._safe import float_dtype, safe_atan2, safe_sqrt, tiny
-from ._types import Array, ArrayLike, Complex, Float
+from .._safe import float_dtype, safe_atan2, safe_sqrt, tiny
+from .._types import Array, ArrayLike, Complex, Float
+from ..optics._frames import A_STOKES, mueller_rotator, perpendicular_unit, rotation_cos_sin_2a
+from ..optics._fresnel import fresnel_amplitudes_re
 
 __all__ = [
     "DEFAULT_ORDER",
@@ -1073,8 +1073,8 @@ def double_figures(out_dir: str, *, order: tuple[int, int] = (16, 16)) -> list[s
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from ..optics._polarimetry import depolarization_index, diattenuation, retardance
     from ._brdf import mueller_brdf
-    from ._polarimetry import depolarization_index, diattenuation, retardance
 
     os.makedirs(out_dir, exist_ok=True)
     th = math.radians(30.0)
@@ -1164,6 +1164,6 @@ def double_figures(out_dir: str, *, order: tuple[int, int] = (16, 16)) -> list[s
 
 
 def _material_of(n, m):
-    from ._material import Material
+    from ..materials._material import Material
 
     return Material(n=n, m=m)

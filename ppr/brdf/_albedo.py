@@ -50,8 +50,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._safe import float_dtype
-from ._types import Array, ArrayLike
+from .._safe import float_dtype
+from .._types import Array, ArrayLike
 
 __all__ = [
     "AlbedoTable",
@@ -69,7 +69,7 @@ __all__ = [
     "warp_mu",
 ]
 
-DATA_DIR = os.path.join(os.path.dirname(__file__), "data")
+DATA_DIR = os.path.join(os.path.dirname(os.path.dirname(__file__)), "data")
 MU0 = 1e-4
 ALPHA = 3.0
 M_MAX = 1e6
@@ -179,7 +179,7 @@ def _cr_cubics(rows: Array, n: int) -> tuple[Array, Array, Array, Array]:
     as the monomial coefficients ``(c0, c1, c2, c3)`` of each of the ``n - 1`` cells,
     each ``(n - 1, ...)``, stored once (:func:`ppr._frames.store`) so that XLA CPU gathers
     them instead of re-computing them per query."""
-    from ._frames import store
+    from ..optics._frames import store
 
     m = n - 1
     shifted = [rows[a : a + m] for a in range(4)]

@@ -124,7 +124,7 @@ class MeshSymmetry:
     def quaternions(self) -> np.ndarray:
         """``(G+, 4)`` scalar-first unit quaternions of the proper elements (``w >= 0``), in
         the order of :attr:`rotations`."""
-        from ._pose import matrix_to_quat
+        from ._rotation import matrix_to_quat
 
         return np.stack([matrix_to_quat(r) for r in self.rotations])
 

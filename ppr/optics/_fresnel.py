@@ -34,8 +34,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ._safe import float_dtype, tiny
-from ._types import Array, ArrayLike, Complex, Float
+from .._safe import float_dtype, tiny
+from .._types import Array, ArrayLike, Complex, Float
 
 __all__ = [
     "complex_sqrt_re",

@@ -71,9 +71,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _double as D
-from ._albedo import _cell, _cr_cubics, _cr_eval, _cr_weights, _pad_quadratic
-from ._frames import (
+from .._safe import tiny
+from .._types import Array, ArrayLike, Float
+from ..optics._frames import (
     _cross3,
     _default_frame3,
     _dot3,
@@ -83,10 +83,10 @@ from ._frames import (
     rotate_mueller_44,
     store,
 )
-from ._fresnel import fresnel_amplitudes_re
+from ..optics._fresnel import fresnel_amplitudes_re
+from . import _double as D
+from ._albedo import _cell, _cr_cubics, _cr_eval, _cr_weights, _pad_quadratic
 from ._microfacet import mean_cosine_plus
-from ._safe import tiny
-from ._types import Array, ArrayLike, Float
 
 __all__ = [
     "K_NODES",
@@ -142,7 +142,8 @@ term (its dependence on ``psi`` through ``gamma(psi)`` is kept; the rest is take
 ``psi = 0``, which adds 2.5e-4 of M00 at ``psi = PSI_MAX``, measured:
 tests/test_double_table.py::test_table_matches_quadrature_near_backscatter)."""
 
-TABLE_FILE = os.path.join(os.path.dirname(__file__), "data", "double_backscatter.npz")
+_DATA = os.path.join(os.path.dirname(os.path.dirname(__file__)), "data")
+TABLE_FILE = os.path.join(_DATA, "double_backscatter.npz")
 
 
 # --------------------------------------------------------------------------------------------

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 VecLike = Any  # a 3-vector (or quaternion): list, tuple or array of numbers
-EXAMPLE_SATELLITE = Path(__file__).resolve().parent / "data" / "example_satellite.glb"
+EXAMPLE_SATELLITE = Path(__file__).resolve().parents[1] / "data" / "example_satellite.glb"
 
 QUANTITIES = ("reflectance", "depolarization_index", "polarizance", "diattenuation", "retardance")
 QUANTITY_LABELS = {
@@ -232,7 +232,7 @@ def _polarimetry_fn():
     if "fn" not in _POLARIMETRY_JIT:
         import jax
 
-        from . import _polarimetry as pol  # noqa: PLC0415
+        from ..optics import _polarimetry as pol  # noqa: PLC0415
 
         funcs = {name: getattr(pol, name) for name in QUANTITIES[1:]}
 
@@ -311,8 +311,8 @@ def evaluate_mueller(
     out = np.empty((n, 4, 4))
     if n == 0:
         return out
-    from ._brdf import mueller_brdf  # noqa: PLC0415
-    from ._material import stack_materials  # noqa: PLC0415
+    from ..brdf._brdf import mueller_brdf  # noqa: PLC0415
+    from ..materials._material import stack_materials  # noqa: PLC0415
 
     arrays = [np.asarray(a, float) for a in (k_in, k_out, normal, frame_in, frame_out)]
     names = _host_terms(terms, arrays[0], arrays[1])
@@ -352,9 +352,9 @@ def _host_terms(terms, k_in: np.ndarray, k_out: np.ndarray):
     as :func:`ppr._pulse.sensor_terms` does for ``ppr.render``: the run-time dispatch would
     pick the same table, but its compiled program also holds the double-bounce quadrature
     (about 3x the compilation time)."""
-    from ._brdf import mueller_brdf  # noqa: PLC0415
-    from ._double_table import PSI_MAX  # noqa: PLC0415
-    from ._pulse import backscatter_terms  # noqa: PLC0415
+    from ..brdf._brdf import mueller_brdf  # noqa: PLC0415
+    from ..brdf._double_table import PSI_MAX  # noqa: PLC0415
+    from ..pulse._pulse import backscatter_terms  # noqa: PLC0415
 
     dk = k_out - k_in
     if not np.all(np.sum(dk * dk, axis=-1) <= (2.0 * np.sin(0.5 * PSI_MAX)) ** 2):

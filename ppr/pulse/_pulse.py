@@ -55,13 +55,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._conventions import C_LIGHT
-from ._material import Material, stack_materials
-from ._mesh import MeshArrays, capacity_for, mesh_arrays
-from ._pose import quat_to_matrix
+from .._types import Array, ArrayLike, Float, Int
+from ..geometry._mesh import MeshArrays, capacity_for, mesh_arrays
+from ..geometry._rotation import quat_to_matrix
+from ..geometry._visibility import COS_MIN, VisibilityCaster
+from ..materials._material import Material, stack_materials
+from ..optics.conventions import C_LIGHT
 from ._scene import Pose, RangeBins, Scene, Sensor
-from ._types import Array, ArrayLike, Float, Int
-from ._visibility import COS_MIN, VisibilityCaster
 
 NSIG = 7.0
 """Half-width of a facet's window beyond its depth interval, in pulse sigmas."""
@@ -216,8 +216,8 @@ def glossy_fresnel_mueller(
     """Stand-in polarizing BRDF for tests and benchmarks (not the model): the Fresnel Mueller
     matrix of the half-vector facet in the beam frames times ``(m + 2)/(2 pi) (h.n)^m / pi``.
     Smooth in attitude, ``m`` and ``n``; no shadowing, no normalization claims."""
-    from ._frames import facet_mueller_in_beam_frames  # noqa: PLC0415
-    from ._safe import safe_pow  # noqa: PLC0415
+    from .._safe import safe_pow  # noqa: PLC0415
+    from ..optics._frames import facet_mueller_in_beam_frames  # noqa: PLC0415
 
     del wavelength, terms
     h = k_in + k_out
@@ -232,7 +232,7 @@ def glossy_fresnel_mueller(
 
 def _default_brdf():
     try:
-        from ._brdf import mueller_brdf  # noqa: PLC0415
+        from ..brdf._brdf import mueller_brdf  # noqa: PLC0415
     except ImportError as exc:  # pragma: no cover - until the BRDF lands
         raise RuntimeError("ppr.mueller_brdf is not available; pass brdf=...") from exc
     return mueller_brdf
@@ -356,7 +356,7 @@ def backscatter_terms(brdf: Callable, terms) -> tuple[str, ...] | None:
     exact-backscatter table (``"double:backscatter"``, :mod:`ppr._double_table`), or None when
     that changes nothing (another BRDF, or no double term). ``"auto"`` keeps the double term
     at backscatter: from the table it costs little, and leaving it out was only a saving."""
-    from ._brdf import (  # noqa: PLC0415
+    from ..brdf._brdf import (  # noqa: PLC0415
         _resolve_terms,
         implemented_terms,
         mueller_brdf,
@@ -373,7 +373,7 @@ def backscatter_terms(brdf: Callable, terms) -> tuple[str, ...] | None:
 
 def near_backscatter(laser_dir: Array, receiver_dir: Array) -> Array:
     """The sensor's bistatic angle is within the backscatter table's ``PSI_MAX``."""
-    from ._double_table import near_backscatter as near  # noqa: PLC0415
+    from ..brdf._double_table import near_backscatter as near  # noqa: PLC0415
 
     return near(laser_dir, receiver_dir)
 
@@ -396,7 +396,7 @@ def sensor_terms(brdf: Callable, terms, sensor: Sensor):
 def _near_np(laser_dir, receiver_dir) -> bool:
     """:func:`near_backscatter` of concrete directions in NumPy (jnp ops would be staged
     into an enclosing jit trace)."""
-    from ._double_table import PSI_MAX  # noqa: PLC0415
+    from ..brdf._double_table import PSI_MAX  # noqa: PLC0415
 
     dk = np.asarray(receiver_dir, np.float64) - np.asarray(laser_dir, np.float64)
     return bool(np.sum(dk * dk) <= (2.0 * math.sin(0.5 * PSI_MAX)) ** 2)
@@ -482,7 +482,7 @@ def _unchecked_if_concrete(brdf: Callable, materials: Material, pose: Pose) -> C
     unit and back-facing facets get the bisector. Without the traced checks' host callback
     the render's program can go to the persistent compilation cache. Traced materials or
     poses (a caller's ``jit`` or ``grad``) keep the checks."""
-    from ._brdf import _validate_material, mueller_brdf, mueller_brdf_unchecked  # noqa: PLC0415
+    from ..brdf._brdf import _validate_material, mueller_brdf, mueller_brdf_unchecked  # noqa: PLC0415
 
     if brdf is not mueller_brdf:
         return brdf
@@ -979,7 +979,7 @@ def simulate(
     if not keep.any():
         keep = np.zeros(mesh.n_faces, bool)
         keep[0] = True  # a zero-weight facet keeps the shapes valid (vis = 0)
-    from ._mesh import Mesh  # noqa: PLC0415
+    from ..geometry._mesh import Mesh  # noqa: PLC0415
 
     sub = Mesh(
         mesh.vertices, np.asarray(mesh.faces)[keep], np.asarray(mesh.material_ids)[keep], mesh.parts

@@ -69,9 +69,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._mesh import Mesh, capacity_for, face_areas_normals
-from ._types import Array
-from ._visibility import COS_MIN, VisibilityCaster, barycentric_samples
+from .._types import Array
+from ..geometry._mesh import Mesh, capacity_for, face_areas_normals
+from ..geometry._visibility import COS_MIN, VisibilityCaster, barycentric_samples
 
 __all__ = [
     "DEFAULT_TERMS",
@@ -1097,7 +1097,7 @@ def glossy_parts(m_parts, brdf, glossy_m: float = GLOSSY_M_MIN) -> np.ndarray:
     """Host: ``(n_parts,)`` bool, parts whose lobe the image method treats: the model BRDF
     (:func:`ppr.mueller_brdf`; another BRDF's lobe is unknown, so all its pairs take the
     quadrature) and ``m >= glossy_m``."""
-    from ._brdf import mueller_brdf, mueller_brdf_unchecked  # noqa: PLC0415
+    from ..brdf._brdf import mueller_brdf, mueller_brdf_unchecked  # noqa: PLC0415
 
     m = np.atleast_1d(np.asarray(m_parts, np.float64))
     if brdf is not mueller_brdf and brdf is not mueller_brdf_unchecked:
@@ -1254,8 +1254,8 @@ def two_bounce_lobe(n_i, n_j, u_in, u_out, material, frame_in, frame_out, *, spa
     BRDF over a gnomonic grid of ``+-span`` lobe widths ``2/sqrt(m)`` about ``I``'s specular
     direction (directions below either surface dropped): what the Laplace convolution of the
     glossy pairs approximates, by another method (tests/test_macro.py, bench/bench_macro.py)."""
-    from ._brdf import mueller_brdf  # noqa: PLC0415
-    from ._frames import perpendicular_unit  # noqa: PLC0415
+    from ..brdf._brdf import mueller_brdf  # noqa: PLC0415
+    from ..optics._frames import perpendicular_unit  # noqa: PLC0415
 
     n_i, n_j, u_in, u_out = (np.asarray(v, np.float64) for v in (n_i, n_j, u_in, u_out))
     ks = 2 * (u_in @ n_i) * n_i - u_in
@@ -1318,9 +1318,9 @@ def _specular_factor(k_in, k_out, normal, m, n_re, n_im, x_in, x_out, white):
     """``F_M(k_in -> k_out) P(k|k') / (4 (k.n)(k'.n))`` as ``(16, P)``: the single-bounce term
     without its lobe ``D(h)`` (as :func:`ppr._brdf._single_scalar3`, shadowing from
     :func:`_visibility_gaussian`)."""
-    from ._brdf import _azimuth_factor3, _geometry3, _split  # noqa: PLC0415
-    from ._frames import facet_rotated_params, rotated_mueller_flat  # noqa: PLC0415
-    from ._safe import tiny  # noqa: PLC0415
+    from .._safe import tiny  # noqa: PLC0415
+    from ..brdf._brdf import _azimuth_factor3, _geometry3, _split  # noqa: PLC0415
+    from ..optics._frames import facet_rotated_params, rotated_mueller_flat  # noqa: PLC0415
 
     ki, ko, nr = _split(k_in), _split(k_out), _split(normal)
     dt = k_in.dtype

@@ -22,8 +22,8 @@ import numpy as np
 
 
 def _scene():
-    from ._resources import shipped_config
-    from ._scene import load_scene
+    from .._resources import shipped_config
+    from ..pulse._scene import load_scene
 
     return load_scene(shipped_config("scenes/cubesat3u_panels.toml"))
 
@@ -39,8 +39,8 @@ def pulse_figures(out_dir: str | os.PathLike, *, brdf=None, terms=None) -> list[
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ._conventions import C_LIGHT
-    from ._pulse import STOKES_STATES, simulate
+    from ..optics.conventions import C_LIGHT
+    from ..pulse._pulse import STOKES_STATES, simulate
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -16,7 +16,7 @@ INCIDENCE_DEG = 30.0
 
 
 def _materials(wavelength: float):
-    from ._library import load_material, material_names
+    from ..materials._library import load_material, material_names
 
     return [(name, load_material(name, wavelength)) for name in material_names()]
 
@@ -27,10 +27,10 @@ def brdf_figures(out_dir, wavelength: float = 532e-9) -> list[str]:
     roughnesses: (1) against the bistatic angle (0 to 60 deg, receiver rotated away from the
     source in the plane of incidence) at 30 deg incidence, (2) against incidence (0 to 85 deg)
     in monostatic backscatter and in the specular direction. Returns the file paths."""
-    from ._brdf import mueller_brdf
-    from ._material import Material
-    from ._polarimetry import depolarization_index, diattenuation
-    from .plots import brdf_quantity_figure
+    from ..brdf._brdf import mueller_brdf
+    from ..materials._material import Material
+    from ..optics._polarimetry import depolarization_index, diattenuation
+    from . import brdf_quantity_figure
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -45,12 +45,12 @@ import jax.numpy as jnp
 import numpy as np
 import pydantic
 
-from ._config import ConfigError, StrictModel, load_toml_model
-from ._conventions import C_LIGHT
-from ._material import Material
-from ._mesh import Mesh, check_mesh, load_mesh
-from ._pose import check_quaternion
-from ._types import Array
+from .._config import ConfigError, StrictModel, load_toml_model
+from .._types import Array
+from ..geometry._mesh import Mesh, check_mesh, load_mesh
+from ..geometry._rotation import check_quaternion
+from ..materials._material import Material
+from ..optics.conventions import C_LIGHT
 
 FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 UNIT_TOL = 1e-6
@@ -496,7 +496,7 @@ def _material_from_config(spec, wavelength: float, where: str) -> Material:
         return Material(
             complex(spec.n_real, spec.n_imag), spec.m, spec.corr_length_m, name="inline"
         )
-    from ._library import load_material  # noqa: PLC0415
+    from ..materials._library import load_material  # noqa: PLC0415
 
     name, slash, finish = spec.partition("/")
     try:
@@ -513,7 +513,7 @@ def _find_sensor(name: str, scene_path: Path) -> Path:
         p = scene_path.parent / p
     cands = [p, p.with_name(p.name + ".toml")]
     if "/" not in name and "\\" not in name:
-        from ._resources import shipped_configs_dir  # noqa: PLC0415
+        from .._resources import shipped_configs_dir  # noqa: PLC0415
 
         cands.append(shipped_configs_dir() / "sensors" / f"{name}.toml")
     for c in cands:
@@ -558,7 +558,7 @@ def load_scene(path: str | os.PathLike, overrides: dict | None = None) -> Scene:
     the value: unknown keys, NaN, bad shapes, unknown shape or material names, mesh parts
     without a material, non-unit quaternions.
     """
-    from . import shapes  # noqa: PLC0415
+    from ..geometry import shapes  # noqa: PLC0415
 
     path = Path(path)
     cfg = load_toml_model(SceneConfig, path, overrides)

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._types import Array, ArrayLike
+from .._types import Array, ArrayLike
 
 
 def _as_complex(x: ArrayLike) -> Array:

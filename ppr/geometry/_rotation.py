@@ -13,8 +13,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from ._safe import safe_norm
-from ._types import Array, ArrayLike, Float
+from .._safe import safe_norm
+from .._types import Array, ArrayLike, Float
 
 QUAT_NORM_TOL = 1e-3
 """Largest accepted | |q| - 1 | of a concrete attitude quaternion."""

@@ -84,8 +84,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _albedo
-from ._frames import (
+from .._safe import float_dtype, tiny
+from .._types import Array, Float
+from ..materials._material import Material
+from ..optics._frames import (
     _default_frame3,
     _neg3,
     _stack3,
@@ -93,11 +95,9 @@ from ._frames import (
     rotated_mueller_flat,
     store,
 )
-from ._fresnel import fresnel_mueller_params
-from ._material import Material
+from ..optics._fresnel import fresnel_mueller_params
+from . import _albedo
 from ._microfacet import mean_cosine_n, visibility_over_cos, visibility_over_cos_one_material
-from ._safe import float_dtype, tiny
-from ._types import Array, Float
 
 __all__ = [
     "EXPLICIT_TERMS",

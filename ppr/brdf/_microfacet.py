@@ -71,8 +71,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Shaped
 
-from ._safe import float_dtype, safe_div, safe_norm, safe_normalize, tiny
-from ._types import Array, ArrayLike, Float
+from .._safe import float_dtype, safe_div, safe_norm, safe_normalize, tiny
+from .._types import Array, ArrayLike, Float
 
 __all__ = [
     "ndf",

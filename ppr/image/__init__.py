@@ -1,0 +1,1 @@
+"""Polarimetric images of a mesh (per-pixel Mueller matrices)."""
