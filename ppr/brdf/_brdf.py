@@ -97,6 +97,17 @@ from ..optics._frames import (
 )
 from ..optics._fresnel import fresnel_mueller_params
 from . import _albedo
+from ._double import AUTO_M_MAX, AUTO_PSI_MAX
+from ._double_table import (
+    PSI_MAX,
+    backscatter_local,
+    double_backscatter_44,
+    double_backscatter_term,
+    double_bounce_term_auto,
+    double_term_dispatch,
+    near_backscatter,
+    rotate_local,
+)
 from ._microfacet import mean_cosine_n, visibility_over_cos, visibility_over_cos_one_material
 
 __all__ = [
@@ -344,8 +355,6 @@ def _mono_core(k_in, normal, material, frame_in, frame_out, wavelength, names) -
 
     Same model as the general kernel (:func:`_brdf_core` with separate ``k_in`` and ``k_out``
     arrays); the two agree to rounding (tests/test_brdf.py::test_monostatic_kernel_*)."""
-    from ._double_table import backscatter_local, rotate_local  # noqa: PLC0415
-
     del wavelength  # gamma(0) = 1 for every wavelength and correlation length
     dt = k_in.dtype
     batch = k_in.shape[:-1]
@@ -464,16 +473,6 @@ def multiple_scattering_term(
 
 
 def _double_term(k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9):
-    try:
-        from ._double import double_bounce_term
-    except ImportError as err:  # until issue 3 lands
-        raise NotImplementedError(
-            'terms: "double" (the double-bounce term, ppr/_double.py, issue 3) is not '
-            'implemented yet; use terms=("single", "multiple")'
-        ) from err
-    del double_bounce_term
-    from ._double_table import double_term_dispatch
-
     return double_term_dispatch(
         k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength
     )
@@ -482,16 +481,12 @@ def _double_term(k_in, k_out, normal, material, frame_in, frame_out, *, waveleng
 def _double_backscatter_term(
     k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9
 ):
-    from ._double_table import double_backscatter_term
-
     return double_backscatter_term(
         k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength
     )
 
 
 def _double_auto_term(k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9):
-    from ._double import double_bounce_term_auto
-
     return double_bounce_term_auto(
         k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength
     )
@@ -519,11 +514,6 @@ implemented (:func:`explicit_terms`)."""
 
 
 def _is_implemented(name: str) -> bool:
-    if name == "double":
-        try:
-            from ._double import double_bounce_term  # noqa: F401
-        except ImportError:
-            return False
     return name in TERMS
 
 
@@ -534,7 +524,7 @@ def implemented_terms() -> tuple[str, ...]:
 
 def explicit_terms() -> tuple[str, ...]:
     """Explicit terms of the model whose white albedo the ``"multiple"`` remainder completes
-    (``("single",)`` until the double term exists, then ``("double", "single")``)."""
+    (``("double", "single")``)."""
     return tuple(sorted(t for t in EXPLICIT_TERMS if _is_implemented(t)))
 
 
@@ -817,9 +807,6 @@ def _double_branch_on_host(names: tuple[str, ...], k_in, k_out, m) -> tuple[str,
     program holds only the branch this call takes (a ``lax.cond`` compiles both)."""
     if "double" not in names and "double:auto" not in names:
         return names
-    from ._double import AUTO_M_MAX, AUTO_PSI_MAX  # noqa: PLC0415
-    from ._double_table import PSI_MAX  # noqa: PLC0415
-
     dk = np.asarray(k_out) - np.asarray(k_in)
     q2 = dk[..., 0] * dk[..., 0] + dk[..., 1] * dk[..., 1] + dk[..., 2] * dk[..., 2]
     near = bool(np.all(q2 <= (2.0 * math.sin(0.5 * PSI_MAX)) ** 2))
@@ -872,8 +859,6 @@ def _prepare(k_in, k_out, normal, frame_in, frame_out, material, *, names, dt, b
     k_in = _validate_direction("k_in", k_in, normal, errors)
     k_out = _validate_direction("k_out", k_out, normal, errors)
     if "double:backscatter" in names:
-        from ._double_table import PSI_MAX, near_backscatter
-
         k_out = _check(
             "k_out",
             k_out,
@@ -985,8 +970,6 @@ def _brdf_core(
     elif f_ms is not None:
         flat = jnp.zeros((16,) + batch, dt).at[0].set(f_ms)
     if "double:backscatter" in names:
-        from ._double_table import double_backscatter_44
-
         out = double_backscatter_44(
             k_in, k_out, normal, material, fi, fo, wavelength=wavelength
         ).astype(dt)
@@ -994,8 +977,6 @@ def _brdf_core(
         if name in ("double", "double:quadrature"):
             # frames passed as components (see double_term_dispatch); "double:quadrature":
             # the branch decided on the host (_double_branch_on_host)
-            from ._double_table import double_term_dispatch
-
             branch = "quadrature" if name == "double:quadrature" else None
             t = double_term_dispatch(
                 k_in, k_out, normal, material, fi, fo, wavelength=wavelength, branch=branch

@@ -95,6 +95,7 @@ __all__ = [
     "backscatter_moments",
     "build_table",
     "double_backscatter_term",
+    "double_bounce_term_auto",
     "double_term_dispatch",
     "load_table",
     "near_backscatter",
@@ -628,3 +629,43 @@ def double_term_dispatch(
         raise ValueError(f"branch={branch!r}: expected None, 'table' or 'quadrature'")
     near = jnp.all(near_backscatter(k_in, k_out))
     return jax.lax.cond(near, table, quadrature, None)
+
+
+def double_bounce_term_auto(
+    k_in: Float[Array, "*batch 3"],
+    k_out: Float[Array, "*batch 3"],
+    normal: Float[Array, "*batch 3"],
+    material,
+    frame_in: Float[Array, "*batch 3"],
+    frame_out: Float[Array, "*batch 3"],
+    *,
+    wavelength: float | Float[ArrayLike, "..."] = 532e-9,
+) -> Float[Array, "*batch 4 4"]:
+    """The double term (:func:`double_term_dispatch`: the backscatter table
+    or the quadrature) where :func:`ppr.brdf._double.double_needed`, else 0.
+
+    One ``lax.cond`` on the whole batch: the quadrature runs only if *some* element needs it
+    (jit-compatible; under ``vmap`` a cond becomes a select and saves nothing, so batch by
+    broadcasting, as ``mueller_brdf`` does). Elements of a mixed batch that do not need the
+    term get it anyway (exact, just not cheaper); zeroing them would add nothing but error.
+    """
+    n = jnp.asarray(material.n)
+    dt = D.float_dtype(k_in, k_out, normal, material.m, n)
+    batch = jnp.broadcast_shapes(
+        jnp.shape(k_in)[:-1],
+        jnp.shape(k_out)[:-1],
+        jnp.shape(normal)[:-1],
+        jnp.shape(material.m),
+        n.shape,
+    )
+    need = jnp.any(D.double_needed(material.m, k_in, k_out))
+
+    def yes(_):
+        return double_term_dispatch(
+            k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength
+        ).astype(dt)
+
+    def no(_):
+        return jnp.zeros(batch + (4, 4), dt)
+
+    return jax.lax.cond(need, yes, no, None)

@@ -25,7 +25,7 @@ def _brdf(out):
 
 
 def _double(out):
-    from ..brdf._double import double_figures
+    from ..plots._double import double_figures
 
     return double_figures(out)
 
