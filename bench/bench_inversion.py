@@ -61,7 +61,7 @@ from inversion._grid import (  # noqa: E402
 )
 from inversion._mcmc import ChainTooShortWarning, mcmc_config_from_dict, sample_posterior  # noqa: E402
 from inversion._noise import MeasurementModel, NoiseModel, observe  # noqa: E402
-from inversion._params import PhysicalParams, quat_multiply  # noqa: E402
+from inversion._params import PhysicalParams  # noqa: E402
 from inversion._refine import (  # noqa: E402
     PhysicalBounds,
     PoissonCounts,
@@ -72,6 +72,7 @@ from inversion._refine import (  # noqa: E402
     refine,
     refine_bounded,
 )
+from ppr.geometry import quat_multiply  # noqa: E402
 
 # Exact Poisson likelihood for the photo-counts (deviance residuals in the refiner, Poisson
 # log-likelihood in the MCMC). Background 1e-3 counts per channel-bin (dark counts).
@@ -582,7 +583,7 @@ def run_one(o, models, bank, prep, k, mcmc_cfg, do_mcmc):
     labels = post.labels
     # posterior-median attitude: rotation vector (deg) about the refined optimum
     rv = np.radians(med[:3])
-    from inversion._params import quat_from_rotvec
+    from ppr.geometry import quat_from_rotvec
 
     q_med = np.asarray(
         quat_multiply(

@@ -44,9 +44,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import ppr
+from ppr.geometry import quat_angle_deg, quat_multiply_host
 
 from ._database import TemplateBank
-from ._grid import as_symmetry, geodesic_deg, los_half_turn, quat_mul
+from ._grid import as_symmetry, los_half_turn
 from ._noise import Observation, canonical_sensor
 
 WEIGHT_KINDS = ("uniform", "channel", "range", "fisher")
@@ -585,7 +586,7 @@ def _equivalents(q_est, symmetry, mirror: bool, half_turn: bool = False) -> np.n
     else:
         sym = as_symmetry(symmetry)
         g = sym.quaternions()
-    cand = quat_mul(q_est[:, None, :], g[None, :, :])
+    cand = quat_multiply_host(q_est[:, None, :], g[None, :, :])
     if mirror:
         if sym is None or len(sym.improper) == 0:
             raise ValueError(
@@ -595,7 +596,7 @@ def _equivalents(q_est, symmetry, mirror: bool, half_turn: bool = False) -> np.n
         # P R S = C2(w) R (-S), -S proper; world mirror normal +y
         minus_s = np.stack([ppr.matrix_to_quat(-s) for s in sym.improper])
         w = np.array([0.0, 0.0, 1.0, 0.0])
-        img = quat_mul(quat_mul(w, q_est)[:, None, :], minus_s[None, :, :])
+        img = quat_multiply_host(quat_multiply_host(w, q_est)[:, None, :], minus_s[None, :, :])
         cand = np.concatenate([cand, img], 1)
     if half_turn:
         cand = np.concatenate([cand, los_half_turn(cand)], 1)
@@ -642,7 +643,7 @@ def attitude_error_deg(
     :func:`ppr.mesh_symmetries` finds, or a :class:`ppr.MeshSymmetry`) instead."""
     q_true = np.atleast_2d(q_true)
     cand = _equivalents(q_est, _symmetry_arg(symmetry, mesh), mirror, half_turn)
-    return geodesic_deg(q_true[:, None, :], cand).min(axis=1)
+    return quat_angle_deg(q_true[:, None, :], cand).min(axis=1)
 
 
 def line_of_sight_error_deg(

@@ -54,7 +54,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm import tqdm
 
 import ppr
-from ppr._config import StrictModel, load_toml_model, validate_data
+from ppr.config import StrictModel, load_toml_model, validate_data
 
 from ._grid import AttitudeGrid, as_symmetry, symmetry_group
 from ._noise import MeasurementModel, canonical_sensor
@@ -284,7 +284,7 @@ def _check_ppr_names(spec: DatabaseSpec) -> None:
             raise ValueError(f"shapes[{i}] (name = {s.name!r}{params}): {err}") from None
     for i, m in enumerate(spec.materials):
         try:
-            ppr.load_material(m, 532e-9)
+            ppr.load_material(m, ppr.DEFAULT_WAVELENGTH_M)
         except (KeyError, ValueError) as err:
             raise ValueError(f"materials[{i}] = {m!r}: {str(err).strip(chr(39))}") from None
 

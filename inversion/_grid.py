@@ -50,6 +50,12 @@ import jax.numpy as jnp
 import numpy as np
 
 import ppr
+from ppr.geometry import (
+    quat_angle_deg,
+    quat_from_axis_angle,
+    quat_multiply_host,
+    quat_to_matrix_host,
+)
 
 # Stated covering radius rho = C * N^(-1/3) radians for a full grid of N rotations. Measured with
 # ``covering_radius`` (2e5 Monte Carlo samples): Hopf nside 1..8 gives C = 3.77..4.02, the
@@ -139,50 +145,10 @@ def canonical_sign(q: np.ndarray) -> np.ndarray:
     return q * sign
 
 
-def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton product ``p q`` (scalar first); broadcasts."""
-    pw, px, py, pz = np.moveaxis(np.asarray(p), -1, 0)
-    qw, qx, qy, qz = np.moveaxis(np.asarray(q), -1, 0)
-    return np.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        axis=-1,
-    )
-
-
-def quat_matrix(q) -> np.ndarray:
-    """Host (NumPy) rotation matrices ``(..., 3, 3)`` of quaternions ``(..., 4)`` (normalized
-    first), as :func:`ppr.quat_to_matrix` without a JAX dispatch per call."""
-    q = np.asarray(q, np.float64)
-    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
-    rows = (
-        (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-        (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-        (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
-    )
-    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
-
-
-def axis_angle_quat(axis, angle) -> np.ndarray:
-    axis = np.asarray(axis, dtype=np.float64)
-    axis = axis / np.linalg.norm(axis)
-    return np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * axis])
-
-
 def random_quaternions(key, n: int, dtype=jnp.float64) -> jax.Array:
     """``n`` Haar-uniform unit quaternions (normalized Gaussian 4-vectors)."""
     q = jax.random.normal(key, (n, 4), dtype)
     return q / jnp.linalg.norm(q, axis=-1, keepdims=True)
-
-
-def geodesic_deg(p, q) -> np.ndarray | float:
-    """Rotation angle between quaternions ``p`` and ``q`` in degrees (broadcasts)."""
-    d = np.abs(np.sum(np.asarray(p) * np.asarray(q), axis=-1))
-    return np.degrees(2 * np.arccos(np.clip(d, 0, 1)))
 
 
 def body_mirror_normal(symmetry) -> np.ndarray | None:
@@ -210,7 +176,7 @@ _MESH_GROUPS: OrderedDict = OrderedDict()
 
 @functools.lru_cache(maxsize=64)
 def _named_symmetry(name: str) -> ppr.MeshSymmetry:
-    rot = quat_matrix(symmetry_group(name))
+    rot = quat_to_matrix_host(symmetry_group(name))
     mats = [rot]
     if body_mirror_normal(name) is not None:
         mats.append(np.einsum("ij,gjk->gik", np.diag([1.0, 1.0, -1.0]), rot))
@@ -254,7 +220,7 @@ def as_symmetry(symmetry, *, tol: float = 1e-6) -> ppr.MeshSymmetry:
             "symmetry must be a class name, a ppr.MeshSymmetry, a ppr.Mesh or (G, 4) "
             f"quaternions, got {type(symmetry).__name__} of shape {q.shape}"
         )
-    return ppr.MeshSymmetry.from_matrices(quat_matrix(q))
+    return ppr.MeshSymmetry.from_matrices(quat_to_matrix_host(q))
 
 
 def mesh_has_mirror(mesh, normal, rtol: float = 1e-9) -> bool:
@@ -349,7 +315,8 @@ def mirror_attitude(q, body_normal=(0.0, 0.0, 1.0), world_normal=(0.0, 1.0, 0.0)
         if v.shape != (3,) or not np.all(np.isfinite(v)) or abs(np.linalg.norm(v) - 1) > 1e-6:
             raise ValueError(f"mirror_attitude: {name} must be a unit 3-vector, got {v.tolist()}")
     q = np.asarray(q, np.float64)
-    out = quat_mul(quat_mul(np.concatenate([[0.0], w]), q), np.concatenate([[0.0], s]))
+    pure_w, pure_s = np.concatenate([[0.0], w]), np.concatenate([[0.0], s])
+    out = quat_multiply_host(quat_multiply_host(pure_w, q), pure_s)
     return canonical_sign(out)
 
 
@@ -368,7 +335,8 @@ def los_half_turn(q, los=(0.0, 0.0, 1.0)) -> np.ndarray:
     if a.shape != (3,) or not np.isclose(np.linalg.norm(a), 1.0, atol=1e-9):
         raise ValueError(f"los_half_turn: los must be a unit 3-vector, got {a.tolist()}")
     q = np.asarray(q, np.float64)
-    return canonical_sign(quat_mul(np.broadcast_to(np.concatenate([[0.0], a]), q.shape), q))
+    pure_a = np.broadcast_to(np.concatenate([[0.0], a]), q.shape)
+    return canonical_sign(quat_multiply_host(pure_a, q))
 
 
 def symmetry_group(name) -> np.ndarray:
@@ -396,11 +364,14 @@ def symmetry_group(name) -> np.ndarray:
             raise ValueError(f"symmetry group {name!r}: order must be an integer") from None
         if n < 1:
             raise ValueError(f"symmetry group {name!r}: order must be >= 1")
-        gens = [axis_angle_quat([0, 0, 1], 2 * math.pi / n)]
+        gens = [quat_from_axis_angle([0, 0, 1], 2 * math.pi / n)]
         if kind == "dihedral":
-            gens.append(axis_angle_quat([1, 0, 0], math.pi))
+            gens.append(quat_from_axis_angle([1, 0, 0], math.pi))
     elif name == "octahedral":
-        gens = [axis_angle_quat([1, 0, 0], math.pi / 2), axis_angle_quat([0, 0, 1], math.pi / 2)]
+        gens = [
+            quat_from_axis_angle([1, 0, 0], math.pi / 2),
+            quat_from_axis_angle([0, 0, 1], math.pi / 2),
+        ]
     else:
         raise ValueError(
             f"unknown symmetry group {name!r}; use none, cyclic:n, dihedral:n or octahedral"
@@ -411,8 +382,8 @@ def symmetry_group(name) -> np.ndarray:
         new = []
         for g in frontier:
             for h in gens:
-                c = canonical_sign(quat_mul(g, h))
-                if min(geodesic_deg(c, e) for e in group) > 1e-4:  # arccos: ~1e-6 deg noise
+                c = canonical_sign(quat_multiply_host(g, h))
+                if min(quat_angle_deg(c, e) for e in group) > 1e-4:
                     group.append(c)
                     new.append(c)
         frontier = new
@@ -427,11 +398,11 @@ def reduce_by_symmetry(quats: np.ndarray, group: np.ndarray, rho_deg: float) -> 
     group = np.asarray(group)
     if len(group) == 1:
         return np.arange(len(quats))
-    d = geodesic_deg(quats[:, None, :], group[None, :, :])  # d(p, g)
+    d = quat_angle_deg(quats[:, None, :], group[None, :, :])  # d(p, g)
     f = d[:, 0] - d.min(axis=1)
     keep = np.nonzero(f <= 2 * rho_deg + 1e-9)[0]
     # drop exact duplicates modulo G (grids can be invariant under some g): one per orbit
-    orbit = canonical_sign(quat_mul(quats[keep][:, None, :], group[None, :, :]))
+    orbit = canonical_sign(quat_multiply_host(quats[keep][:, None, :], group[None, :, :]))
     key = np.round(orbit, 8) + 0.0  # +0.0 folds -0.0
     reps = [max(map(tuple, row)) for row in key]  # lexicographic max: same for the whole orbit
     _, first = np.unique(np.asarray(reps), axis=0, return_index=True)
@@ -454,7 +425,7 @@ def covering_radius(
     if len(grid) == 0:
         raise ValueError("covering_radius: empty grid")
     if group is not None and len(group) > 1:
-        grid = quat_mul(grid[:, None, :], np.asarray(group)[None, :, :]).reshape(-1, 4)
+        grid = quat_multiply_host(grid[:, None, :], np.asarray(group)[None, :, :]).reshape(-1, 4)
     g = jnp.asarray(grid, jnp.float32)
     samples = random_quaternions(jax.random.key(seed), n_samples, jnp.float32)
 

@@ -19,8 +19,7 @@ from collections.abc import Callable
 
 import equinox as eqx
 import jax.numpy as jnp
-
-from ppr._types import Array, Float
+from jaxtyping import Array, Float
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore", DeprecationWarning)

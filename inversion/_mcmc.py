@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 import pydantic
 
-from ppr._config import ConfigError, StrictModel, load_toml_model, validate_data
+from ppr.config import ConfigError, StrictModel, load_toml_model, validate_data
 
 from ._params import (
     DEFAULT_FREE,

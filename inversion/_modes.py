@@ -36,8 +36,9 @@ import dataclasses
 import numpy as np
 
 import ppr
+from ppr.geometry import quat_angle_deg, quat_multiply_host, quat_to_matrix_host
 
-from ._grid import as_symmetry, canonical_sign, geodesic_deg, quat_matrix, quat_mul
+from ._grid import as_symmetry, canonical_sign
 
 __all__ = ["Mode", "candidate_modes", "equivalent_attitudes"]
 
@@ -122,7 +123,7 @@ def _check_quat(q) -> np.ndarray:
 
 def _all_candidates(q, sym: ppr.MeshSymmetry, ops, los, exact_tol: float, half_turn_exact: bool):
     """Every (W, B) combination as a Mode, in priority order for the labels."""
-    r = quat_matrix(q)
+    r = quat_to_matrix_host(q)
     labels = sym.labels
     out, plain = [], []  # plain: the body element is a plain mirror plane
     for b, lab, res, det in zip(sym.matrices, labels, sym.residuals, sym.determinants, strict=True):
@@ -192,8 +193,8 @@ def _exact_group(sym: ppr.MeshSymmetry, ops, exact_tol: float, half_turn_exact: 
 
 def _orbit(q, worlds, body) -> np.ndarray:
     """``(|W| |B|, 4)``: ``w q b`` for every exact equivalence."""
-    qb = quat_mul(np.asarray(q)[None, :], body)  # (B, 4)
-    return quat_mul(worlds[:, None, :], qb[None, :, :]).reshape(-1, 4)
+    qb = quat_multiply_host(np.asarray(q)[None, :], body)  # (B, 4)
+    return quat_multiply_host(worlds[:, None, :], qb[None, :, :]).reshape(-1, 4)
 
 
 def _prepare(q, symmetry, los, world_normal, mirror, exact_tol, tol):
@@ -231,7 +232,7 @@ def equivalent_attitudes(
     ]
     kept: list[Mode] = []
     for m in modes:
-        if all(geodesic_deg(m.quaternion, k.quaternion) > 1e-3 for k in kept):
+        if all(quat_angle_deg(m.quaternion, k.quaternion) > 1e-3 for k in kept):
             kept.append(m)
     return kept
 
@@ -277,7 +278,7 @@ def candidate_modes(
             continue
         if not near and m.kind.startswith("near"):
             continue
-        d = [geodesic_deg(o, m.quaternion).min() for o in orbits]
+        d = [quat_angle_deg(o, m.quaternion).min() for o in orbits]
         if d and min(d) <= min_separation_deg:
             continue
         kept.append(m)
@@ -294,4 +295,4 @@ def mode_separation_deg(
     sym = as_symmetry(symmetry)
     ops = _world_ops(los, None, False)
     worlds, body = _exact_group(sym, ops, exact_tol, half_turn_exact)
-    return float(geodesic_deg(_orbit(_check_quat(q_a), worlds, body), _check_quat(q_b)).min())
+    return float(quat_angle_deg(_orbit(_check_quat(q_a), worlds, body), _check_quat(q_b)).min())

@@ -9,7 +9,7 @@ Channels
 
     for the range-resolved Mueller profile ``M(b)`` of the target (sensor frames, see
     :mod:`ppr.optics.conventions`). State names: ``H V D A R L`` (horizontal, vertical, +45, -45,
-    right and left circular), the names of ``ppr.pulse._pulse.STOKES_STATES``: ``R`` turns clockwise
+    right and left circular), the names of ``ppr.pulse.STOKES_STATES``: ``R`` turns clockwise
     for an observer looking toward the source (Chipman's, Born & Wolf's and Hecht's
     right-circular), ppr's ``S3 = -1``; ``L`` is ``S3 = +1``. Channels are ordered
     generator-major. ``MeasurementModel.preset("full")`` uses ``{H, V, D, L}`` for both PSG and
@@ -55,8 +55,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from ppr._types import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float
 
 STATES: dict[str, tuple[float, float, float, float]] = {
     "H": (1.0, 1.0, 0.0, 0.0),

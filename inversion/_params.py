@@ -36,18 +36,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Complex, Float
 
-from ppr._types import Array, ArrayLike, Complex, Float
+from ppr.geometry import quat_conjugate, quat_from_rotvec, quat_multiply, rotvec_from_quat
 
 __all__ = [
     "GROUPS",
     "GAIN_RANGE",
     "PhysicalParams",
     "Parametrisation",
-    "quat_multiply",
-    "quat_from_rotvec",
-    "rotvec_from_quat",
-    "quat_angle_deg",
     "lift_start",
 ]
 
@@ -75,65 +72,6 @@ U_N_IMAG_MIN = -20.72326583694641  # softplus^-1(1e-9) = log(expm1(1e-9))
 LOG_M_MIN = -20.72326583694641  # log(1e-9)
 
 
-# --------------------------------------------------------------------------- quaternions
-def quat_multiply(a: Float[Array, "*b 4"], b: Float[Array, "*b 4"]) -> Float[Array, "*b 4"]:
-    """Hamilton product ``a (x) b`` of scalar-first quaternions."""
-    aw, ax, ay, az = (a[..., i] for i in range(4))
-    bw, bx, by, bz = (b[..., i] for i in range(4))
-    return jnp.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
-
-
-def quat_from_rotvec(w: Float[Array, "*b 3"]) -> Float[Array, "*b 4"]:
-    """Unit quaternion ``exp(w/2)`` of a rotation vector (radians); smooth at ``w = 0``."""
-    w = jnp.asarray(w)
-    a2 = jnp.sum(w * w, axis=-1)
-    small = a2 < 1e-12
-    a = jnp.sqrt(jnp.where(small, 1.0, a2))
-    half = 0.5 * a
-    # sin(a/2)/a and cos(a/2) with Taylor branches at a -> 0 (double where: finite gradients).
-    s_big = jnp.sin(half) / a
-    s_small = 0.5 - a2 / 48.0
-    c_big = jnp.cos(half)
-    c_small = 1.0 - a2 / 8.0
-    s = jnp.where(small, s_small, s_big)
-    c = jnp.where(small, c_small, c_big)
-    return jnp.concatenate([c[..., None], s[..., None] * w], axis=-1)
-
-
-def rotvec_from_quat(q: Float[Array, "*b 4"]) -> Float[Array, "*b 3"]:
-    """Rotation vector (radians, angle in [0, pi]) of a quaternion (sign and norm ignored)."""
-    q = jnp.asarray(q)
-    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
-    q = jnp.where(q[..., :1] < 0, -q, q)
-    v = q[..., 1:]
-    sv2 = jnp.sum(v * v, axis=-1)
-    small = sv2 < 1e-24
-    sv = jnp.sqrt(jnp.where(small, 1.0, sv2))
-    angle = 2.0 * jnp.arctan2(sv, q[..., 0])
-    factor = jnp.where(small, 2.0 / q[..., 0], angle / sv)
-    return factor[..., None] * v
-
-
-def quat_angle_deg(q1: ArrayLike, q2: ArrayLike) -> np.ndarray | float:
-    """Angle (degrees) of the rotation taking ``q1`` to ``q2`` (sign-invariant, accurate near 0)."""
-    q1 = np.asarray(q1, float)
-    q2 = np.asarray(q2, float)
-    q1 = q1 / np.linalg.norm(q1, axis=-1, keepdims=True)
-    q2 = q2 / np.linalg.norm(q2, axis=-1, keepdims=True)
-    d = np.asarray(quat_multiply(jnp.asarray(q2), jnp.asarray(q1 * np.array([1.0, -1, -1, -1]))))
-    ang = np.degrees(2.0 * np.arctan2(np.linalg.norm(d[..., 1:], axis=-1), np.abs(d[..., 0])))
-    return float(ang) if np.ndim(ang) == 0 else ang
-
-
-# --------------------------------------------------------------------------- physical
 def _softplus(u):
     return jnp.logaddexp(u, 0.0)
 
@@ -358,7 +296,8 @@ class Parametrisation(eqx.Module):
         dt = phys.m.dtype
         for g in self.ordered_free:
             if g == "attitude":
-                dq = quat_multiply(phys.unit_quaternion(), _conj(ref.unit_quaternion().astype(dt)))
+                q_ref = ref.unit_quaternion().astype(dt)
+                dq = quat_multiply(phys.unit_quaternion(), quat_conjugate(q_ref))
                 pieces.append(rotvec_from_quat(dq))
             elif g == "m":
                 pieces.append(jnp.log(jnp.maximum(phys.m, M_FLOOR)))
@@ -417,5 +356,3 @@ def lift_start(phys: PhysicalParams, floor: float = 1e-6) -> PhysicalParams:
     )
 
 
-def _conj(q):
-    return q * jnp.array([1.0, -1.0, -1.0, -1.0], q.dtype)

@@ -81,15 +81,6 @@ def posterior_variables(labels, gain_unit: str = GAIN_UNIT) -> list[tuple[str, i
     return out
 
 
-def _quat_from_rotvec(w):
-    """``(..., 4)`` unit quaternions ``exp(w / 2)`` of rotation vectors ``(..., 3)`` (rad)."""
-    a = np.linalg.norm(w, axis=-1, keepdims=True)
-    small = a < 1e-8
-    s = np.where(small, 0.5 - a * a / 48.0, np.sin(0.5 * a) / np.where(small, 1.0, a))
-    c = np.where(small, 1.0 - a * a / 8.0, np.cos(0.5 * a))
-    return np.concatenate([c, s * w], axis=-1)
-
-
 def _body_los(q, los):
     """The sensor-frame direction ``los`` in the body frame, ``R(q)^T los`` (``q`` body ->
     sensor, scalar first; batched)."""
@@ -101,7 +92,7 @@ def _body_los(q, los):
 def _groups(result, chain, lp, gain_unit, line_of_sight):
     """Posterior variables ``(walker, draw, ...)`` and dims of physical ``chain``
     ``(steps, walkers, P)``."""
-    from ._grid import quat_mul
+    from ppr.geometry import quat_from_rotvec_host, quat_multiply_host
 
     labels = result.labels
     cube = np.swapaxes(chain, 0, 1)  # (walker, draw, P)
@@ -121,7 +112,8 @@ def _groups(result, chain, lp, gain_unit, line_of_sight):
     q_ref = np.asarray(result.parametrisation.reference.unit_quaternion(), np.float64)
     if "rot_x" in data:
         rv = np.radians(np.stack([data["rot_x"], data["rot_y"], data["rot_z"]], -1))
-        q = quat_mul(_quat_from_rotvec(rv), np.broadcast_to(q_ref, rv.shape[:-1] + (4,)))
+        q_ref = np.broadcast_to(q_ref, rv.shape[:-1] + (4,))
+        q = quat_multiply_host(quat_from_rotvec_host(rv), q_ref)
     else:
         q = np.broadcast_to(q_ref, cube.shape[:2] + (4,)).copy()
     q = np.where(q[..., :1] < 0, -q, q)

@@ -53,7 +53,7 @@ class PprSignatures:
         n_bins: int = 64,
         bin_width_m: float = 0.01,
         pulse_fwhm_s: float = 100e-12,
-        wavelength: float = 532e-9,
+        wavelength: float = ppr.DEFAULT_WAVELENGTH_M,
         vis_samples: int = 4,
         brdf=None,
         terms=None,
@@ -81,13 +81,13 @@ class PprSignatures:
         self.n_bins, self.bin_width_m = int(n_bins), float(bin_width_m)
         self.pulse_fwhm_s, self.wavelength = float(pulse_fwhm_s), float(wavelength)
         self.dtype = dtype
-        from ppr.geometry import _mesh  # noqa: PLC0415
+        from ppr.geometry import capacity_for, n_normal_groups  # noqa: PLC0415
 
-        cap = max(_mesh.capacity_for(m.n_faces) for m in meshes)
+        cap = max(capacity_for(m.n_faces) for m in meshes)
         # one group capacity for all shapes (their arrays are stacked)
         g_cap = min(
             cap,
-            max(_mesh.capacity_for(_mesh.n_normal_groups(m)) for m in meshes),
+            max(capacity_for(n_normal_groups(m)) for m in meshes),
         )
         arrays = [ppr.mesh_arrays(m, cap, dtype, group_capacity=g_cap) for m in meshes]
         self.arrays = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *arrays)
@@ -123,7 +123,7 @@ class PprSignatures:
             # every material and finish is concrete and checked above, attitudes are
             # normalized in the kernel: without the traced checks' host callback the compiled
             # kernel can come from the persistent compilation cache
-            from ppr.brdf._brdf import mueller_brdf_unchecked  # noqa: PLC0415
+            from ppr.brdf import mueller_brdf_unchecked  # noqa: PLC0415
 
             brdf = mueller_brdf_unchecked
         self.brdf = brdf
@@ -183,7 +183,7 @@ class PprSignatures:
         finish), or None without the double bounce."""
         if not self.multibounce:
             return None
-        from ppr.pulse._macro import batch_pairs  # noqa: PLC0415
+        from ppr.pulse import batch_pairs  # noqa: PLC0415
 
         quat = np.asarray(quat, np.float64)
         rot = np.asarray(ppr.quat_to_matrix(quat / np.linalg.norm(quat, axis=-1, keepdims=True)))

@@ -47,8 +47,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 from jax.custom_derivatives import SymbolicZero
-
-from ppr._types import Array, Float
+from jaxtyping import Array, Float
 
 from ._params import DEFAULT_FREE, GAIN_RANGE, Parametrisation, PhysicalParams, lift_start
 
@@ -978,8 +977,10 @@ def mirror_check(
     (:meth:`RefineResult.outside_bounds`), the mirror is refit from the same start with
     :func:`refine_bounded`, as one would the fit itself.
     """
+    from ppr.geometry import quat_to_matrix_host
+
     from ._classifier import _describe, line_of_sight_error_deg
-    from ._grid import as_symmetry, body_mirror_normal, mirror_attitude, quat_matrix
+    from ._grid import as_symmetry, body_mirror_normal, mirror_attitude
 
     normal = body_mirror_normal(symmetry)
     if normal is None:
@@ -992,7 +993,7 @@ def mirror_check(
     # a mesh's mirror plane passes through its centre c: the image moves by R (sigma c - c)
     c = as_symmetry(symmetry).centre
     sigma = np.eye(3) - 2.0 * np.outer(normal, normal)
-    rot = quat_matrix(np.asarray(p.quaternion, np.float64))
+    rot = quat_to_matrix_host(np.asarray(p.quaternion, np.float64))
     shift = float(rot[2] @ (sigma @ c - c))  # the line of sight is world +z
     mirror = _refit_from(
         model,
@@ -1337,7 +1338,7 @@ class _BoxMap(eqx.Module):
         return tuple(g for g in GROUPS if g in self.free)
 
     def to_physical(self, z):
-        from ._params import quat_from_rotvec, quat_multiply
+        from ppr.geometry import quat_from_rotvec, quat_multiply
 
         ref, k, i, parts = self.reference, self.reference.n_materials, 0, {}
         for g in self.ordered():
@@ -1364,12 +1365,13 @@ class _BoxMap(eqx.Module):
         return PhysicalParams(q, m, n, d, off, gain)
 
     def from_physical(self, phys):
-        from ._params import _conj, quat_multiply, rotvec_from_quat
+        from ppr.geometry import quat_conjugate, quat_multiply, rotvec_from_quat
 
         out = []
         for g in self.ordered():
             if g == "attitude":
-                dq = quat_multiply(phys.unit_quaternion(), _conj(self.reference.unit_quaternion()))
+                q_ref = self.reference.unit_quaternion()
+                dq = quat_multiply(phys.unit_quaternion(), quat_conjugate(q_ref))
                 out.append(rotvec_from_quat(dq))
             elif g == "m":
                 out.append(jnp.log1p(phys.m))
@@ -1655,7 +1657,6 @@ class SimulatorModel:
     ):
         import ppr
         from ppr.optics.conventions import C_LIGHT
-        from ppr.pulse._pulse import _default_brdf
 
         dt = jnp.result_type(float) if dtype is None else dtype
         mesh, sensor, pulse, bins = scene.mesh, scene.sensor, scene.pulse, scene.bins
@@ -1675,12 +1676,12 @@ class SimulatorModel:
                 max_edge * float(np.linalg.norm(w)), sigma_r, float(bins.width), bins.n_bins
             )
         cast = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, dt), t)  # noqa: E731
-        brdf = _default_brdf() if brdf is None else brdf
+        brdf = ppr.mueller_brdf if brdf is None else brdf
         if brdf is ppr.mueller_brdf:
             # the kernel's traced inputs are valid by construction (attitude normalized,
             # m = e^x, n'' = softplus): without the traced checks' host callback the solver
             # and sampler programs can go to JAX's persistent compilation cache
-            from ppr.brdf._brdf import mueller_brdf_unchecked  # noqa: PLC0415
+            from ppr.brdf import mueller_brdf_unchecked  # noqa: PLC0415
 
             brdf = mueller_brdf_unchecked
         self.scene = scene
@@ -1737,8 +1738,8 @@ class SimulatorModel:
         subset = ppr.FaceSubset.of(
             arrays,
             vis,
-            capacity=max(cap, ppr.geometry._mesh.subset_capacity(int(lit.sum()))),
-            group_capacity=max(g_cap, ppr.geometry._mesh.subset_capacity(n_groups)),
+            capacity=max(cap, ppr.geometry.subset_capacity(int(lit.sum()))),
+            group_capacity=max(g_cap, ppr.geometry.subset_capacity(n_groups)),
         )
         return subset if macro is None else (subset, macro)
 
@@ -1748,7 +1749,7 @@ class SimulatorModel:
         if not self.multibounce:
             return None
         import ppr
-        from ppr.pulse._macro import batch_pairs
+        from ppr.pulse import batch_pairs
 
         q = np.asarray(phys.unit_quaternion(), np.float64)
         rot = np.asarray(ppr.quat_to_matrix(q))
@@ -1784,15 +1785,13 @@ class SimulatorModel:
         that every subset has the same shapes and the solvers compile once per model. Cached
         after the first call (~40 ms for 50 facets, ~130 ms for 500)."""
         if self._subset_caps is None:
-            from ppr.geometry._mesh import subset_capacity
+            from ppr.geometry import quat_to_matrix_host, subset_capacity
 
             arrays = self.pure_model.arrays
             valid, grp = np.asarray(arrays.valid), np.asarray(arrays.normal_group)
-            from ppr.image._image import quaternion_to_matrix
-
             n_max, g_max = 1, 1
             for q in np.random.default_rng(0).normal(size=(n_poses, 4)):
-                lit = (self._fractions(quaternion_to_matrix(q)) > 0) & valid
+                lit = (self._fractions(quat_to_matrix_host(q)) > 0) & valid
                 n_max = max(n_max, int(lit.sum()))
                 g_max = max(g_max, len(np.unique(grp[lit])))
             self._subset_caps = (subset_capacity(n_max), subset_capacity(g_max))

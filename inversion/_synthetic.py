@@ -30,10 +30,9 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
 
-from ppr._types import Array, Float
-from ppr.geometry._rotation import quat_to_matrix
-from ppr.optics._fresnel import fresnel_mueller_params
+from ppr import fresnel_mueller_params, quat_to_matrix
 from ppr.optics.conventions import C_LIGHT
 
 from ._noise import MeasurementModel

@@ -1,29 +1,38 @@
 """The public names of :mod:`ppr`, imported together on the first use of any of them
-(``ppr/__init__.py`` keeps ``import ppr`` cheap, so the ``ppr`` command starts without JAX)."""
+(``ppr/__init__.py`` keeps ``import ppr`` cheap, so the ``ppr`` command starts without JAX).
+Each name comes through the public door of its subpackage (``ppr.optics``, ``ppr.materials``,
+``ppr.brdf``, ``ppr.geometry``, ``ppr.pulse``, ``ppr.image``; docs/DESIGN.md)."""
 
-
-from . import microfacet
+from . import brdf, config, geometry, image, materials, microfacet, optics, pulse
 from ._resources import shipped_config, shipped_configs_dir
-from .brdf._brdf import mueller_brdf
-from .brdf._double_table import PSI_MAX as BACKSCATTER_PSI_MAX
-from .geometry import shapes
-from .geometry._mesh import (
+from .brdf import BACKSCATTER_PSI_MAX, mueller_brdf
+from .geometry import (
     FaceSubset,
     Mesh,
     MeshArrays,
+    MeshSymmetry,
+    VisibilityCaster,
     check_mesh,
     load_mesh,
+    matrix_to_quat,
     mesh_arrays,
+    mesh_symmetries,
+    quat_from_axis_angle,
+    quat_to_matrix,
+    shapes,
     subdivide,
+    symmetry_label,
 )
-from .geometry._rotation import matrix_to_quat, quat_from_axis_angle, quat_to_matrix
-from .geometry._symmetry import MeshSymmetry, mesh_symmetries, symmetry_label
-from .geometry._visibility import VisibilityCaster
-from .materials._library import load_material, material_names
-from .materials._material import Material
-from .optics import _polarimetry as polarimetry
-from .optics._frames import jones_to_mueller, mueller_rotator
-from .optics._fresnel import fresnel_amplitudes, fresnel_mueller_params
+from .materials import Material, load_material, material_names, stack_materials
+from .optics import (
+    C_LIGHT,
+    DEFAULT_WAVELENGTH_M,
+    fresnel_amplitudes,
+    fresnel_mueller_params,
+    jones_to_mueller,
+    mueller_rotator,
+    polarimetry,
+)
 from .optics._polarimetry import (
     cloude_eigenvalues,
     degree_of_polarization,
@@ -34,29 +43,41 @@ from .optics._polarimetry import (
     polarizance,
     retardance,
 )
-from .pulse._macro import (
+from .pulse import (
     MacroGeometry,
     MacroOptions,
     MacroPairs,
-    macro_geometry,
-    macro_pairs,
-    stack_macro_pairs,
-)
-from .pulse._pulse import (
+    Pose,
     Profile,
+    Pulse,
+    RangeBins,
+    Scene,
+    Sensor,
     backscatter_terms,
     double_bounce,
+    load_scene,
+    load_sensor,
+    macro_geometry,
+    macro_pairs,
     near_backscatter,
     render,
     sensor_terms,
     simulate,
-    stack_materials,
+    stack_macro_pairs,
     tent_gaussian_cdf,
     window_size,
 )
-from .pulse._scene import Pose, Pulse, RangeBins, Scene, Sensor, load_scene, load_sensor
 
 __all__ = [
+    "optics",
+    "materials",
+    "brdf",
+    "geometry",
+    "pulse",
+    "image",
+    "config",
+    "C_LIGHT",
+    "DEFAULT_WAVELENGTH_M",
     "Material",
     "fresnel_amplitudes",
     "fresnel_mueller_params",

@@ -136,7 +136,7 @@ def test_paths_in_a_config_are_relative_to_it_and_set_paths_to_the_cwd(tmp_path,
     for extra, part in (([], "beside_config"), (["--set", "mesh=m.obj"], "in_cwd")):
         args = parser.parse_args(["image", "-c", str(cfg), *extra])
         mesh = image_inputs(*reversed(args.load(args)))[0]
-        assert mesh.part_names == (part,), (extra, mesh.part_names)
+        assert mesh.parts == (part,), (extra, mesh.parts)
 
 
 # ---------------------------------------------------------------------------- end to end

@@ -173,7 +173,7 @@ def _plates():
     small = np.array([[-0.2, -0.2, 0.5], [0.2, -0.2, 0.5], [0.2, 0.2, 0.5], [-0.2, 0.2, 0.5]])
     verts = np.concatenate([big, small])
     faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
-    return _image.PartMesh(verts, faces, np.array([0, 0, 1, 1]), ("ground", "top"))
+    return ppr.Mesh(verts, faces, np.array([0, 0, 1, 1]), ("ground", "top"))
 
 
 def test_bistatic_shadow_ray():

@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from inversion._observability import observability_from_fisher
-from inversion._params import Parametrisation, PhysicalParams, quat_from_rotvec
+from inversion._params import Parametrisation, PhysicalParams
 from inversion._refine import PoissonCounts, cramer_rao
 from ppr import quat_to_matrix
 from ppr._safe import safe_pow
+from ppr.geometry import quat_from_rotvec
 
 
 class LobeProfile(eqx.Module):

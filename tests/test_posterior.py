@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from inversion._mcmc import MCMCResult, _physical_vectors
-from inversion._params import Parametrisation, PhysicalParams, quat_from_rotvec
+from inversion._params import Parametrisation, PhysicalParams
 from inversion._posterior import GAIN_UNIT, posterior_diagnostics
 from ppr import quat_to_matrix
+from ppr.geometry import quat_from_rotvec
 
 
 def _rot(q):

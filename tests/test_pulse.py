@@ -377,7 +377,7 @@ def test_half_turn_about_line_of_sight_is_exact_for_monostatic_data():
     line of sight (inversion.los_half_turn). A quarter turn, or a bistatic receiver, breaks
     it (the check is not vacuous)."""
     from inversion import los_half_turn
-    from inversion._params import quat_from_rotvec, quat_multiply
+    from ppr.geometry import quat_from_rotvec, quat_multiply
 
     mesh = shapes.cubesat_with_panels(3)
     mats = [ppr.Material(0.94 + 6.42j, 5.0), ppr.Material(1.5, 300.0), ppr.Material(2.6, 3.0)]

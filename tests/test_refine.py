@@ -15,16 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from inversion._params import (
-    Parametrisation,
-    PhysicalParams,
-    quat_angle_deg,
-    quat_from_rotvec,
-    quat_multiply,
-    rotvec_from_quat,
-)
+from inversion._params import Parametrisation, PhysicalParams
 from inversion._refine import GaussianNoise, PoissonNoise, check_observation, refine
 from ppr._safe import safe_div, safe_pow
+from ppr.geometry import quat_angle_deg, quat_from_rotvec, quat_multiply, rotvec_from_quat
 from ppr.optics._fresnel import fresnel_mueller_params
 
 STATES = np.array([[1, 1, 0, 0], [1, -1, 0, 0], [1, 0, 1, 0], [1, 0, 0, 1]], float)

@@ -96,6 +96,7 @@ from ..optics._frames import (
     store,
 )
 from ..optics._fresnel import fresnel_mueller_params
+from ..optics.conventions import DEFAULT_WAVELENGTH_M
 from . import _albedo
 from ._double import AUTO_M_MAX, AUTO_PSI_MAX
 from ._double_table import (
@@ -429,7 +430,7 @@ def single_bounce_term(
     frame_in: Float[Array, "*b 3"],
     frame_out: Float[Array, "*b 3"],
     *,
-    wavelength: float | Array = 532e-9,
+    wavelength: float | Array = DEFAULT_WAVELENGTH_M,
 ) -> Float[Array, "*b 4 4"]:
     """Single-bounce APS term (module docstring). Inputs broadcast, unit and validated
     (by :func:`mueller_brdf`); ``material`` fields broadcast against the batch shape."""
@@ -460,7 +461,7 @@ def multiple_scattering_term(
     frame_in: Float[Array, "*b 3"],
     frame_out: Float[Array, "*b 3"],
     *,
-    wavelength: float | Array = 532e-9,
+    wavelength: float | Array = DEFAULT_WAVELENGTH_M,
 ) -> Float[Array, "*b 4 4"]:
     """Depolarizing multiple-scattering remainder (module docstring), ``diag(f_ms, 0, 0, 0)``."""
     del wavelength, frame_in, frame_out
@@ -472,21 +473,25 @@ def multiple_scattering_term(
     return _unflatten(flat)
 
 
-def _double_term(k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9):
+def _double_term(
+    k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=DEFAULT_WAVELENGTH_M
+):
     return double_term_dispatch(
         k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength
     )
 
 
 def _double_backscatter_term(
-    k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9
+    k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=DEFAULT_WAVELENGTH_M
 ):
     return double_backscatter_term(
         k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength
     )
 
 
-def _double_auto_term(k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9):
+def _double_auto_term(
+    k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=DEFAULT_WAVELENGTH_M
+):
     return double_bounce_term_auto(
         k_in, k_out, normal, material, frame_in, frame_out, wavelength=wavelength
     )
@@ -686,7 +691,7 @@ def mueller_brdf(
     terms: tuple[str, ...] | str | None = None,
     frame_in: Any = None,
     frame_out: Any = None,
-    wavelength: float | Array = 532e-9,
+    wavelength: float | Array = DEFAULT_WAVELENGTH_M,
     traced_checks: bool = True,
 ) -> Float[Array, "... 4 4"]:
     """Polarized microfacet Mueller BRDF (1/sr), ``S_out = M @ S_in``.

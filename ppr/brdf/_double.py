@@ -193,6 +193,7 @@ from .._safe import float_dtype, safe_atan2, safe_sqrt, tiny
 from .._types import Array, ArrayLike, Complex, Float
 from ..optics._frames import A_STOKES, mueller_rotator, perpendicular_unit, rotation_cos_sin_2a
 from ..optics._fresnel import fresnel_amplitudes_re
+from ..optics.conventions import DEFAULT_WAVELENGTH_M
 
 __all__ = [
     "DEFAULT_ORDER",
@@ -892,7 +893,7 @@ def double_bounce_term(
     frame_in: Float[Array, "*batch 3"],
     frame_out: Float[Array, "*batch 3"],
     *,
-    wavelength: float | Float[ArrayLike, "..."] = 532e-9,
+    wavelength: float | Float[ArrayLike, "..."] = DEFAULT_WAVELENGTH_M,
     order: tuple[int, int] = DEFAULT_ORDER,
     inner_order: int = INNER_ORDER,
     coherent: bool = True,
@@ -944,7 +945,7 @@ def double_bounce_incoherent(
     frame_in: Float[Array, "*batch 3"],
     frame_out: Float[Array, "*batch 3"],
     *,
-    wavelength: float = 532e-9,
+    wavelength: float = DEFAULT_WAVELENGTH_M,
     order: tuple[int, int] = DEFAULT_ORDER,
 ) -> Float[Array, "*batch 4 4"]:
     """:func:`double_bounce_term` without the coherent interference (``gamma = 0``)."""

@@ -84,6 +84,7 @@ from ..optics._frames import (
     store,
 )
 from ..optics._fresnel import fresnel_amplitudes_re
+from ..optics.conventions import DEFAULT_WAVELENGTH_M
 from . import _double as D
 from ._albedo import _cell, _cr_cubics, _cr_eval, _cr_weights, _pad_quadratic
 from ._microfacet import mean_cosine_plus
@@ -507,7 +508,15 @@ def backscatter_local(k3, n3, material, m, dt, batch, scale) -> tuple[Array, Arr
 
 
 def double_backscatter_44(
-    k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=532e-9, coherent=True
+    k_in,
+    k_out,
+    normal,
+    material,
+    frame_in,
+    frame_out,
+    *,
+    wavelength=DEFAULT_WAVELENGTH_M,
+    coherent=True,
 ) -> Array:
     """:func:`double_backscatter_term` (``frame_in``/``frame_out`` may be SoA tuples of three
     arrays). The entries stay on a trailing axis throughout, and the frame rotations are
@@ -564,7 +573,7 @@ def double_backscatter_term(
     frame_in: Float[ArrayLike, "*#batch 3"],
     frame_out: Float[ArrayLike, "*#batch 3"],
     *,
-    wavelength: float | Float[ArrayLike, "..."] = 532e-9,
+    wavelength: float | Float[ArrayLike, "..."] = DEFAULT_WAVELENGTH_M,
     coherent: bool = True,
 ) -> Float[Array, "*batch 4 4"]:
     """Double-bounce Mueller BRDF (1/sr) at exact backscatter from the table, with the
@@ -590,7 +599,7 @@ def double_term_dispatch(
     frame_in: Float[ArrayLike, "*#batch 3"] | tuple[Array, Array, Array],
     frame_out: Float[ArrayLike, "*#batch 3"] | tuple[Array, Array, Array],
     *,
-    wavelength: float | Float[ArrayLike, "..."] = 532e-9,
+    wavelength: float | Float[ArrayLike, "..."] = DEFAULT_WAVELENGTH_M,
     branch: str | None = None,
 ) -> Float[Array, "*batch 4 4"]:
     """The double term: the backscatter table where *every* element of the batch is within
@@ -639,7 +648,7 @@ def double_bounce_term_auto(
     frame_in: Float[Array, "*batch 3"],
     frame_out: Float[Array, "*batch 3"],
     *,
-    wavelength: float | Float[ArrayLike, "..."] = 532e-9,
+    wavelength: float | Float[ArrayLike, "..."] = DEFAULT_WAVELENGTH_M,
 ) -> Float[Array, "*batch 4 4"]:
     """The double term (:func:`double_term_dispatch`: the backscatter table
     or the quadrature) where :func:`ppr.brdf._double.double_needed`, else 0.

@@ -146,45 +146,34 @@ def load(args):
 
 
 def part_mesh_from_ppr_mesh(mesh, smooth: bool = False):
-    """Adapter from :class:`ppr.Mesh`-like objects (vertices, faces, material_ids, parts)."""
-    from ..image import _image
+    """Deprecated: the image renderer takes a :class:`ppr.Mesh` itself
+    (:func:`ppr.image.render_mueller_image`, ``shading="smooth"`` for vertex normals).
+    Returns ``mesh`` unchanged."""
+    from .._deprecation import warn_deprecated
 
-    verts = np.asarray(mesh.vertices, float)
-    faces = np.asarray(mesh.faces, np.int64)
-    vn = None
-    if smooth:
-        import trimesh
-
-        vn = np.asarray(trimesh.Trimesh(verts, faces, process=False).vertex_normals, float)
-    return _image.PartMesh(
-        vertices=verts,
-        faces=faces,
-        part_ids=np.asarray(mesh.material_ids, np.int64),
-        part_names=tuple(mesh.parts),
-        vertex_normals=vn,
-    )
+    del smooth
+    warn_deprecated("ppr.cli.part_mesh_from_ppr_mesh", "the ppr.Mesh itself")
+    return mesh
 
 
 def image_inputs(cfg: ImageConfig, cfg_path: Path):
-    """Resolve an image config to ``(part mesh, materials, sensor, quaternion)``."""
+    """Resolve an image config to ``(mesh, materials, sensor, quaternion)``."""
     from ..geometry import shapes
     from ..geometry._mesh import load_mesh
     from ..geometry._rotation import check_quaternion
     from ..image import _image
     from ..pulse import _scene
 
-    smooth = cfg.render.shading == "smooth"
     if cfg.scene is not None:
         spath = c.resolve_path(cfg.scene, cfg_path)
         if not spath.is_file():
             raise c.ConfigError(f"{cfg_path}: scene = {cfg.scene!r}: no such scene file ({spath})")
         scene = _scene.load_scene(spath)
-        mesh = part_mesh_from_ppr_mesh(scene.mesh, smooth)
-        return mesh, list(scene.materials), scene.sensor, np.asarray(scene.pose.quaternion)
+        return scene.mesh, list(scene.materials), scene.sensor, np.asarray(scene.pose.quaternion)
     if cfg.shape is not None:
         shape = c.sub_model(_scene.ShapeConfig, cfg.shape, cfg_path, "shape")
         try:
-            pmesh = shapes.by_name(shape.name, **shape.params)
+            mesh = shapes.by_name(shape.name, **shape.params)
         except ValueError as err:
             raise c.ConfigError(f"{cfg_path}: shape = {cfg.shape!r}: {err}") from None
     else:
@@ -194,10 +183,9 @@ def image_inputs(cfg: ImageConfig, cfg_path: Path):
             else c.resolve_path(cfg.mesh, cfg_path)
         )
         try:
-            pmesh = load_mesh(path)
+            mesh = load_mesh(path)
         except ValueError as err:
             raise c.ConfigError(f"{cfg_path}: mesh = {cfg.mesh!r}: {err}") from None
-    mesh = part_mesh_from_ppr_mesh(pmesh, smooth)
     view = cfg.view or ViewConfig()
     try:
         sensor = _scene.Sensor.make(
@@ -216,19 +204,19 @@ def image_inputs(cfg: ImageConfig, cfg_path: Path):
         raise c.ConfigError(f"{cfg_path}: {err}") from None
     wl = view.wavelength_nm * 1e-9
     mats = []
-    for part in mesh.part_names:
+    for part in mesh.parts:
         key = part if part in cfg.materials else "default"
         if key not in cfg.materials:
             raise c.ConfigError(
                 f"{cfg_path}: materials: no material for mesh part {part!r} (parts: "
-                f"{', '.join(mesh.part_names)}; add materials.{part} or materials.default)"
+                f"{', '.join(mesh.parts)}; add materials.{part} or materials.default)"
             )
         mats.append(c.resolve_material(cfg.materials[key], wl, f"materials.{key}", cfg_path))
-    unknown = sorted(set(cfg.materials) - set(mesh.part_names) - {"default"})
+    unknown = sorted(set(cfg.materials) - set(mesh.parts) - {"default"})
     if unknown:
         raise c.ConfigError(
             f"{cfg_path}: materials.{unknown[0]}: the mesh has no part {unknown[0]!r} (parts: "
-            f"{', '.join(mesh.part_names)})"
+            f"{', '.join(mesh.parts)})"
         )
     return mesh, mats, sensor, quat
 

@@ -141,30 +141,6 @@ def load(args):
     return c.load_config(args, InvertConfig, DEFAULT_CONFIG)
 
 
-def _quat_from_rotvec(w) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(np.asarray(w, float)).as_quat(scalar_first=True)
-
-
-def _quat_multiply(a, b) -> np.ndarray:
-    """Hamilton product of scalar-first quaternions (the rotation ``a`` after ``b``)."""
-    from scipy.spatial.transform import Rotation
-
-    ra = Rotation.from_quat(np.asarray(a, float), scalar_first=True)
-    rb = Rotation.from_quat(np.asarray(b, float), scalar_first=True)
-    return (ra * rb).as_quat(scalar_first=True)
-
-
-def _quat_angle_deg(a, b) -> float:
-    """Angle (degrees) of the rotation taking ``a`` to ``b``."""
-    from scipy.spatial.transform import Rotation
-
-    ra = Rotation.from_quat(np.asarray(a, float), scalar_first=True)
-    rb = Rotation.from_quat(np.asarray(b, float), scalar_first=True)
-    return float(np.degrees((rb * ra.inv()).magnitude()))
-
-
 def run(args) -> int:
     import warnings
 
@@ -173,6 +149,7 @@ def run(args) -> int:
     import inversion
     import ppr
 
+    from ..geometry import quat_angle_deg, quat_from_rotvec_host, quat_multiply_host
     from ..plots import plot_fit
 
     cfg_path, cfg = load(args)
@@ -229,7 +206,7 @@ def run(args) -> int:
     for _ in range(cfg.n_starts):
         w = rng.normal(size=3)
         w *= np.radians(cfg.start_perturbation_deg) / max(np.linalg.norm(w), 1e-12)
-        q = _quat_multiply(_quat_from_rotvec(w), np.asarray(ref.quaternion))
+        q = quat_multiply_host(quat_from_rotvec_host(w), np.asarray(ref.quaternion))
         f = 1.0 + cfg.start_perturbation_frac * rng.uniform(-1, 1, 4)
         starts.append(
             inversion.PhysicalParams(
@@ -332,7 +309,7 @@ def run(args) -> int:
             }
             # geodesic angle to the true attitude, not reduced by the shape's symmetry group
             summary["refine"]["attitude_error_deg"] = float(
-                _quat_angle_deg(fit.params.unit_quaternion(), truth.quaternion)
+                quat_angle_deg(fit.params.unit_quaternion(), truth.quaternion)
             )
             if cfg.mirror_symmetry is not None:
                 # modulo the shape's rotations, and the line of sight also modulo its mirror

@@ -26,6 +26,10 @@ from typing import Any
 
 import numpy as np
 
+from ..geometry._mesh import Mesh
+from ..geometry._rotation import quat_to_matrix_host
+from ..optics.conventions import DEFAULT_WAVELENGTH_M
+
 VecLike = Any  # a 3-vector (or quaternion): list, tuple or array of numbers
 EXAMPLE_SATELLITE = Path(__file__).resolve().parents[1] / "data" / "example_satellite.glb"
 
@@ -40,24 +44,6 @@ QUANTITY_LABELS = {
 
 
 # --------------------------------------------------------------------------- geometry helpers
-def quaternion_to_matrix(q: VecLike) -> np.ndarray:
-    """Rotation matrix of a quaternion ``(w, x, y, z)`` (any norm > 0, either sign)."""
-    q = np.asarray(q, dtype=float)
-    if q.shape != (4,) or not np.all(np.isfinite(q)):
-        raise ValueError(f"quaternion must be 4 finite numbers (w, x, y, z), got {q.tolist()!r}")
-    nrm = np.linalg.norm(q)
-    if nrm < 1e-12:
-        raise ValueError(f"quaternion has zero norm: {q.tolist()!r}")
-    w, x, y, z = q / nrm
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def _unit(v, name: str) -> np.ndarray:
     v = np.asarray(v, dtype=float)
     if v.shape != (3,) or not np.all(np.isfinite(v)) or np.linalg.norm(v) < 1e-12:
@@ -80,83 +66,6 @@ def sensor_axes(to_sensor, sensor_x=None) -> tuple[np.ndarray, np.ndarray, np.nd
         raise ValueError(f"polarization reference {list(sensor_x)!r} is parallel to {s.tolist()!r}")
     x /= np.linalg.norm(x)
     return s, x, np.cross(s, x)
-
-
-def rotate_about(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rodrigues rotation of ``v`` by ``angle`` (rad) about unit ``axis``."""
-    return (
-        v * np.cos(angle)
-        + np.cross(axis, v) * np.sin(angle)
-        + axis * np.dot(axis, v) * (1 - np.cos(angle))
-    )
-
-
-# --------------------------------------------------------------------------------- meshes
-@dataclasses.dataclass(frozen=True)
-class PartMesh:
-    """A triangle mesh with a part index per face and the part names (body frame, metres)."""
-
-    vertices: np.ndarray  # (V, 3)
-    faces: np.ndarray  # (F, 3)
-    part_ids: np.ndarray  # (F,)
-    part_names: tuple[str, ...]
-    vertex_normals: np.ndarray | None = None  # (V, 3), for smooth shading
-
-
-def load_part_mesh(path: str | Path) -> PartMesh:
-    """Load any mesh trimesh reads; a multi-geometry file (GLB, OBJ groups) gives one part per
-    geometry, named by the geometry, with the scene graph's transforms applied."""
-    import trimesh
-
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"mesh file {str(path)!r} does not exist")
-    loaded = trimesh.load(path, force=None, process=False)
-    meshes: list[tuple[str, trimesh.Trimesh]] = []
-    if isinstance(loaded, trimesh.Scene):
-        for node in loaded.graph.nodes_geometry:
-            transform, gname = loaded.graph[node]
-            geom = loaded.geometry[gname]
-            if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
-                continue
-            g = geom.copy()
-            g.apply_transform(transform)
-            meshes.append((str(gname), g))
-    else:
-        meshes.append((path.stem, loaded))
-    if not meshes:
-        raise ValueError(f"mesh file {str(path)!r} has no triangles")
-    return part_mesh_from_trimeshes(meshes)
-
-
-def part_mesh_from_trimeshes(
-    meshes: Sequence[tuple[str, object]], smooth: bool = False
-) -> PartMesh:
-    """Concatenate named trimesh meshes into a :class:`PartMesh` (same-name parts merge)."""
-    names: list[str] = []
-    verts, faces, pids, vnorms = [], [], [], []
-    offset = 0
-    for name, m in meshes:
-        if name not in names:
-            names.append(name)
-        v = np.asarray(m.vertices, dtype=float)
-        f = np.asarray(m.faces, dtype=np.int64)
-        verts.append(v)
-        faces.append(f + offset)
-        pids.append(np.full(len(f), names.index(name), dtype=np.int64))
-        if smooth:
-            vnorms.append(np.asarray(m.vertex_normals, dtype=float))
-        offset += len(v)
-    v = np.concatenate(verts)
-    if not np.all(np.isfinite(v)):
-        raise ValueError("mesh has non-finite vertices")
-    return PartMesh(
-        vertices=v,
-        faces=np.concatenate(faces),
-        part_ids=np.concatenate(pids),
-        part_names=tuple(names),
-        vertex_normals=np.concatenate(vnorms) if smooth else None,
-    )
 
 
 def _intersector(vertices: np.ndarray, faces: np.ndarray, allow_slow: bool):
@@ -291,7 +200,7 @@ def evaluate_mueller(
     material_idx: np.ndarray,
     *,
     terms="auto",
-    wavelength: float = 532e-9,
+    wavelength: float = DEFAULT_WAVELENGTH_M,
     dtype=np.float32,
     chunk: int = 8192,
     progress: bool = False,
@@ -363,8 +272,21 @@ def _host_terms(terms, k_in: np.ndarray, k_out: np.ndarray):
     return terms if bs is None else bs
 
 
+def _host_mesh(mesh, smooth: bool):
+    """``(vertices float64, faces int64, part ids, part names, vertex normals or None)`` of a
+    :class:`ppr.Mesh` on the host; vertex normals (trimesh's area-weighted) if ``smooth``."""
+    verts = np.asarray(mesh.vertices, float)
+    faces = np.asarray(mesh.faces, np.int64)
+    vn = None
+    if smooth:
+        import trimesh
+
+        vn = np.asarray(trimesh.Trimesh(verts, faces, process=False).vertex_normals, float)
+    return verts, faces, np.asarray(mesh.material_ids, np.int64), tuple(mesh.parts), vn
+
+
 def render_mueller_image(
-    mesh: PartMesh,
+    mesh: Mesh,
     materials: Sequence,
     *,
     laser_dir: VecLike,
@@ -374,7 +296,7 @@ def render_mueller_image(
     quaternion: VecLike = (1.0, 0.0, 0.0, 0.0),
     n_pixels: int = 128,
     half_width: float | None = None,
-    wavelength: float = 532e-9,
+    wavelength: float = DEFAULT_WAVELENGTH_M,
     terms="auto",
     shading: str = "flat",
     chunk: int = 8192,
@@ -389,8 +311,8 @@ def render_mueller_image(
 
     **Arguments:**
 
-    - `mesh`: :class:`PartMesh` in the body frame (metres).
-    - `materials`: one :class:`ppr.Material` per ``mesh.part_names`` entry.
+    - `mesh`: :class:`ppr.Mesh` in the body frame (metres).
+    - `materials`: one :class:`ppr.Material` per ``mesh.parts`` entry.
     - `laser_dir`: unit vector from the object toward the laser (every pixel's ``k_in``).
     - `receiver_dir`: unit vector from the object toward the receiver (``k_out``); default
       ``laser_dir`` (monostatic: every visible point is lit). Otherwise a shadow ray toward
@@ -404,26 +326,27 @@ def render_mueller_image(
     - `half_width`: half the field of view (m); default: the mesh's bounding radius x 1.05.
     - `wavelength`: metres. `terms`: BRDF terms (``"auto"``, ``None`` for all, or names).
     - `shading`: ``"flat"`` (face normals) or ``"smooth"`` (barycentric interpolation of the
-      mesh's vertex normals; needs ``mesh.vertex_normals``).
+      mesh's area-weighted vertex normals).
     - `chunk`: pixels per BRDF call (fixed, padded: one compilation).
     - `dtype`: float dtype of the BRDF evaluation (float32 default).
 
     **Returns:** a :class:`MuellerImage` with the polarimetric maps in ``quantities``.
     """
 
-    if len(materials) != len(mesh.part_names):
+    if len(materials) != len(mesh.parts):
         raise ValueError(
-            f"need one material per part {list(mesh.part_names)}, got {len(materials)} materials"
+            f"need one material per part {list(mesh.parts)}, got {len(materials)} materials"
         )
     if shading not in ("flat", "smooth"):
         raise ValueError(f"shading must be 'flat' or 'smooth', got {shading!r}")
-    if shading == "smooth" and mesh.vertex_normals is None:
-        raise ValueError("shading='smooth' needs a mesh with vertex_normals")
     if not (isinstance(n_pixels, int | np.integer) and 1 <= n_pixels <= 4096):
         raise ValueError(f"n_pixels must be an integer in [1, 4096], got {n_pixels!r}")
 
     # Work in the body frame: rotate the sensor directions by R^T.
-    rot = quaternion_to_matrix(quaternion)
+    q = np.asarray(quaternion, dtype=float)
+    if q.shape != (4,):
+        raise ValueError(f"quaternion must be 4 numbers (w, x, y, z), got {q.tolist()!r}")
+    rot = quat_to_matrix_host(q)
     u_in = _unit(laser_dir, "laser_dir")
     u_out = u_in if receiver_dir is None else _unit(receiver_dir, "receiver_dir")
     if np.dot(u_in, u_out) <= 0:
@@ -438,7 +361,7 @@ def render_mueller_image(
     x_in = rot.T @ x_tx_w
     x_out = x_ax
 
-    verts = mesh.vertices
+    verts, faces, part_ids, part_names, vertex_normals = _host_mesh(mesh, shading == "smooth")
     centre = 0.5 * (verts.min(0) + verts.max(0))
     radius = float(np.max(np.linalg.norm(verts - centre, axis=1)))
     hw = 1.05 * radius if half_width is None else float(half_width)
@@ -453,11 +376,11 @@ def render_mueller_image(
     origins = c_uv[None] + uu.reshape(-1, 1) * x_ax + vv.reshape(-1, 1) * y_ax + far * s
     dirs = np.broadcast_to(-s, origins.shape)
 
-    inter = _intersector(verts, mesh.faces, allow_slow)
+    inter = _intersector(verts, faces, allow_slow)
     tri, ray, loc = inter.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
     tri, ray, loc = np.asarray(tri), np.asarray(ray), np.asarray(loc)
 
-    tris = verts[mesh.faces[tri]]
+    tris = verts[faces[tri]]
     fn = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
     # two-sided surfaces: the side facing the receiver is the one seen
@@ -467,7 +390,7 @@ def render_mueller_image(
         import trimesh
 
         bary = trimesh.triangles.points_to_barycentric(tris, loc)
-        vn = mesh.vertex_normals[mesh.faces[tri]]
+        vn = vertex_normals[faces[tri]]
         nrm = np.einsum("ij,ijk->ik", bary, vn)
         nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
         nrm[flip] *= -1
@@ -485,7 +408,7 @@ def render_mueller_image(
 
     n_pix = n_pixels * n_pixels
     mueller = np.full((n_pix, 4, 4), np.nan)
-    pid = mesh.part_ids[tri]
+    pid = part_ids[tri]
     sel = np.nonzero(lit)[0]
     mueller[ray] = 0.0
     if len(sel):
@@ -522,7 +445,7 @@ def render_mueller_image(
         v=v,
         x_axis=x_ax,
         y_axis=y_ax,
-        part_names=mesh.part_names,
+        part_names=part_names,
         monostatic=monostatic,
     )
     result.quantities = polarimetric_maps(result.mueller, np.where(result.lit, cos_in, 0.0))

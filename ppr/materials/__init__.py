@@ -1,2 +1,16 @@
-"""Materials: the `Material` pytree (complex index, roughness exponent, correlation length)
-and the sourced material library (`configs/materials.toml`)."""
+"""Materials: the :class:`Material` pytree (complex index, roughness exponent, correlation
+length), :func:`stack_materials` (one batched material per mesh part) and the sourced material
+library (``configs/materials.toml``: :func:`load_material`, :func:`material_names`,
+:func:`finish_names`, :func:`load_library`)."""
+
+from ._library import finish_names, load_library, load_material, material_names
+from ._material import Material, stack_materials
+
+__all__ = [
+    "Material",
+    "finish_names",
+    "load_library",
+    "load_material",
+    "material_names",
+    "stack_materials",
+]

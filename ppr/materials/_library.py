@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import pydantic
 
 from .._config import ConfigError, StrictModel, read_toml, validate_data
+from ..optics.conventions import DEFAULT_WAVELENGTH_M
 from ._material import Material
 
 __all__ = ["DEFAULT_LIBRARY", "MaterialLibrary", "load_library", "load_material", "material_names"]
@@ -122,7 +123,7 @@ def _index_at(entry: MaterialEntry, name: str, wavelength: float | int) -> Index
 
 def load_material(
     name: str,
-    wavelength: float | int = 532e-9,
+    wavelength: float | int = DEFAULT_WAVELENGTH_M,
     finish: str | None = None,
     path: str | Path | None = None,
     dtype=None,
@@ -166,7 +167,7 @@ def load_material(
 
 
 def index_entry(
-    name: str, wavelength: float | int = 532e-9, path: str | Path | None = None
+    name: str, wavelength: float | int = DEFAULT_WAVELENGTH_M, path: str | Path | None = None
 ) -> IndexEntry:
     """The raw library entry (index, source, approximate flag) of a material at a wavelength."""
     lib = load_library(path)

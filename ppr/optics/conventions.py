@@ -69,4 +69,9 @@ Units and time zero
     time zero of a profile is the return of a point at the reference range.
 """
 
-C_LIGHT = 299_792_458.0  # m/s
+C_LIGHT = 299_792_458.0
+"""Speed of light in vacuum, m/s."""
+
+DEFAULT_WAVELENGTH_M = 532e-9
+"""Wavelength (m) every function and config uses when none is given: the frequency-doubled
+Nd:YAG line of satellite laser ranging (the other PPR line is 1064 nm)."""

@@ -9,6 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..optics.conventions import DEFAULT_WAVELENGTH_M
+
 __all__ = ["brdf_figures"]
 
 ROUGHNESSES = (10.0, 1000.0)
@@ -21,7 +23,7 @@ def _materials(wavelength: float):
     return [(name, load_material(name, wavelength)) for name in material_names()]
 
 
-def brdf_figures(out_dir, wavelength: float = 532e-9) -> list[str]:
+def brdf_figures(out_dir, wavelength: float = DEFAULT_WAVELENGTH_M) -> list[str]:
     """Write PNG figures of total reflectance (M00), depolarization index and diattenuation
     of :func:`ppr.mueller_brdf` (single + multiple) for the library materials at two
     roughnesses: (1) against the bistatic angle (0 to 60 deg, receiver rotated away from the

@@ -8,6 +8,8 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from ..optics.conventions import DEFAULT_WAVELENGTH_M
+
 __all__ = ["double_figures"]
 
 
@@ -45,9 +47,11 @@ def double_figures(out_dir: str, *, order: tuple[int, int] = (16, 16)) -> list[s
     for col, (lab, n, m) in enumerate(mats):
         mat = _material_of(n, m)
         with_d = mueller_brdf(
-            k, kp, z, mat, terms=("single", "double", "multiple"), wavelength=532e-9
+            k, kp, z, mat, terms=("single", "double", "multiple"), wavelength=DEFAULT_WAVELENGTH_M
         )
-        without = mueller_brdf(k, kp, z, mat, terms=("single", "multiple"), wavelength=532e-9)
+        without = mueller_brdf(
+            k, kp, z, mat, terms=("single", "multiple"), wavelength=DEFAULT_WAVELENGTH_M
+        )
         for row, (name, fn) in enumerate(
             [
                 ("depolarization index", depolarization_index),

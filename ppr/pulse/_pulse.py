@@ -60,7 +60,7 @@ from ..geometry._mesh import MeshArrays, capacity_for, mesh_arrays
 from ..geometry._rotation import quat_to_matrix
 from ..geometry._visibility import COS_MIN, VisibilityCaster
 from ..materials._material import Material, stack_materials
-from ..optics.conventions import C_LIGHT
+from ..optics.conventions import C_LIGHT, DEFAULT_WAVELENGTH_M
 from ._scene import Pose, RangeBins, Scene, Sensor
 
 NSIG = 7.0
@@ -199,7 +199,15 @@ def tent_gaussian_cdf(
 
 
 def lambertian_mueller(
-    k_in, k_out, normal, material, *, frame_in=None, frame_out=None, wavelength=532e-9, terms=None
+    k_in,
+    k_out,
+    normal,
+    material,
+    *,
+    frame_in=None,
+    frame_out=None,
+    wavelength=DEFAULT_WAVELENGTH_M,
+    terms=None,
 ):
     """Stand-in BRDF: ideal depolarizing Lambertian ``diag(1, 0, 0, 0) / pi`` (albedo 1),
     same signature as :func:`ppr.mueller_brdf`. For tests and geometry checks."""
@@ -211,7 +219,15 @@ def lambertian_mueller(
 
 
 def glossy_fresnel_mueller(
-    k_in, k_out, normal, material, *, frame_in=None, frame_out=None, wavelength=532e-9, terms=None
+    k_in,
+    k_out,
+    normal,
+    material,
+    *,
+    frame_in=None,
+    frame_out=None,
+    wavelength=DEFAULT_WAVELENGTH_M,
+    terms=None,
 ):
     """Stand-in polarizing BRDF for tests and benchmarks (not the model): the Fresnel Mueller
     matrix of the half-vector facet in the beam frames times ``(m + 2)/(2 pi) (h.n)^m / pi``.

@@ -50,7 +50,7 @@ from .._types import Array
 from ..geometry._mesh import Mesh, check_mesh, load_mesh
 from ..geometry._rotation import check_quaternion
 from ..materials._material import Material
-from ..optics.conventions import C_LIGHT
+from ..optics.conventions import C_LIGHT, DEFAULT_WAVELENGTH_M
 
 FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 UNIT_TOL = 1e-6
@@ -102,7 +102,7 @@ class Sensor(eqx.Module):
     receiver_dir: Array = eqx.field(converter=_f)
     frame_tx: Array = eqx.field(converter=_f)
     frame_rx: Array = eqx.field(converter=_f)
-    wavelength: Array = eqx.field(converter=_f, default=532e-9)
+    wavelength: Array = eqx.field(converter=_f, default=DEFAULT_WAVELENGTH_M)
     monostatic: bool | None = eqx.field(static=True, default=None)
 
     def __post_init__(self):
@@ -157,7 +157,7 @@ class Sensor(eqx.Module):
         bistatic_angle: float = 0.0,
         bistatic_azimuth: float = 0.0,
         receiver_dir=None,
-        wavelength: float = 532e-9,
+        wavelength: float = DEFAULT_WAVELENGTH_M,
     ) -> Sensor:
         """Sensor from the laser's line of sight (propagation direction, sensor -> object),
         a polarization reference vector ``x_ref`` (projected perpendicular to each beam), and
