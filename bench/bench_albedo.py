@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/bench_albedo.py
 
-Reference: the half-vector quadrature (ppr.brdf._albedo.albedo_nodes) at (n_phi, n_w) = (32, 16)
+Reference: the half-vector quadrature (ppr.brdf.albedo.albedo_nodes) at (n_phi, n_w) = (32, 16)
 at 48 random off-node points (m log-uniform in [0, 1e6], mu = U^2). Candidates:
 Catmull-Rom tables of nx x nv nodes (built here for the small sizes, the shipped table for the
 production size) and on-the-fly quadrature at lower orders. Error = max |E - E_ref|;
@@ -27,8 +27,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "scripts"))
 from make_albedo_tables import node_values  # noqa: E402
 
-from ppr.brdf import _albedo  # noqa: E402
-from ppr.brdf._brdf import explicit_terms  # noqa: E402
+from ppr.brdf import albedo, explicit_terms  # noqa: E402
 
 OUT = os.path.join(os.path.dirname(__file__), "results")
 QUAD_CHUNK = 16  # E values per call in make_albedo_tables.node_values (its fixed chunk)
@@ -46,20 +45,20 @@ def main():
     print(f"reference: {time.perf_counter() - t0:.1f} s", flush=True)
     rows = []
     # tables
-    shipped = _albedo.load_table(terms)
+    shipped = albedo.load_table(terms)
     for nx, nv in ((10, 12), (20, 24), (shipped.nx, shipped.nv)):
         if (nx, nv) == (shipped.nx, shipped.nv):
             table = shipped
         else:
-            _, _, mg, mug = _albedo.grid_nodes(nx, nv)
+            _, _, mg, mug = albedo.grid_nodes(nx, nv)
             t0 = time.perf_counter()
-            table = _albedo.build_table(terms, node_values(terms, mg[:, None], mug[None, :]))
+            table = albedo.build_table(terms, node_values(terms, mg[:, None], mug[None, :]))
             print(f"table {nx}x{nv}: built in {time.perf_counter() - t0:.1f} s", flush=True)
-        err = float(np.max(np.abs(np.asarray(_albedo.deficit(table, m, mu)) - D_ref)))
+        err = float(np.max(np.abs(np.asarray(albedo.deficit(table, m, mu)) - D_ref)))
         N = 1_000_000
         mm = jnp.asarray(np.expm1(rng.uniform(0, np.log1p(1e6), N)), jnp.float32)
         uu = jnp.asarray(rng.uniform(0, 1, N), jnp.float32)
-        f = jax.jit(lambda a, b, t=table: _albedo.deficit(t, a, b))
+        f = jax.jit(lambda a, b, t=table: albedo.deficit(t, a, b))
         f(mm, uu).block_until_ready()
         ts = []
         for _ in range(5):

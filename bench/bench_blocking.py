@@ -6,7 +6,7 @@
 The same N random direction pairs (upper hemisphere; aluminium 532 nm, m = 300, float32) are
 evaluated by one jitted ``ppr.mueller_brdf`` call on the whole batch, and by
 ``jax.lax.map`` over blocks of B rows calling ``ppr.mueller_brdf`` (traced input checks on:
-one ``eqx.branched_error_if`` per block) and ``ppr.brdf._brdf.mueller_brdf_unchecked`` (no checks).
+one ``eqx.branched_error_if`` per block) and ``ppr.brdf.mueller_brdf_unchecked`` (no checks).
 All programs are compiled first, then called in interleaved rounds (this VM's speed drifts
 within minutes); the table gives the median and minimum ns per evaluation and the ratio of
 medians to the whole batch.
@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import ppr
-from ppr.brdf._brdf import mueller_brdf_unchecked
+from ppr.brdf import mueller_brdf_unchecked
 
 OUT = os.path.join(os.path.dirname(__file__), "results")
 

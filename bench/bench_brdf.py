@@ -7,8 +7,8 @@ N random direction pairs (upper hemisphere), one material (aluminium 532 nm, m =
 float32 and float64, terms "single" and "single"+"multiple". JAX: one jitted call per chunk of
 CHUNK pairs (docs/DESIGN.md), median of repeats after a warm-up, block_until_ready. NumPy: the
 same formulas (Blinn-Phong lobe via |h - n|^2, <h.k>+ by the same sinh-substituted
-trapezoid rule and order as ppr.brdf._microfacet, on the elements that need it (boolean indexing,
-as ppr.brdf._microfacet compacts them; in float32, with one material, from the same per-call
+trapezoid rule and order as ppr.microfacet, on the elements that need it (boolean indexing,
+as ppr.microfacet compacts them; in float32, with one material, from the same per-call
 table over asin(cos) with cubic Hermite interpolation as ppr.mueller_brdf), Ashikhmin joint
 visibility, real-arithmetic Fresnel, frame rotations, Catmull-Rom albedo deficit),
 vectorized over the batch, on a subset (timing scaled per evaluation), checked against the
@@ -30,10 +30,10 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ppr.brdf import _albedo, _microfacet  # noqa: E402
-from ppr.brdf._brdf import explicit_terms, mueller_brdf  # noqa: E402
-from ppr.brdf._microfacet import DEFAULT_ORDER, DEFAULT_ORDER_F32  # noqa: E402
-from ppr.materials._material import Material  # noqa: E402
+from ppr import microfacet  # noqa: E402
+from ppr.brdf import albedo, explicit_terms, mueller_brdf  # noqa: E402
+from ppr.materials import Material  # noqa: E402
+from ppr.microfacet import DEFAULT_ORDER, DEFAULT_ORDER_F32  # noqa: E402
 
 OUT = os.path.join(os.path.dirname(__file__), "results")
 CHUNK = 250_000
@@ -45,7 +45,7 @@ M_ROUGH = 300.0
 
 
 def np_mean_cosine_correction(m, c, order, dt):
-    """NumPy transcription of ppr.brdf._microfacet._correction_impl (value only)."""
+    """NumPy transcription of the ``<h.k>+`` correction of ppr.microfacet (value only)."""
     f64 = dt == np.float64
     big_m = m + 2.0
     c1 = (1e-5 if f64 else 3e-4) / np.sqrt(big_m)
@@ -58,7 +58,7 @@ def np_mean_cosine_correction(m, c, order, dt):
     out = np.zeros_like(c)
     if not np.any(needed):
         return out
-    # the quadrature only where it is needed (boolean indexing), as ppr.brdf._microfacet does
+    # the quadrature only where it is needed (boolean indexing), as ppr.microfacet does
     m = np.broadcast_to(m, c.shape)[needed]
     c, cq, s2, log_sm = c[needed], cq[needed], s2[needed], log_sm[needed]
     big_m = m + 2.0
@@ -81,7 +81,7 @@ def np_mean_cosine_correction(m, c, order, dt):
 
 
 def np_visibility_table(m, c, order, dt, n_nodes):
-    """NumPy transcription of ppr.brdf._microfacet.visibility_one_material (one m, float32 BRDF
+    """NumPy transcription of ppr.microfacet.visibility_one_material (one m, float32 BRDF
     path): the correction at n_nodes points equispaced in asin(c) by the same quadrature,
     its c-derivative there by central differences (the library uses the quadrature's
     partials), cubic Hermite per element."""
@@ -135,7 +135,7 @@ def np_fresnel_params(n_re, n_im, c):
 
 def np_deficit(table, m, mu, dt):
     x = np.log1p(m)
-    v = np.log(mu + _albedo.MU0) + _albedo.ALPHA * mu
+    v = np.log(mu + albedo.MU0) + albedo.ALPHA * mu
     sx = np.clip((x - table.x_lo) / table.dx, 0, table.nx - 1)
     i = np.clip(np.floor(sx), 0, table.nx - 2).astype(int)
     t = sx - i
@@ -170,7 +170,7 @@ def np_brdf(ki, ko, m, n_re, n_im, multiple, dt):
     lp = m * np.log1p(-one_minus)
     order = DEFAULT_ORDER if dt == np.float64 else DEFAULT_ORDER_F32
     if dt == np.float32:  # one material in float32: the tabulated correction, as ppr does
-        n_nodes = _microfacet.TABLE_NODES[32]
+        n_nodes = microfacet.TABLE_NODES[32]
         vi = np_visibility_table(float(m), ci, order, dt, n_nodes) / ci
         vo = np_visibility_table(float(m), co, order, dt, n_nodes) / co
     else:
@@ -204,8 +204,8 @@ def np_brdf(ki, ko, m, n_re, n_im, multiple, dt):
     M[:, 3, 1], M[:, 3, 2], M[:, 3, 3] = dd * Sa, -dd * Ca, c
     M *= scal[:, None, None]
     if multiple:
-        table = _albedo.load_table(explicit_terms())
-        d_avg = float(_albedo.deficit_avg(table, float(m)))
+        table = albedo.load_table(explicit_terms())
+        d_avg = float(albedo.deficit_avg(table, float(m)))
         xg, wg = np.polynomial.legendre.leggauss(32)
         mu = 0.5 * (xg + 1)
         f_avg = float(np.sum(np_fresnel_params(n_re, n_im, mu)[0] * mu * wg))

@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/bench_double.py [--n 100000] [--repeats 3] [--n-numpy 2000] [--quick]
 
-Orders are ``(n_u, n_phi)`` of the current rule of ``ppr.brdf._double`` (module docstring,
+Orders are ``(n_u, n_phi)`` of the current rule of ``ppr.brdf.double`` (module docstring,
 "Quadrature"): per half, three closed-form ``u`` panels per azimuth with ``n_u`` Gauss-Legendre
 nodes each, and ``4 max(n_phi // 4, 1)`` azimuths packed near ``phi = +-pi/2``; paths per pair
 ``2 * 3 * n_u * 4 * max(n_phi // 4, 1)`` (:func:`n_paths`; 216 at the default (3, 12)).
@@ -20,7 +20,7 @@ nodes each, and ``4 max(n_phi // 4, 1)`` azimuths packed near ``phi = +-pi/2``; 
 2. Evaluations/s of the double term (jit, N pairs, one call, median of repeats after
    warm-up, block_until_ready) per order, float32 and float64, and of a plain NumPy
    implementation of the same quadrature (:func:`numpy_double_m00`: the node layout is
-   rebuilt in NumPy, not taken from ``ppr.brdf._double``) on a subset, with the ratio.
+   rebuilt in NumPy, not taken from ``ppr.brdf.double``) on a subset, with the ratio.
 3. Full BRDF ``mueller_brdf`` (single + double + multiple) and single-only evals/s, float32.
 
 Writes bench/results/double_quadrature.md / .png (accuracy, error vs evals/s) and
@@ -42,8 +42,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _timing import median_time  # noqa: E402
 
-from ppr.brdf._double import DEFAULT_ORDER, INNER_ORDER, double_bounce_term  # noqa: E402
-from ppr.materials._material import Material  # noqa: E402
+from ppr.brdf.double import DEFAULT_ORDER, INNER_ORDER, double_bounce_term  # noqa: E402
+from ppr.materials import Material  # noqa: E402
 
 OUT = os.path.join(os.path.dirname(__file__), "results")
 ORDERS = [(1, 4), (2, 8), (2, 12), (3, 12), (4, 16), (6, 24), (8, 32), (12, 48)]
@@ -87,7 +87,7 @@ def geometry(rng, n, max_inc=85.0, max_psi=30.0):
 
 
 def frames(k, kp):
-    from ppr.optics._frames import default_frame
+    from ppr.optics import default_frame
 
     z = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], k.dtype), k.shape)
     return default_frame(-k, z), default_frame(kp, z), z
@@ -105,7 +105,7 @@ def make_fn(order, coherent=True):
 
 
 def single_fn():
-    from ppr.brdf._brdf import single_bounce_term
+    from ppr.brdf import single_bounce_term
 
     @jax.jit
     def f(k, kp, n, m):
@@ -185,7 +185,7 @@ def throughput(n, repeats, quick=False):
 
 
 def numpy_double_m00(k, kp, n, m, order, inner_order=INNER_ORDER):
-    """Plain NumPy reimplementation of the current quadrature (``ppr.brdf._double``, module
+    """Plain NumPy reimplementation of the current quadrature (``ppr.brdf.double``, module
     docstring "Quadrature"), M00 only, float64, normal = +z: the same node layout is built
     here from scratch (Gauss-Legendre ``n_u`` nodes in ``u = cos^(m+1) t`` on each of the
     three closed-form panels ``[u(t_a), 1]``, ``[u(t_0), u(t_b)]``, ``[u(t_max), u(t_0)]``;
@@ -352,7 +352,7 @@ def numpy_ratio(order, n=2000):
 
 
 def full_brdf_throughput(n, repeats):
-    from ppr.brdf._brdf import mueller_brdf
+    from ppr.brdf import mueller_brdf
 
     rng = np.random.default_rng(3)
     k, kp = geometry(rng, n)

@@ -1,5 +1,5 @@
-"""Double-bounce term at (near-)exact backscatter: the tables of ``ppr.brdf._double_table`` against
-the quadrature of ``ppr.brdf._double``, error against evaluations/s, and full-BRDF throughput.
+"""Double-bounce term at (near-)exact backscatter: the tables of ``ppr.brdf.double_table`` against
+the quadrature of ``ppr.brdf.double``, error against evaluations/s, and full-BRDF throughput.
 
     .venv/bin/python bench/bench_double_table.py [--n 250000] [--repeats 5] [--n-numpy 20000]
 
@@ -35,9 +35,9 @@ import numpy as np  # noqa: E402
 from _timing import median_time  # noqa: E402
 
 from ppr import Material, mueller_brdf  # noqa: E402
-from ppr.brdf import _double as D  # noqa: E402
-from ppr.brdf import _double_table as T  # noqa: E402
-from ppr.brdf._sampling import bistatic_geometry  # noqa: E402
+from ppr.brdf import bistatic_geometry  # noqa: E402
+from ppr.brdf import double as D  # noqa: E402
+from ppr.brdf import double_table as T  # noqa: E402
 
 OUT = os.path.join(os.path.dirname(__file__), "results")
 REF_ORDER = (32, 128)
@@ -47,7 +47,7 @@ PSIS = (0.0, 3e-4, T.PSI_MAX)
 
 
 def geometry(rng, n, psi):
-    """Incidence uniform in 0-88 deg (:func:`ppr.brdf._sampling.bistatic_geometry`)."""
+    """Incidence uniform in 0-88 deg (:func:`ppr.brdf.bistatic_geometry`)."""
     return bistatic_geometry(rng, rng.uniform(0.0, 88.0, n), psi)
 
 
@@ -336,8 +336,8 @@ def main():
         "",
         "`general`: `k_out` a separate array with the values of `k_in` (the general kernel; "
         "`double` is then the run-time dispatch, one `lax.cond` between the table and the "
-        "quadrature); `exact`: `k_out` is `k_in` (the exact-backscatter kernel, "
-        "`ppr.brdf._brdf._mono_core`, as a monostatic `ppr.Sensor` renders). Frames: `default` "
+        "quadrature); `exact`: `k_out` is `k_in` (the exact-backscatter kernel of "
+        "`ppr.mueller_brdf`, as a monostatic `ppr.Sensor` renders). Frames: `default` "
         "(the BRDF's own) or `given` (random beam frames, as `ppr.render` passes them).",
         "",
         "| terms | frames | material | general evals/s | exact evals/s | exact / general |",

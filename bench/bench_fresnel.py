@@ -27,8 +27,11 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _timing import median_time  # noqa: E402
 
-from ppr.optics._frames import facet_mueller_in_beam_frames, facet_mueller_rows  # noqa: E402
-from ppr.optics._fresnel import fresnel_mueller_params  # noqa: E402
+from ppr.optics import (  # noqa: E402
+    facet_mueller_in_beam_frames,
+    facet_mueller_rows,
+    fresnel_mueller_params,  # noqa: E402
+)
 
 OUT = Path(__file__).resolve().parent / "results"
 

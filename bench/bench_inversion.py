@@ -112,15 +112,15 @@ def choose_brdf(kind="auto"):
     """ppr.mueller_brdf if it imports (``auto``), else / with ``glossy`` the simulator's
     polarizing stand-in (stated in the output)."""
     if kind == "glossy":
-        from ppr.pulse._pulse import glossy_fresnel_mueller
+        from ppr.pulse import glossy_fresnel_mueller
 
         return glossy_fresnel_mueller, "glossy_fresnel_mueller (simulator stand-in, --brdf glossy)"
     try:
-        from ppr.brdf._brdf import mueller_brdf
+        from ppr.brdf import mueller_brdf
 
         return mueller_brdf, "ppr.mueller_brdf"
     except Exception as exc:  # noqa: BLE001
-        from ppr.pulse._pulse import glossy_fresnel_mueller
+        from ppr.pulse import glossy_fresnel_mueller
 
         return (
             glossy_fresnel_mueller,

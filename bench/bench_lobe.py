@@ -33,8 +33,8 @@ jax.config.update("jax_enable_x64", True)  # script: float64 runs next to float3
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+import ppr.microfacet as mf_i  # noqa: E402
 from ppr import microfacet as mf  # noqa: E402
-from ppr.brdf import _microfacet as mf_i  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results"
@@ -45,7 +45,7 @@ ORDERS = {np.float64: [16, 24, 32, 40, 48, 56, 64, 80], np.float32: [12, 16, 20,
 
 
 def numpy_mean_cosine_plus(m, c, order, log_tail, c_small, chunk=100_000):
-    """Plain NumPy of the same formula (module docstring of ppr.brdf._microfacet), float64."""
+    """Plain NumPy of the same formula (module docstring of ppr.microfacet), float64."""
     out = np.empty_like(c)
     j = np.arange(order)
     w = np.ones(order)

@@ -1,4 +1,4 @@
-"""Benchmark of the macro double bounce (issue 29, ``ppr/_macro.py``).
+"""Benchmark of the macro double bounce (issue 29, ``ppr/pulse/_macro.py``).
 
 1. Glossy pairs: the Laplace convolution of the two lobes against brute-force quadrature of
    the two-bounce lobe (1 m aluminium dihedral, 10 deg off its bisector), and against the full
@@ -36,11 +36,11 @@ import numpy as np
 from _timing import median_time
 
 import ppr
-from ppr.geometry import shapes
-from ppr.geometry._mesh import concatenate
+from ppr.geometry import concatenate, shapes
+from ppr.materials import stack_materials
 from ppr.optics.conventions import C_LIGHT
-from ppr.pulse import _macro
-from ppr.pulse._pulse import _macro_jit, lambertian_mueller, render, stack_materials, window_size
+from ppr.pulse import lambertian_mueller, macro_profile, render, window_size
+from ppr.pulse import macro as pmacro
 
 jax.config.update("jax_enable_x64", True)
 
@@ -85,12 +85,12 @@ def macro(scene, options, dtype=jnp.float64, brdf=ppr.mueller_brdf, repeats=3):
     caster = ppr.VisibilityCaster(scene.mesh, scene.vis_samples)
 
     def host():
-        return _macro.pose_pairs(
+        return pmacro.pose_pairs(
             scene.mesh,
             caster,
             u_in,
             u_out,
-            _macro.part_exponents(scene.materials),
+            pmacro.part_exponents(scene.materials),
             brdf,
             options,
             bins=(float(scene.pulse.sigma_range), float(scene.bins.width), scene.bins.n_bins),
@@ -106,7 +106,7 @@ def macro(scene, options, dtype=jnp.float64, brdf=ppr.mueller_brdf, repeats=3):
     )
     sensor = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), scene.sensor)
     pose = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), scene.pose)
-    b = brdf if brdf is not ppr.mueller_brdf else ppr.brdf._brdf.mueller_brdf_unchecked
+    b = brdf if brdf is not ppr.mueller_brdf else ppr.brdf.mueller_brdf_unchecked
 
     n_r = pairs.r_i.shape[0]
     if n_r * pairs.r_k.shape[1] * pairs.r_k.shape[2] > 200_000:
@@ -131,6 +131,15 @@ def macro(scene, options, dtype=jnp.float64, brdf=ppr.mueller_brdf, repeats=3):
     return tot.sum(-1).reshape(4, 4), t_kernel, t_host, info
 
 
+@eqx.filter_jit
+def _macro_jit(pairs, pose, materials, sensor, sigma, start, width, *, n_bins, projection, brdf):
+    rot = ppr.quat_to_matrix(pose.quaternion.astype(pairs.tri.dtype))
+    return macro_profile(
+        pairs, rot, pose.position, materials, sensor, sigma, start, width,
+        n_bins=n_bins, projection=projection, brdf=brdf,
+    )
+
+
 def _run(pairs, pose, mats, sensor, scene, dtype, brdf):
     return _macro_jit(
         pairs,
@@ -147,10 +156,10 @@ def _run(pairs, pose, mats, sensor, scene, dtype, brdf):
 
 
 def lobe_reference(m, u, n_grid=241):
-    """Brute-force two-bounce lobe at retro-reflection (ppr.pulse._macro.two_bounce_lobe)."""
+    """Brute-force two-bounce lobe at retro-reflection (ppr.pulse.macro.two_bounce_lobe)."""
     n_a, n_b = np.array([0, 0, 1.0]), np.array([0, 1.0, 0])
     fr = np.array([1.0, 0, 0])
-    return _macro.two_bounce_lobe(n_a, n_b, u, u, ppr.Material(AL, m), fr, fr, span=8.0, n=n_grid)
+    return pmacro.two_bounce_lobe(n_a, n_b, u, u, ppr.Material(AL, m), fr, fr, span=8.0, n=n_grid)
 
 
 # ----------------------------------------------------------------------------- 1. glossy
@@ -161,11 +170,11 @@ def glossy_section():
     u = retro(phi)
     area = 2 * np.sin(np.pi / 4 - phi)
     rows = []
-    full_opts = _macro.MacroOptions(level=2 if QUICK else 3, rule=6, order=12 if QUICK else 16)
-    default_broad = _macro.MacroOptions(glossy_m=1e7)  # every pair through the quadrature
+    full_opts = pmacro.MacroOptions(level=2 if QUICK else 3, rule=6, order=12 if QUICK else 16)
+    default_broad = pmacro.MacroOptions(glossy_m=1e7)  # every pair through the quadrature
     for m in (100.0, 300.0, 1e3, 1e4, 1e5):
         sc = scene_of(dihedral(), u, [ppr.Material(AL, m)] * 2)
-        img, t_img, _, _ = macro(sc, _macro.MacroOptions(glossy_m=50.0))
+        img, t_img, _, _ = macro(sc, pmacro.MacroOptions(glossy_m=50.0))
         ref = area * lobe_reference(m, u)
         row = dict(
             m=m,
@@ -200,7 +209,7 @@ def spill_ratio(m, phi, along=0.0, n=120, nd=41):
         (np.array([0, 1.0, 0]), np.array([0, 0, 1.0])),
     ):
         ks1 = 2 * (u @ n_i) * n_i - u
-        k, wgrid = _macro.gnomonic_grid(ks1, 6 * 2 / np.sqrt(m), nd)
+        k, wgrid = pmacro.gnomonic_grid(ks1, 6 * 2 / np.sqrt(m), nd)
         h1 = u + k
         h1 /= np.linalg.norm(h1, axis=1, keepdims=True)
         h2 = u - k
@@ -236,7 +245,7 @@ def spill_ratio(m, phi, along=0.0, n=120, nd=41):
 def broad_section():
     u = retro(np.radians(10.0))
     sc = scene_of(dihedral(), u, [ppr.Material(AL, 20.0)] * 2)
-    ref, _, _, _ = macro(sc, _macro.MacroOptions(level=3, rule=6, order=16), repeats=1)
+    ref, _, _, _ = macro(sc, pmacro.MacroOptions(level=3, rule=6, order=16), repeats=1)
     curves = {}
     sweeps = {
         "order (level 1, rule 6)": [dict(level=1, rule=6, order=o) for o in (2, 3, 4, 6, 8, 12)],
@@ -247,15 +256,15 @@ def broad_section():
         pts = []
         for kw in settings:
             for dt in (jnp.float32,):
-                tot, t_k, t_h, _ = macro(sc, _macro.MacroOptions(**kw), dtype=dt)
+                tot, t_k, t_h, _ = macro(sc, pmacro.MacroOptions(**kw), dtype=dt)
                 pts.append(
                     dict(kw, err=abs(tot[0, 0] / ref[0, 0] - 1), ms=1e3 * t_k, host_ms=1e3 * t_h)
                 )
         curves[name] = pts
         print("broad", name, pts, flush=True)
     terms = []
-    for t in (_macro.DEFAULT_TERMS, ("single", "double", "multiple"), ("single",)):
-        tot, t_k, _, _ = macro(sc, _macro.MacroOptions(terms=t), dtype=jnp.float32)
+    for t in (pmacro.DEFAULT_TERMS, ("single", "double", "multiple"), ("single",)):
+        tot, t_k, _, _ = macro(sc, pmacro.MacroOptions(terms=t), dtype=jnp.float32)
         terms.append(dict(terms="+".join(t), m00=tot[0, 0], ms=1e3 * t_k))
     full = terms[1]["m00"]
     for r in terms:
@@ -289,7 +298,7 @@ def cubesat_section():
         mats = cubesat_mats("scene" if "scene" in kind else "matte")
         ref_kw = dict(samples=256) if "scene" in kind else dict(level=3, order=10)
         refs = [
-            macro(scene_of(mesh, _los(q), mats, q=q), _macro.MacroOptions(**ref_kw), repeats=1)[0]
+            macro(scene_of(mesh, _los(q), mats, q=q), pmacro.MacroOptions(**ref_kw), repeats=1)[0]
             for q in qs
         ]
         pts = []
@@ -297,7 +306,7 @@ def cubesat_section():
             errs, ts, hs = [], [], []
             for q, ref in zip(qs, refs, strict=True):
                 tot, t_k, t_h, _ = macro(
-                    scene_of(mesh, _los(q), mats, q=q), _macro.MacroOptions(**kw), dtype=jnp.float32
+                    scene_of(mesh, _los(q), mats, q=q), pmacro.MacroOptions(**kw), dtype=jnp.float32
                 )
                 scale = max(abs(ref[0, 0]), 1e-30)
                 errs.append(abs(tot[0, 0] - ref[0, 0]) / scale)
@@ -347,17 +356,17 @@ def throughput_section():
             rot = np.asarray(ppr.quat_to_matrix(q))
             vis[b, : mesh.n_faces] = caster.fractions(rot.T @ u)
         t_vis = (time.perf_counter() - t) / BATCH
-        opts = _macro.MacroOptions()
+        opts = pmacro.MacroOptions()
         dirs = np.stack([np.asarray(ppr.quat_to_matrix(q)).T @ u for q in qs])
 
         def pairs_of(dirs=dirs, caster=caster, mesh=mesh, opts=opts):
-            return _macro.batch_pairs(
+            return pmacro.batch_pairs(
                 [mesh],
                 [caster],
                 np.zeros(BATCH, int),
                 dirs,
                 dirs,
-                [_macro.part_exponents(mats)] * BATCH,
+                [pmacro.part_exponents(mats)] * BATCH,
                 ppr.mueller_brdf,
                 opts,
                 bins=(SIGMA_R, WIDTH, N_BINS),
@@ -412,7 +421,7 @@ def throughput_section():
 
 def _compiled_render(arrays, stacked, sensor, window, qj, vj, mac):
     """(the jitted vmapped render, its compile seconds)."""
-    from ppr.brdf._brdf import mueller_brdf_unchecked
+    from ppr.brdf import mueller_brdf_unchecked
 
     def one(q, v, m):
         return render(
@@ -447,7 +456,7 @@ def triple_section(n_rays=200_000 if not QUICK else 40_000):
 
     mesh = shapes.cubesat_with_panels(3)
     tri = mesh.triangles()
-    area, nrm = ppr.geometry._mesh.face_areas_normals(tri)
+    area, nrm = ppr.geometry.face_areas_normals(tri)
     tm = trimesh.Trimesh(tri.reshape(-1, 3), np.arange(3 * len(tri)).reshape(-1, 3), process=False)
     ray = trimesh.ray.ray_pyembree.RayMeshIntersector(tm, scale_to_box=False)
     rng = np.random.default_rng(3)
@@ -492,7 +501,7 @@ def triple_section(n_rays=200_000 if not QUICK else 40_000):
         # the double bounce of the same scene from ppr (white Lambertian stand-in, 1/pi)
         sc = scene_of(mesh, u, [ppr.Material(1.5, 1.0)] * 3, n_bins=64, width=0.02)
         tot, _, _, _ = macro(
-            sc, _macro.MacroOptions(level=2, order=8), brdf=lambertian_mueller, repeats=1
+            sc, pmacro.MacroOptions(level=2, order=8), brdf=lambertian_mueller, repeats=1
         )
         rows.append(dict(j1=j[1], j2=j[2], j3=j[3], ppr_j2=tot[0, 0]))
         mc2.append((j[2], tot[0, 0]))

@@ -30,13 +30,13 @@ from scipy import integrate, special, stats
 
 import ppr
 from ppr import shapes
-from ppr.geometry._mesh import n_normal_groups
+from ppr.geometry import n_normal_groups
+from ppr.materials import stack_materials
 from ppr.optics.conventions import C_LIGHT
-from ppr.pulse._pulse import (
+from ppr.pulse import (
     NSIG,
     lambertian_mueller,
     render,
-    stack_materials,
     visible_faces,
     window_size,
 )
@@ -60,7 +60,7 @@ def _np_q(u, c, p):
 
 
 def np_tent_cdf(x, d0, d1, d2, sigma, tau=0.25, tau1=0.5):
-    """NumPy port of ppr.pulse._pulse.tent_gaussian_cdf (float32 thresholds)."""
+    """NumPy port of ppr.pulse.tent_gaussian_cdf (float32 thresholds)."""
     inv = 1.0 / sigma
     g01, g12 = (d1 - d0) * inv, (d2 - d1) * inv
     left = x <= (d0 + d1 + d2) / 3.0
@@ -139,7 +139,7 @@ def throughput(mesh, label):
     vis_p[:, : mesh.n_faces] = np.asarray(vis)
     # pruning: per-pose indices of the lit-and-visible facets, one padded capacity per batch
     n_vis = int((vis_p > 0).sum(1).max())
-    fcap = ppr.geometry._mesh.capacity_for(n_vis)
+    fcap = ppr.geometry.capacity_for(n_vis)
     faces = np.stack([visible_faces(v, fcap) for v in vis_p])
     window = window_size(mesh.max_edge(), SIGMA_R, WIDTH, N_BINS)
     mats = jax.tree_util.tree_map(
@@ -154,7 +154,7 @@ def throughput(mesh, label):
     )
     sensor32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), sensor)
     rows = []
-    from ppr.brdf._brdf import mueller_brdf
+    from ppr.brdf import mueller_brdf
 
     for brdf_name, brdf in (
         ("lambertian stand-in", lambertian_mueller),
@@ -211,8 +211,8 @@ def throughput(mesh, label):
 
     # NumPy reference (Lambertian), fewer poses
     tri = mesh.triangles().astype(np.float32)
-    _, nrm = ppr.geometry._mesh.face_areas_normals(mesh.triangles())
-    areas = ppr.geometry._mesh.face_areas_normals(mesh.triangles())[0].astype(np.float32)
+    _, nrm = ppr.geometry.face_areas_normals(mesh.triangles())
+    areas = ppr.geometry.face_areas_normals(mesh.triangles())[0].astype(np.float32)
     nrm = nrm.astype(np.float32)
     n_np = 4
     t_np = (
@@ -283,7 +283,7 @@ def visibility_sweep():
     refs = []
     caster_ref = ppr.VisibilityCaster(mesh, 1024)
     tri = mesh.triangles()
-    area, nrm = ppr.geometry._mesh.face_areas_normals(tri)
+    area, nrm = ppr.geometry.face_areas_normals(tri)
     for q in qs:
         rot = np.asarray(ppr.quat_to_matrix(q))
         refs.append(caster_ref.fractions(rot.T @ u))
@@ -380,7 +380,7 @@ def main():
         print(label, rows, f"vis {t_vis * 1e3:.1f} ms/pose", f"JAX/NumPy {ratio:.1f}x", flush=True)
     lines.append("")
     for label, nf, t_vis, ratio, err, window, _, fcap, n_grp in summary:
-        gcap = ppr.geometry._mesh.capacity_for(n_grp)
+        gcap = ppr.geometry.capacity_for(n_grp)
         lines.append(
             f"- {label} ({nf} faces, {n_grp} distinct (normal, part) groups, so "
             f"{gcap if gcap < fcap else fcap} BRDF evaluations per pose; pruned per pose to "

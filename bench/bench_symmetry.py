@@ -25,7 +25,7 @@ from _timing import median_time  # noqa: E402
 
 import ppr  # noqa: E402
 
-SATELLITE = Path(ppr.__file__).parent / "data" / "example_satellite.glb"
+SATELLITE = ppr.image.EXAMPLE_SATELLITE
 
 
 def cases(quick: bool):

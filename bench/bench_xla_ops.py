@@ -2,7 +2,7 @@
 
 Why this exists: the BRDF kernels' speed on this CPU is decided less by arithmetic than by
 which operations XLA CPU vectorizes and how it fuses. This script measures the facts that
-shaped ``ppr/_microfacet.py``, ``ppr/_frames.py`` and ``ppr/_double_table.py`` (listed in
+shaped ``ppr/microfacet.py``, ``ppr/_frames.py`` and ``ppr/_double_table.py`` (listed in
 docs/DESIGN.md), so they can be re-checked on a new jax release:
 
 - transcendental functions one by one (``jnp.arcsin`` lowers to an unvectorized ``atan2``;
@@ -32,8 +32,8 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ppr.brdf._albedo import _cr_cubics, _cr_eval, _cr_weights  # noqa: E402
-from ppr.optics._frames import rotate_mueller_44, rotate_mueller_flat  # noqa: E402
+from ppr.brdf.albedo import _cr_cubics, _cr_eval, _cr_weights  # noqa: E402
+from ppr.optics import rotate_mueller_44, rotate_mueller_flat  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "bench"))
 from _timing import median_time  # noqa: E402

@@ -4,7 +4,7 @@ XLA CPU runs a jitted function as a sequence of *fusions* (kernels). This script
 call with ``jax.profiler`` and prints the fusions that took the most time, in ns per BRDF
 evaluation, with the operation counts of the top ones read from the compiled HLO. It is how
 the scalar concatenate loop of the double-bounce term's frame angles was found (320 of 510 ns
-per evaluation; ``ppr.optics._frames.rotate_mueller_flat``). Timings under the tracer run ~1.5x
+per evaluation; ``ppr.optics.rotate_mueller_flat``). Timings under the tracer run ~1.5x
 slower than plain calls; read the ranking, not the totals.
 
 Run: ``.venv/bin/python bench/profile_brdf.py --terms single,double:backscatter,multiple``

@@ -17,11 +17,25 @@ def _load_public():
     return importlib.import_module("ppr._public")
 
 
+# public names served without JAX (module, attribute; None: the module itself)
+_LIGHT = {
+    "config": ("ppr.config", None),
+    "shipped_config": ("ppr._resources", "shipped_config"),
+    "shipped_configs_dir": ("ppr._resources", "shipped_configs_dir"),
+}
+
+
 def __getattr__(name: str):
     # The public names live in ppr._public; importing it imports JAX and the library, so it
     # happens on their first use, not on `import ppr` (the `ppr` command's entry stays light).
     if name.startswith("_") and name != "__all__":
         raise AttributeError(f"module 'ppr' has no attribute {name!r}")
+    if name in _LIGHT:
+        import importlib
+
+        module, attr = _LIGHT[name]
+        mod = importlib.import_module(module)
+        return mod if attr is None else getattr(mod, attr)
     public = _load_public()
     names = getattr(public, "__all__", None)  # None while ppr._public itself imports
     if names is None or (name != "__all__" and name not in names):

@@ -33,7 +33,7 @@ from .optics import (
     mueller_rotator,
     polarimetry,
 )
-from .optics._polarimetry import (
+from .optics.polarimetry import (
     cloude_eigenvalues,
     degree_of_polarization,
     depolarization_index,

@@ -35,9 +35,9 @@ step "ppr --version"
 "$tmp/venv/bin/python" - "$tmp/venv" <<'PY'
 import sys
 import ppr
-from ppr._resources import shipped_configs_dir
 assert ppr.__file__.startswith(sys.argv[1]), ppr.__file__
-assert str(shipped_configs_dir()).startswith(sys.argv[1]), shipped_configs_dir()
+assert str(ppr.shipped_configs_dir()).startswith(sys.argv[1]), ppr.shipped_configs_dir()
+assert "jax" not in sys.modules  # ppr.shipped_configs_dir is served without the library
 PY
 
 step "ppr brdf (shipped configs/cli/brdf.toml, single + multiple terms)"

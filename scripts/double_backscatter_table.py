@@ -1,5 +1,5 @@
 """Build ``ppr/data/double_backscatter.npz``: the material-independent tables of the
-double-bounce term at exact backscatter (:mod:`ppr.brdf._double_table`).
+double-bounce term at exact backscatter (:mod:`ppr.brdf.double_table`).
 
     .venv/bin/python scripts/double_backscatter_table.py [--nx 84] [--nu 100]
 
@@ -17,7 +17,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from ppr.brdf import _double_table as T  # noqa: E402
+from ppr.brdf import double_table as T  # noqa: E402
 
 
 def main() -> None:

@@ -8,7 +8,7 @@ remainder, (2) the measured "where does the double term matter" table behind ter
 
 (1) ``E_single + E_double`` on the grid of ``ppr/data/albedo_single.npz`` (same nodes):
 ``E_double(m, mu) = int M00_double(white, incoherent, default order) (k'.n) d omega'`` by the
-half-vector rule of :func:`ppr.brdf._albedo.albedo_nodes` (HV_PHI x HV_W), which resolves the
+half-vector rule of :func:`ppr.brdf.albedo.albedo_nodes` (HV_PHI x HV_W), which resolves the
 double lobe at every m (at large m it sits next to the mirror direction: two small facet
 tilts; at small m the rule covers the whole hemisphere). The former k' product rule
 (Gauss-Legendre 20 x 16 in ``cos theta'``, ``phi'``) could not resolve it at large m and the
@@ -16,7 +16,7 @@ table set ``E_double = 0`` for m > 3000 (wrong at grazing: ``E_double(1e4, 89 de
 Rows with m >= M_MU_CUT are integrated for ``mu <= MU_CUT_K / sqrt(m + 1)`` only (the double
 lobe needs grazing incidence there); the first node above the cut is integrated too and
 its value is reported in the table's info string (the dropped part). The deficit
-``D = D_single - E_double`` goes through ``ppr.brdf._albedo.build_table``. The double term's
+``D = D_single - E_double`` goes through ``ppr.brdf.albedo.build_table``. The double term's
 table uses the *runtime default order*, so that single + double + multiple closes the white
 furnace with the BRDF that is actually evaluated. The coherent backscatter peak is left out
 of E (gamma = 0); the albedo it adds is measured by (3).
@@ -51,13 +51,13 @@ import numpy as np  # noqa: E402
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from ppr.brdf import _albedo  # noqa: E402
-from ppr.brdf._double import DEFAULT_ORDER, double_bounce_term  # noqa: E402
-from ppr.materials._material import Material  # noqa: E402
-from ppr.optics._frames import default_frame  # noqa: E402
+from ppr.brdf import albedo  # noqa: E402
+from ppr.brdf.double import DEFAULT_ORDER, double_bounce_term  # noqa: E402
+from ppr.materials import Material  # noqa: E402
+from ppr.optics import default_frame  # noqa: E402
 
 N_MU, N_PHI = 20, 16  # k' product rule of :func:`kprime_nodes` (tests, broad lobes)
-HV_PHI, HV_W = 20, 10  # half-vector rule of ppr.brdf._albedo.albedo_nodes for the albedo table
+HV_PHI, HV_W = 20, 10  # half-vector rule of ppr.brdf.albedo.albedo_nodes for the albedo table
 MU_CUT_K = 10.0  # rows m >= M_MU_CUT: nodes with mu > MU_CUT_K / sqrt(m) are not integrated
 M_MU_CUT = 300.0
 CHUNK = 4096  # k' evaluations per jitted call (one compilation)
@@ -112,12 +112,12 @@ def _eval_pairs(k, kp, m, order):
 
 
 def e_double_hv(m_vals, mu_vals, order=DEFAULT_ORDER, n_phi=HV_PHI, n_w=HV_W):
-    """``E_double(m, mu)`` by the half-vector rule of :func:`ppr.brdf._albedo.albedo_nodes`
+    """``E_double(m, mu)`` by the half-vector rule of :func:`ppr.brdf.albedo.albedo_nodes`
     (adapted to the double lobe too: at large m it sits near the mirror direction; at small m
     the rule covers the whole hemisphere)."""
     m_vals = np.asarray(m_vals, float)
     mu_vals = np.maximum(np.asarray(mu_vals, float), 1e-9)
-    k_in, k_out, wt = _albedo.albedo_nodes(m_vals, mu_vals, n_phi, n_w)  # (N,3) (N,Q,3) (N,Q)
+    k_in, k_out, wt = albedo.albedo_nodes(m_vals, mu_vals, n_phi, n_w)  # (N,3) (N,Q,3) (N,Q)
     Q = k_out.shape[-2]
     kk = np.repeat(k_in[:, None, :], Q, 1).reshape(-1, 3)
     v = _eval_pairs(kk, k_out.reshape(-1, 3), np.repeat(m_vals, Q), order)
@@ -155,9 +155,9 @@ def grazing_limit(m_nodes, e_default):
 
 
 def make_albedo():
-    t_single = _albedo.load_table(("single",))
+    t_single = albedo.load_table(("single",))
     nx, nv = t_single.nx, t_single.nv
-    _, _, m_nodes, mu_nodes = _albedo.grid_nodes(nx, nv)
+    _, _, m_nodes, mu_nodes = albedo.grid_nodes(nx, nv)
     M, MU = np.meshgrid(m_nodes, mu_nodes, indexing="ij")
     mu_cut = np.where(M >= M_MU_CUT, MU_CUT_K / np.sqrt(M + 1.0), 2.0)
     sel = MU <= mu_cut
@@ -198,8 +198,8 @@ def make_albedo():
         f"converged there: it differs by up to {grazing_gap:.1e}); "
         f"max E_single + E_double - 1 at the nodes = {over:.1e}; max E_double = {E2.max():.4f}"
     )
-    table = _albedo.build_table(("double", "single"), D, info=info)
-    path = _albedo.save_table(table)
+    table = albedo.build_table(("double", "single"), D, info=info)
+    path = albedo.save_table(table)
     print(path, info, f"{t1 - t0:.1f} s")
     return E2
 
@@ -212,9 +212,9 @@ MATS = (("Al", 0.94 + 6.42j), ("TiO2", 2.67 + 0j), ("silica", 1.461 + 0j))
 
 
 def measure_matter_table(out_dir):
-    from ppr.brdf._brdf import mueller_brdf
-    from ppr.brdf._double import AUTO_TOL
-    from ppr.optics._polarimetry import depolarization_index
+    from ppr import depolarization_index
+    from ppr.brdf import mueller_brdf
+    from ppr.brdf.double import AUTO_TOL
 
     rows = []
     for th in THETAS:
@@ -291,7 +291,7 @@ def measure_matter_table(out_dir):
         "bistatic angles up to 30 deg only: at larger angles (toward the specular direction) "
         "the double term of moderately rough surfaces can be large (e.g. 0.1 /sr at m = 20, "
         "incidence 60 deg, exit 40 deg on the far side), so the rule keeps it there "
-        "(ppr.brdf._double.AUTO_PSI_MAX). Large m (>= 1000) reads 0 partly because the default "
+        "(ppr.brdf.double.AUTO_PSI_MAX). Large m (>= 1000) reads 0 partly because the default "
         "quadrature does not resolve the double lobe there (bench/results/double_quadrature.md).",
     ]
     os.makedirs(out_dir, exist_ok=True)
@@ -392,7 +392,7 @@ def cone_energy(cases, order=CONE_ORDER, hv=CONE_HV):
     Per case, ``C = int (M00 - M00_incoherent) (k'.n) d omega'`` by :func:`cone_nodes` (the
     interference term ``gamma (M_coh - M_inc)`` lives inside ``~5 psi_h``),
     ``E = int M00_incoherent (k'.n) d omega'`` by the half-vector rule of
-    :func:`ppr.brdf._albedo.albedo_nodes`, and the small-cone estimate
+    :func:`ppr.brdf.albedo.albedo_nodes`, and the small-cone estimate
     ``C0 = M00_inc(k, k) cos(theta) pi psi_h^2 / ln 2`` (``M_coh = 2 M_inc`` at ``psi = 0``).
     All cases with the same ``white`` are evaluated in one chunked pass. Returns an array of
     ``(C, E, C0)`` rows."""
@@ -406,7 +406,7 @@ def cone_energy(cases, order=CONE_ORDER, hv=CONE_HV):
             m, d, n, lam, theta, _ = cases[i]
             k, kp, w = cone_nodes(theta, lam / (4.0 * d))
             mu = max(np.cos(theta), 1e-9)
-            k_in, k_out, wt = _albedo.albedo_nodes(np.array([m]), np.array([mu]), *hv)
+            k_in, k_out, wt = albedo.albedo_nodes(np.array([m]), np.array([mu]), *hv)
             kk = np.concatenate([np.repeat(k[None], len(kp) + 1, 0)] + [k_in] * k_out.shape[-2])
             kq = np.concatenate([kp, k[None], k_out.reshape(-1, 3)])
             parts.append(
@@ -437,7 +437,7 @@ def cone_energy(cases, order=CONE_ORDER, hv=CONE_HV):
 def measure_cone(order=CONE_ORDER, hv=CONE_HV):
     """Print the coherent-cone energy relative to the double term's albedo for the library
     finishes (``configs/materials.toml``), materials and both laser lines (float64)."""
-    from ppr.materials._library import load_library, load_material
+    from ppr.materials import load_library, load_material
 
     finishes = load_library().finishes
     t0 = time.perf_counter()

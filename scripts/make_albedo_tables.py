@@ -3,9 +3,9 @@
     python scripts/make_albedo_tables.py                 # explicit terms implemented now
     python scripts/make_albedo_tables.py --terms single  # a given set of explicit terms
 
-For every grid node ``(m, mu)`` of :func:`ppr.brdf._albedo.grid_nodes` it integrates the M00 of
+For every grid node ``(m, mu)`` of :func:`ppr.brdf.albedo.grid_nodes` it integrates the M00 of
 ``ppr.mueller_brdf(..., Material.ideal_white(m), terms=<explicit terms>)`` times ``k'.n`` over
-the outgoing hemisphere with the half-vector quadrature of :func:`ppr.brdf._albedo.albedo_nodes`
+the outgoing hemisphere with the half-vector quadrature of :func:`ppr.brdf.albedo.albedo_nodes`
 (float64), stores the deficit ``D = 1 - E`` and its hemispherical average, and reports the
 quadrature's self-convergence (the same nodes at doubled order).
 """
@@ -23,9 +23,13 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ppr.brdf import _albedo  # noqa: E402
-from ppr.brdf._brdf import _single_scalar3, explicit_terms, mueller_brdf  # noqa: E402
-from ppr.materials._material import Material  # noqa: E402
+from ppr.brdf import (  # noqa: E402
+    albedo,  # noqa: E402
+    explicit_terms,
+    mueller_brdf,
+)
+from ppr.brdf._brdf import _single_scalar3  # noqa: E402  (the white single-term kernel)
+from ppr.materials import Material  # noqa: E402
 
 NX, NV = 40, 48
 N_PHI, N_W = 24, 12
@@ -66,7 +70,7 @@ def node_values(terms, m, mu, n_phi=N_PHI, n_w=N_W):
         sl = slice(s, s + chunk)
         # mu = 0 exactly is grazing (BRDF masked to 0): tabulate the limit mu -> 0+
         mu_q = np.maximum(flat_mu[sl], 1e-9)
-        E = _albedo.directional_albedo(f00, flat_m[sl], mu_q, n_phi, n_w)
+        E = albedo.directional_albedo(f00, flat_m[sl], mu_q, n_phi, n_w)
         flat_out[sl] = 1.0 - E
     return out
 
@@ -78,7 +82,7 @@ def main(argv=None):
     ap.add_argument("--nv", type=int, default=NV)
     args = ap.parse_args(argv)
     terms = tuple(sorted(args.terms.split(","))) if args.terms else explicit_terms()
-    x, v, m, mu = _albedo.grid_nodes(args.nx, args.nv)
+    x, v, m, mu = albedo.grid_nodes(args.nx, args.nv)
     t0 = time.perf_counter()
     D = node_values(terms, m[:, None], mu[None, :])
     t1 = time.perf_counter()
@@ -90,12 +94,12 @@ def main(argv=None):
         f"terms={terms} nx={args.nx} nv={args.nv} n_phi={N_PHI} n_w={N_W} "
         f"max |E(order) - E(2 x order)| on a sub-grid = {conv:.2e}"
     )
-    table = _albedo.build_table(terms, D, info=info)
-    path = _albedo.save_table(table)
+    table = albedo.build_table(terms, D, info=info)
+    path = albedo.save_table(table)
     print(f"{path}: {info}; {t1 - t0:.1f} s")
     print("D_avg(m) at m = 0, 1, 10, 100, 1e3, 1e4, 1e5, 1e6:")
     for mm in (0, 1, 10, 100, 1e3, 1e4, 1e5, 1e6):
-        print(f"  {mm:>8g}: {float(_albedo.deficit_avg(table, jnp.asarray(mm))):.6e}")
+        print(f"  {mm:>8g}: {float(albedo.deficit_avg(table, jnp.asarray(mm))):.6e}")
 
 
 if __name__ == "__main__":

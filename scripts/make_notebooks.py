@@ -162,7 +162,7 @@ its incoherent part; away from `psi = 0` the factor follows `1 + gamma(psi)` in 
 channel divided by its own value at 5 deg (where `gamma` is already below 1e-3) is not the
 enhancement factor. Transmitted H; co-pol = analyzer H, cross-pol = analyzer V (frame vector:
 the lab y axis, perpendicular to the plane of incidence).""",
-    """from ppr.brdf._double import coherence_factor, double_bounce_term  # no public name for the incoherent part
+    """from ppr.brdf.double import coherence_factor, double_bounce_term
 psi = np.radians(np.linspace(0.0, 5.0, 11 if SMALL else 101))
 th = np.radians(30.0)
 k_out = np.stack([np.sin(th - psi), 0 * psi, np.cos(th - psi)], -1)
@@ -270,7 +270,7 @@ for w in widths:
     """md:## Attitude changes the signature
 Rotating the CubeSat about the line of sight leaves M00 unchanged (up to the polarization
 frame), but tilting it changes both the range profile and the polarization.""",
-    """from ppr.geometry._rotation import quat_from_axis_angle, quat_multiply
+    """from ppr.geometry import quat_from_axis_angle, quat_multiply
 q0 = np.asarray(scene.pose.quaternion)
 fig, ax = plt.subplots(figsize=(8, 3.6))
 for deg in ([0, 20] if SMALL else [0, 10, 20, 40]):
@@ -282,16 +282,15 @@ ax.set_xlim(lo, hi); ax.set_xlabel("range [m]"); ax.set_ylabel("M00 per bin"); a
     """md:## A Mueller image of the same scene
 `ppr image` renders what each pixel of the satellite contributes (orthographic view from the
 receiver): the range profile above is the sum of these pixels along lines of constant range.""",
-    """from ppr import _image
-from ppr.cli import part_mesh_from_ppr_mesh
-img = _image.render_mueller_image(
-    part_mesh_from_ppr_mesh(scene.mesh), scene.materials,
+    """from ppr.image import QUANTITY_LABELS, render_mueller_image
+img = render_mueller_image(
+    scene.mesh, scene.materials,
     laser_dir=np.asarray(scene.sensor.laser_dir), receiver_dir=np.asarray(scene.sensor.receiver_dir),
     frame_tx=np.asarray(scene.sensor.frame_tx), frame_rx=np.asarray(scene.sensor.frame_rx),
     quaternion=np.asarray(scene.pose.quaternion), n_pixels=48 if SMALL else 160)
 fig, axes = plt.subplots(1, 3, figsize=(13, 4), constrained_layout=True)
 for ax, q in zip(axes, ("reflectance", "depolarization_index", "retardance"), strict=True):
-    im = ax.imshow(img.quantities[q]); ax.set_title(_image.QUANTITY_LABELS[q]); fig.colorbar(im, ax=ax)""",
+    im = ax.imshow(img.quantities[q]); ax.set_title(QUANTITY_LABELS[q]); fig.colorbar(im, ax=ax)""",
 ]
 
 # ------------------------------------------------------------ 03 classifier evaluation
@@ -404,14 +403,15 @@ complex index `n`, the range offset and the gain: a multi-start Levenberg-Marqua
 (optimistix) from perturbed starts (in practice: the classifier's top candidates), then the
 posterior with emcee (log-probability jitted and vectorized over walkers with `jax.vmap`).
 In small mode the forward model uses the simulator's cheap polarizing stand-in BRDF
-(`ppr.pulse._pulse.glossy_fresnel_mueller`, smooth in attitude, m and n) and a short chain, so the
+(`ppr.pulse.glossy_fresnel_mueller`, smooth in attitude, m and n) and a short chain, so the
 notebook runs in the test suite; set `PPR_SMALL=0` for the full BRDF and a converged chain.""",
     SETUP,
     """import inversion
 from inversion._noise import MeasurementModel
-from inversion._params import PhysicalParams, quat_angle_deg
+from inversion._params import PhysicalParams
 from inversion._refine import SimulatorModel
-from ppr.pulse._pulse import glossy_fresnel_mueller
+from ppr.geometry import quat_angle_deg
+from ppr.pulse import glossy_fresnel_mueller
 
 n_bins = 32
 scene = ppr.Scene(ppr.shapes.cubesat(1), (ppr.Material(1.5, 10.0),), ppr.Pose([1.0, 0, 0, 0]),

@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 
 import ppr
-from ppr.brdf import _albedo
+from ppr.brdf import albedo as _albedo
 from ppr.brdf._brdf import mueller_brdf
 from ppr.brdf._microfacet import joint_visibility, mean_cosine_n, ndf, visibility
 from ppr.materials._material import Material
 from ppr.optics._frames import default_frame, facet_mueller_in_beam_frames, jones_to_mueller
-from ppr.optics._polarimetry import cloude_eigenvalues
+from ppr.optics.polarimetry import cloude_eigenvalues
 
 Z = np.array([0.0, 0.0, 1.0])
 

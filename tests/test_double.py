@@ -22,12 +22,12 @@ import numpy as np
 import pytest
 
 from ppr import Material
-from ppr.brdf._double import (
+from ppr.brdf._microfacet import mean_cosine_plus
+from ppr.brdf.double import (
     coherence_factor,
     double_bounce_term,
     double_path_jones,
 )
-from ppr.brdf._microfacet import mean_cosine_plus
 
 A = np.array([[1, 0, 0, 1], [1, 0, 0, -1], [0, 1, 1, 0], [0, 1j, -1j, 0]])
 A_INV = np.linalg.inv(A)
@@ -604,7 +604,7 @@ def _double_table_script():
 @pytest.mark.parametrize("m", [0.0, 1.0, 3.0, 3000.0])
 def test_white_furnace_single_double_multiple(m):
     """Ideal white (F = 1): single + double + multiple has directional albedo 1."""
-    from ppr.brdf import _albedo
+    from ppr.brdf import albedo as _albedo
     from ppr.brdf._brdf import mueller_brdf
 
     mus = np.array([0.2, 0.6, 0.95])
@@ -645,8 +645,8 @@ def test_white_furnace_single_double_multiple(m):
 
 
 def test_auto_rule_skips_only_where_negligible():
-    from ppr.brdf._double import AUTO_M_MAX, AUTO_TOL
-    from ppr.optics._polarimetry import depolarization_index
+    from ppr.brdf.double import AUTO_M_MAX, AUTO_TOL
+    from ppr.optics.polarimetry import depolarization_index
 
     depolarization_index = jax.jit(depolarization_index)  # one program, not op by op
     rng = np.random.default_rng(10)
@@ -693,7 +693,7 @@ def test_inner_mean_cosine_interpolant_against_quadrature():
     2.2e-4 at m = 0.3 (the inner rule's cos^m endpoint), <= 3.6e-6 for m in [1, 30],
     2.7e-5 for m in [100, 1e6]. (The former interpolant on the fixed c range [0, 1] was 46%
     low at m = 1e4 near c = 0 and made single + double exceed 1 at grazing.)"""
-    from ppr.brdf._double import INNER_ORDER, _mcp_eval, _mcp_interpolant
+    from ppr.brdf.double import INNER_ORDER, _mcp_eval, _mcp_interpolant
 
     ms = np.array([0.0, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 1e3, 1e4, 1e5, 1e6])
     c = np.concatenate([[0.0, 1e-6, 1e-4], np.geomspace(1e-3, 1.0, 200)])

@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 from ppr import Material, mueller_brdf
-from ppr.brdf import _double as D
-from ppr.brdf import _double_table as T
+from ppr.brdf import double as D
+from ppr.brdf import double_table as T
 from ppr.brdf._sampling import bistatic_geometry
-from ppr.optics._polarimetry import cloude_eigenvalues
+from ppr.optics.polarimetry import cloude_eigenvalues
 from ppr.pulse._pulse import backscatter_terms
 
 AL = 0.94 + 6.42j  # aluminium 532 nm

@@ -202,7 +202,7 @@ def test_facet_mueller_equals_rotated_jones():
     rows = jax.jit(facet_mueller_rows)(n.real, n.imag, *comps)
     np.testing.assert_allclose(np.array(rows).transpose(2, 0, 1), np.array(M), atol=1e-15)
     # realizable (Jones-derived): Cloude coherency has one eigenvalue M00, the rest ~0
-    from ppr.optics._polarimetry import _COHERENCY_BASIS
+    from ppr.optics.polarimetry import _COHERENCY_BASIS
 
     H = 0.25 * np.einsum("nij,ijab->nab", np.array(M), _COHERENCY_BASIS)
     w = np.linalg.eigvalsh(H)

@@ -4,7 +4,7 @@ tables and the Kulla-Conty Fresnel average.
 Each term is integrated over the outgoing hemisphere with a rule suited to its lobe:
 
 * single + double (the explicit terms): the half-vector rule of
-  :func:`ppr.brdf._albedo.albedo_nodes` (uniform in the lobe weight, panel ends at the horizon and
+  :func:`ppr.brdf.albedo.albedo_nodes` (uniform in the lobe weight, panel ends at the horizon and
   at the joint-visibility kink). At large m the double lobe sits next to the mirror
   direction (two small facet tilts), inside the half-vector cone; at small m the rule covers
   the whole hemisphere. It is the rule the tables were built with, but at another order.
@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from ppr.brdf import _albedo
+from ppr.brdf import albedo as _albedo
 from ppr.brdf._brdf import explicit_terms, fresnel_average, implemented_terms, mueller_brdf
 from ppr.materials._material import Material
 from ppr.optics._fresnel import fresnel_mueller_params

@@ -22,7 +22,7 @@ import pytest
 
 from ppr import Material, mueller_brdf
 from ppr.brdf._brdf import _same_direction
-from ppr.optics._polarimetry import cloude_eigenvalues
+from ppr.optics.polarimetry import cloude_eigenvalues
 
 AL = 0.94 + 6.42j  # aluminium 532 nm
 TIO2 = 2.67 + 0.0j

@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ppr.optics import _polarimetry as pol
+from ppr.optics import polarimetry as pol
 from ppr.optics._frames import jones_to_mueller
-from ppr.optics._polarimetry import coherency_matrix
+from ppr.optics.polarimetry import coherency_matrix
 
 # jit once per shape: the unrolled polar iteration is slow op-by-op
 lu_chipman = jax.jit(pol.lu_chipman)

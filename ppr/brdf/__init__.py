@@ -13,9 +13,7 @@ table-regeneration scripts: :mod:`albedo` (white-surface albedo tables: ``albedo
 ``load_table``, ``double_backscatter_term``, ``PSI_MAX``).
 """
 
-from . import _albedo as albedo
-from . import _double as double
-from . import _double_table as double_table
+from . import albedo, double, double_table
 from ._brdf import (
     TERMS,
     explicit_terms,
@@ -25,10 +23,10 @@ from ._brdf import (
     multiple_scattering_term,
     single_bounce_term,
 )
-from ._double import coherence_factor, double_bounce_term
-from ._double_table import PSI_MAX as BACKSCATTER_PSI_MAX
-from ._double_table import double_bounce_term_auto, double_term_dispatch
 from ._sampling import bistatic_geometry
+from .double import coherence_factor, double_bounce_term
+from .double_table import PSI_MAX as BACKSCATTER_PSI_MAX
+from .double_table import double_bounce_term_auto, double_term_dispatch
 
 __all__ = [
     "BACKSCATTER_PSI_MAX",

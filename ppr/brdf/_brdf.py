@@ -97,9 +97,10 @@ from ..optics._frames import (
 )
 from ..optics._fresnel import fresnel_mueller_params
 from ..optics.conventions import DEFAULT_WAVELENGTH_M
-from . import _albedo
-from ._double import AUTO_M_MAX, AUTO_PSI_MAX
-from ._double_table import (
+from . import albedo as _albedo
+from ._microfacet import mean_cosine_n, visibility_over_cos, visibility_over_cos_one_material
+from .double import AUTO_M_MAX, AUTO_PSI_MAX
+from .double_table import (
     PSI_MAX,
     backscatter_local,
     double_backscatter_44,
@@ -109,7 +110,6 @@ from ._double_table import (
     near_backscatter,
     rotate_local,
 )
-from ._microfacet import mean_cosine_n, visibility_over_cos, visibility_over_cos_one_material
 
 __all__ = [
     "EXPLICIT_TERMS",

@@ -141,7 +141,7 @@ def _polarimetry_fn():
     if "fn" not in _POLARIMETRY_JIT:
         import jax
 
-        from ..optics import _polarimetry as pol  # noqa: PLC0415
+        from ..optics import polarimetry as pol  # noqa: PLC0415
 
         funcs = {name: getattr(pol, name) for name in QUANTITIES[1:]}
 
@@ -262,7 +262,7 @@ def _host_terms(terms, k_in: np.ndarray, k_out: np.ndarray):
     pick the same table, but its compiled program also holds the double-bounce quadrature
     (about 3x the compilation time)."""
     from ..brdf._brdf import mueller_brdf  # noqa: PLC0415
-    from ..brdf._double_table import PSI_MAX  # noqa: PLC0415
+    from ..brdf.double_table import PSI_MAX  # noqa: PLC0415
     from ..pulse._pulse import backscatter_terms  # noqa: PLC0415
 
     dk = k_out - k_in

@@ -7,8 +7,7 @@ the fast monomial and ``(..., 4, 4)`` assemblies), :mod:`polarimetry`, :data:`C_
 :data:`DEFAULT_WAVELENGTH_M`.
 """
 
-from . import _polarimetry as polarimetry
-from . import conventions
+from . import conventions, polarimetry
 from ._frames import (
     A_STOKES,
     default_frame,

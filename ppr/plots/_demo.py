@@ -31,7 +31,7 @@ def brdf_figures(out_dir, wavelength: float = DEFAULT_WAVELENGTH_M) -> list[str]
     in monostatic backscatter and in the specular direction. Returns the file paths."""
     from ..brdf._brdf import mueller_brdf
     from ..materials._material import Material
-    from ..optics._polarimetry import depolarization_index, diattenuation
+    from ..optics.polarimetry import depolarization_index, diattenuation
     from . import brdf_quantity_figure
 
     out = Path(out_dir)

@@ -28,8 +28,8 @@ def double_figures(out_dir: str, *, order: tuple[int, int] = (16, 16)) -> list[s
     import matplotlib.pyplot as plt
 
     from ..brdf._brdf import mueller_brdf
-    from ..brdf._double import double_bounce_term
-    from ..optics._polarimetry import depolarization_index, diattenuation, retardance
+    from ..brdf.double import double_bounce_term
+    from ..optics.polarimetry import depolarization_index, diattenuation, retardance
 
     os.makedirs(out_dir, exist_ok=True)
     th = math.radians(30.0)

@@ -389,7 +389,7 @@ def backscatter_terms(brdf: Callable, terms) -> tuple[str, ...] | None:
 
 def near_backscatter(laser_dir: Array, receiver_dir: Array) -> Array:
     """The sensor's bistatic angle is within the backscatter table's ``PSI_MAX``."""
-    from ..brdf._double_table import near_backscatter as near  # noqa: PLC0415
+    from ..brdf.double_table import near_backscatter as near  # noqa: PLC0415
 
     return near(laser_dir, receiver_dir)
 
@@ -412,7 +412,7 @@ def sensor_terms(brdf: Callable, terms, sensor: Sensor):
 def _near_np(laser_dir, receiver_dir) -> bool:
     """:func:`near_backscatter` of concrete directions in NumPy (jnp ops would be staged
     into an enclosing jit trace)."""
-    from ..brdf._double_table import PSI_MAX  # noqa: PLC0415
+    from ..brdf.double_table import PSI_MAX  # noqa: PLC0415
 
     dk = np.asarray(receiver_dir, np.float64) - np.asarray(laser_dir, np.float64)
     return bool(np.sum(dk * dk) <= (2.0 * math.sin(0.5 * PSI_MAX)) ** 2)

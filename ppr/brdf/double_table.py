@@ -85,9 +85,9 @@ from ..optics._frames import (
 )
 from ..optics._fresnel import fresnel_amplitudes_re
 from ..optics.conventions import DEFAULT_WAVELENGTH_M
-from . import _double as D
-from ._albedo import _cell, _cr_cubics, _cr_eval, _cr_weights, _pad_quadratic
+from . import double as D
 from ._microfacet import mean_cosine_plus
+from .albedo import _cell, _cr_cubics, _cr_eval, _cr_weights, _pad_quadratic
 
 __all__ = [
     "K_NODES",
@@ -651,7 +651,7 @@ def double_bounce_term_auto(
     wavelength: float | Float[ArrayLike, "..."] = DEFAULT_WAVELENGTH_M,
 ) -> Float[Array, "*batch 4 4"]:
     """The double term (:func:`double_term_dispatch`: the backscatter table
-    or the quadrature) where :func:`ppr.brdf._double.double_needed`, else 0.
+    or the quadrature) where :func:`ppr.brdf.double.double_needed`, else 0.
 
     One ``lax.cond`` on the whole batch: the quadrature runs only if *some* element needs it
     (jit-compatible; under ``vmap`` a cond becomes a select and saves nothing, so batch by
