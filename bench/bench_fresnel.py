@@ -1,4 +1,4 @@
-"""Throughput of the Fresnel / facet-Mueller kernels (ppr/_fresnel.py, ppr/_frames.py).
+"""Throughput of the Fresnel / facet-Mueller kernels (ppr/optics/_fresnel.py, _frames.py).
 
 Compares, on N random samples in the same process (median of repeats after a warm-up,
 ``block_until_ready``):

@@ -2,7 +2,7 @@
 
 Why this exists: the BRDF kernels' speed on this CPU is decided less by arithmetic than by
 which operations XLA CPU vectorizes and how it fuses. This script measures the facts that
-shaped ``ppr/microfacet.py``, ``ppr/_frames.py`` and ``ppr/_double_table.py`` (listed in
+shaped ``ppr/microfacet.py``, ``ppr/optics/_frames.py`` and ``ppr/brdf/double_table.py`` (listed in
 docs/DESIGN.md), so they can be re-checked on a new jax release:
 
 - transcendental functions one by one (``jnp.arcsin`` lowers to an unvectorized ``atan2``;

@@ -1,4 +1,4 @@
-"""Pin the conventions of ppr/_conventions.py against first-principles field computations.
+"""Pin the conventions of ppr/optics/conventions.py against first-principles field computations.
 
 Each test builds the real 3D electric field from a Jones vector and a beam frame, so the
 checks do not rely on the Stokes/Mueller code they are testing.

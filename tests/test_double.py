@@ -1,4 +1,4 @@
-"""Tests of the double-bounce term (ppr/_double.py, issue 3).
+"""Tests of the double-bounce term (ppr/brdf/double.py, issue 3).
 
 The brute-force reference below is written independently of the implementation: plain NumPy,
 a different integration variable (the intermediate direction d1 over the whole sphere,

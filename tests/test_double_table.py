@@ -1,6 +1,6 @@
-"""The double-bounce term near exact backscatter from tables (ppr/_double_table.py).
+"""The double-bounce term near exact backscatter from tables (ppr/brdf/double_table.py).
 
-References: the quadrature of ppr/_double.py at order (16, 64) (6144 paths; itself checked
+References: the quadrature of ppr/brdf/double.py at order (16, 64) (6144 paths; itself checked
 against an independent NumPy brute force over the whole sphere in tests/test_double.py, and
 within 5e-4 of M00(single + double) of order (24, 96)), and independent NumPy Fresnel for
 the node interpolation. The table is built from order (24, 96); what is tested is what a

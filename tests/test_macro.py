@@ -1,4 +1,4 @@
-"""Macro double bounce (ppr/_macro.py): glossy dihedrals against an independent retro-area
+"""Macro double bounce (ppr/pulse/_macro.py): glossy dihedrals against an independent retro-area
 calculation, broad pairs against the exact Lambertian view factor, tessellation independence,
 polarization (handedness, roll), convex meshes, the CubeSat's panel-body folds, gradients and
 float32.

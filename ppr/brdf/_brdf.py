@@ -3,7 +3,7 @@ r"""The assembled polarized microfacet Mueller BRDF and its term registry.
 ``mueller_brdf(k_in, k_out, normal, material)`` returns the 4x4 Mueller BRDF in 1/sr mapping
 the incident Stokes vector (frame of the beam travelling along ``-k_in``, x axis
 ``frame_in``) to the outgoing one (beam along ``+k_out``, x axis ``frame_out``); directions
-point away from the surface (:mod:`ppr._conventions`). It is the sum of named terms:
+point away from the surface (:mod:`ppr.optics.conventions`). It is the sum of named terms:
 
 ``"single"`` (:func:`single_bounce_term`)
     Ashikhmin, Premoze & Shirley 2000 with the facet Fresnel Mueller matrix,
@@ -11,13 +11,13 @@ point away from the surface (:mod:`ppr._conventions`). It is the sum of named te
         f = p(h) P(k|k') F_M(k.h) / (4 <h.n> (k.n)(k'.n)),
 
     ``h = (k_in + k_out)/|k_in + k_out|``, Blinn-Phong ``p(h) = (m+1)/(2 pi) (h.n)^m`` and
-    Ashikhmin visibility (:mod:`ppr._microfacet`), ``F_M`` the facet's Fresnel Mueller matrix
-    in the beam frames (:func:`ppr._frames.facet_mueller_in_beam_frames`). The paper's eq. 4
+    Ashikhmin visibility (:mod:`ppr.brdf._microfacet`), ``F_M`` the facet's Fresnel Mueller matrix
+    in the beam frames (:func:`ppr.optics._frames.facet_mueller_in_beam_frames`). The paper's eq. 4
     drops the 4 and ``(k'.n)``; docs/physics/single_bounce.md restores them.
 
 ``"double"``
-    The double-bounce term of ``ppr/_double.py`` (quadrature over the first facet's normal),
-    from the material-independent exact-backscatter tables of ``ppr/_double_table.py``
+    The double-bounce term of ``ppr/brdf/double.py`` (quadrature over the first facet's normal),
+    from the material-independent exact-backscatter tables of ``ppr/brdf/double_table.py``
     wherever the whole batch is within ``ppr.BACKSCATTER_PSI_MAX`` (1e-3 rad) of
     backscatter (``"double:backscatter"`` forces the tables).
 
@@ -28,7 +28,7 @@ point away from the surface (:mod:`ppr._conventions`). It is the sum of named te
         D = 1 - E,  D_avg = 1 - E_avg = 2 int_0^1 D(mu) mu dmu,
 
     ``E(m, mu)`` the white-surface (``F == 1``) directional albedo of the model's explicit terms
-    (:func:`explicit_terms`; tables in :mod:`ppr._albedo`), so that explicit + multiple has a
+    (:func:`explicit_terms`; tables in :mod:`ppr.brdf.albedo`), so that explicit + multiple has a
     white-furnace albedo of exactly 1. ``F_add = F_avg^2 E_avg / (1 - F_avg D_avg)`` (Kulla &
     Conty 2017) with ``F_avg = 2 int_0^1 F(mu) mu dmu`` the cosine-weighted hemispherical
     average of the unpolarized Fresnel reflectance, by fixed 32-point Gauss-Legendre
@@ -192,7 +192,7 @@ def _log_lobe3(m: Array, h: Vec, nr: Vec) -> Array:
 
 def _azimuth_factor3(ki: Vec, ko: Vec, nr: Vec, ci: Array, co: Array) -> Array:
     """``f = cos(phi/2) = |u + u'| / 2`` of the unit surface projections (1 where one is along
-    the normal), as in :func:`ppr._microfacet.joint_visibility`."""
+    the normal), as in :func:`ppr.brdf._microfacet.joint_visibility`."""
     dt = ci.dtype
     ti = tuple(a - ci * b for a, b in zip(ki, nr, strict=True))
     to = tuple(a - co * b for a, b in zip(ko, nr, strict=True))
@@ -228,10 +228,10 @@ def _log_capped(c: Array) -> Array:
 
 
 def _visibility_over_cos(m: Array, m0, c: Array) -> Array:
-    """``V = P(k) / (k.n)``, finite down to ``k.n -> 0`` (ppr._microfacet continues
+    """``V = P(k) / (k.n)``, finite down to ``k.n -> 0`` (ppr.brdf._microfacet continues
     ``<h.k>+`` linearly below its smallest resolved cosine). One material in float32: from a
     per-call table over the incidence (as accurate as the float32 quadrature, 3.4x faster;
-    ppr._microfacet)."""
+    ppr.brdf._microfacet)."""
     if m0 is not None and jnp.ndim(m0) == 0 and np.finfo(c.dtype).bits == 32:
         return visibility_over_cos_one_material(m0, c)
     return visibility_over_cos(m, c)
@@ -243,7 +243,7 @@ def _single_scalar3(ki, ko, nr, m, m0=None):
     The joint visibility divided by ``(k.n)(k'.n)`` is formed as
     ``(1 - f) V V' + f min(V / (k'.n), V' / (k.n))`` with ``V = P(k) / (k.n)`` finite, so no
     product of two small cosines is ever formed (float32 underflow near ``k.n ~ 1e-20``). It
-    equals ``ppr._microfacet.joint_visibility / ((k.n)(k'.n))`` (tests/test_brdf.py).
+    equals ``ppr.brdf._microfacet.joint_visibility / ((k.n)(k'.n))`` (tests/test_brdf.py).
     """
     dt = ki[0].dtype
     valid, ki_s, ko_s, ci, co, h = _geometry3(ki, ko, nr)
@@ -289,7 +289,7 @@ def _multiple_m00(ki, ko, nr, material: Material, m: Array) -> Array:
     f_add = f_avg * f_avg * (1.0 - d_avg) / (1.0 - f_avg * d_avg)
     coef = jnp.where(d_avg_ok, f_add / (math.pi * d_avg_s), 0.0)
     if jnp.ndim(m_mat) == 0:
-        # one material: the table's m-interpolation done once (ppr._albedo)
+        # one material: the table's m-interpolation done once (ppr.brdf.albedo)
         def deficit(mu):
             return _albedo.deficit_one_material(table, m_mat, mu)
     else:
@@ -351,7 +351,7 @@ def _mono_core(k_in, normal, material, frame_in, frame_out, wavelength, names) -
       ``diag(1, 1, -1, -1)``), times ``p(k) P(k) / (4 <h.n> c^2)`` (the joint visibility of
       identical directions is ``P(k)``; azimuth factor 1);
     - multiple: ``F_add D(c)^2 / (pi D_avg)`` on ``M00``, one deficit instead of two;
-    - double: the exact-backscatter table (:func:`ppr._double_table.backscatter_local`) with
+    - double: the exact-backscatter table (:func:`ppr.brdf.double_table.backscatter_local`) with
       the coherent enhancement ``1 + gamma(0) = 2``.
 
     Same model as the general kernel (:func:`_brdf_core` with separate ``k_in`` and ``k_out``
@@ -507,7 +507,7 @@ TERMS: dict[str, TermFn] = {
 }
 """Term registry: name -> ``term(k_in, k_out, normal, material, frame_in, frame_out, *,
 wavelength) -> (..., 4, 4)`` (contract in docs/DESIGN.md). ``"double"`` uses the
-exact-backscatter table of :mod:`ppr._double_table` when every element of the batch is
+exact-backscatter table of :mod:`ppr.brdf.double_table` when every element of the batch is
 within ``PSI_MAX`` (1e-3 rad) of backscatter and the quadrature otherwise;
 ``"double:backscatter"`` forces the table (inputs beyond ``PSI_MAX`` are an error): a
 caller that knows its geometry is monostatic (``ppr.render`` for a monostatic sensor) uses it
@@ -539,7 +539,7 @@ def _resolve_terms(terms) -> tuple[str, ...]:
     if isinstance(terms, str):
         if terms == "auto":
             # the double term is kept only where its measured contribution exceeds the rule's
-            # tolerance (ppr/_double.py: AUTO_TOL, AUTO_M_MAX; docs/double_bounce_table.md)
+            # tolerance (ppr/brdf/double.py: AUTO_TOL, AUTO_M_MAX; docs/double_bounce_table.md)
             return tuple("double:auto" if t == "double" else t for t in implemented_terms())
         terms = (terms,)
     terms = tuple(terms)
@@ -632,7 +632,7 @@ def _validate_direction(
             k,
             c < -HORIZON_TOL,
             f"points below the surface (k.normal < -{HORIZON_TOL}); directions point away "
-            "from the surface (ppr._conventions)",
+            "from the surface (ppr.optics.conventions)",
             errors,
         )
     return k
@@ -712,7 +712,7 @@ def mueller_brdf(
       :data:`TERMS`).
       ``"multiple"`` is always the remainder of the model's full set of explicit terms.
     - `frame_in`: x axis of the incident beam's Stokes frame (beam along ``-k_in``); default
-      :func:`ppr._frames.default_frame` (the s direction ``normal x d``).
+      :func:`ppr.optics._frames.default_frame` (the s direction ``normal x d``).
     - `frame_out`: x axis of the outgoing beam's Stokes frame (beam along ``+k_out``); same
       default.
     - `wavelength`: metres (used by the double-bounce coherence).
@@ -804,11 +804,11 @@ def _same_direction(k_in, k_out) -> bool:
 def _double_branch_on_host(names: tuple[str, ...], k_in, k_out, m) -> tuple[str, ...]:
     """``names`` with the double term's run-time decisions taken on the host, for concrete
     (prepared) inputs: ``"double:auto"`` is dropped where no element needs it
-    (:func:`ppr._double.double_needed`), and ``"double"`` becomes the backscatter table
+    (:func:`ppr.brdf.double.double_needed`), and ``"double"`` becomes the backscatter table
     (``"double:backscatter"``) when every element is within ``PSI_MAX`` of backscatter, else
     the quadrature (``"double:quadrature"``, internal). The same choices as the traced
-    ``lax.cond``s of :func:`ppr._double_table.double_term_dispatch` and
-    :func:`ppr._double.double_bounce_term_auto`, in NumPy on the same arrays, so the compiled
+    ``lax.cond``s of :func:`ppr.brdf.double_table.double_term_dispatch` and
+    :func:`ppr.brdf.double.double_bounce_term_auto`, in NumPy on the same arrays, so the compiled
     program holds only the branch this call takes (a ``lax.cond`` compiles both)."""
     if "double" not in names and "double:auto" not in names:
         return names

@@ -166,7 +166,7 @@ def _default_order(dt) -> int:
 
 
 def _c_floor(dt) -> float:
-    """A cos_theta below which ``P(k) / (k . n)`` may be taken constant (used by ppr._brdf).
+    """A cos_theta below which ``P(k) / (k . n)`` may be taken constant (used by ppr.brdf._brdf).
 
     Below ``_c_small / sqrt(M)`` (>= 1e-8 in float64) the correction is linear in ``c``, so
     ``P`` is linear in ``c`` to relative ``c / <h.k>+`` (<= 1e-7 at these floors).

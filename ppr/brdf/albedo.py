@@ -177,7 +177,7 @@ _CR_POLY = np.array(
 def _cr_cubics(rows: Array, n: int) -> tuple[Array, Array, Array, Array]:
     """Catmull-Rom through the padded ``rows`` (``(n + 2, ...)``, node ``j`` at row ``j + 1``)
     as the monomial coefficients ``(c0, c1, c2, c3)`` of each of the ``n - 1`` cells,
-    each ``(n - 1, ...)``, stored once (:func:`ppr._frames.store`) so that XLA CPU gathers
+    each ``(n - 1, ...)``, stored once (:func:`ppr.optics._frames.store`) so that XLA CPU gathers
     them instead of re-computing them per query."""
     from ..optics._frames import store
 

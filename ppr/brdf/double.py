@@ -5,7 +5,7 @@ single-bounce term (docs/physics/double_bounce.md), with the visibility of eq. 1
 "Two-facet visibility") and the Jones chain of eqs. 15-16 generalized to non-coplanar paths.
 
 Notation
-    Directions point away from the surface (:mod:`ppr._conventions`): ``k`` toward the
+    Directions point away from the surface (:mod:`ppr.optics.conventions`): ``k`` toward the
     source, ``k'`` toward the receiver, ``n`` the macro normal, ``c = k.n``, ``c' = k'.n``.
     ``p(h) = (m+1)/(2 pi) (h.n)^m`` is the Blinn-Phong *area-fraction* density of facet normals
     (``int p = 1``); ``<h.n> = (m+1)/(m+2)``; ``<h.u>+ = int p(h) max(h.u, 0) d omega_h``
@@ -85,7 +85,7 @@ Two-facet visibility (paper eq. 17, corrected)
     ``rho(k, d1) rho(k', -d1)``.
 
 Jones chain (general non-coplanar path)
-    Facet i has its own s/p frames (:mod:`ppr._frames`): ``s1 = normalize(k x d1)``,
+    Facet i has its own s/p frames (:mod:`ppr.optics._frames`): ``s1 = normalize(k x d1)``,
     ``p_in1 = -k x s1``, ``p_out1 = d1 x s1``; ``s2 = normalize(-d1 x k')``, ``p_in2 = d1 x s2``,
     ``p_out2 = k' x s2``. With beam frames ``(x_in, y_in = -k x x_in)`` and
     ``(x_out, y_out = k' x x_out)``
@@ -347,7 +347,7 @@ def _path_jones(k, kp, d1, e, n_re, n_im, white, thr, probe=None):
     """Jones chain of the path k -> facet 1 -> d1 -> facet 2 -> k' in frames x_in = x_out = e
     (SoA tuples). Returns the J entries as (re, im) pairs for 11, 12, 21, 22.
 
-    ``probe`` (static, for the backscatter tables of :mod:`ppr._double_table`): ``"s"`` or
+    ``probe`` (static, for the backscatter tables of :mod:`ppr.brdf.double_table`): ``"s"`` or
     ``"p"`` replaces the Fresnel amplitudes by ``(r_s, r_p) = (1, 0)`` or ``(0, 1)`` at facet 1
     and ``(1, 1)`` at facet 2, so that ``J = a J_s + b J_p`` (``a = r_s1 r_s2``,
     ``b = r_p1 r_p2``) wherever the chain is coplanar (``C_12`` diagonal: exact backscatter).
@@ -373,7 +373,7 @@ def _path_jones(k, kp, d1, e, n_re, n_im, white, thr, probe=None):
     # The fallback takes over below |s|^2 = eps (not ~tiny): at normal incidence on a facet
     # r_p = -r_s and the facet's operator does not depend on s; near it the dependence is
     # O(|s|^2) (r_s + r_p = O(t^2)), so the switch costs ~eps in value, and the gradient
-    # through s (~ rounding / |s|) stays small, as in ppr._frames._facet_frames3
+    # through s (~ rounding / |s|) stays small, as in ppr.optics._frames._facet_frames3
     ceps = float(np.finfo(k[0].dtype).eps)
     s1, _ = _snormalize(_scross(k, d1), e, ceps)
     p_in1 = _scross(_sneg(k), s1)
@@ -452,7 +452,7 @@ def _mean_cosine_plus_fast(m: Array, c: Array, order: int) -> Array:
 
     ``<h.u>+ = c <h.n> + (m+1) s^(m+2) / pi int_0^(pi/2) cos^m b sin b
     [sin b - c cos b atan2(sin b, c cos b)] db`` (``s^2 = 1 - c^2``; from the azimuthal closed
-    form of ``ppr._microfacet`` with ``t = s cos b``): smooth in ``b``, truncated at
+    form of ``ppr.brdf._microfacet`` with ``t = s cos b``): smooth in ``b``, truncated at
     ``b = min(pi/2, 7/sqrt(m+1))`` (``cos^m`` < e^-24 beyond), Gauss-Legendre with ``order``
     nodes. Relative error (vs ``ppr.microfacet.mean_cosine_plus`` at order 256): 8 nodes
     <= 8e-4 for m in [0, 1e4] (worst at non-integer m < 1, ``cos^m`` at ``b = pi/2``).
@@ -900,7 +900,7 @@ def double_bounce_term(
 ) -> Float[Array, "*batch 4 4"]:
     """Double-bounce Mueller BRDF (1/sr), incoherent sum plus coherent backscatter.
 
-    **Arguments:** the term signature of :mod:`ppr._brdf` (``k_in``, ``k_out``, ``normal``
+    **Arguments:** the term signature of :mod:`ppr.brdf._brdf` (``k_in``, ``k_out``, ``normal``
     unit ``(..., 3)``; ``frame_in`` the x axis of the incident beam (travelling along
     ``-k_in``), ``frame_out`` of the outgoing beam (along ``+k_out``); ``material`` a
     :class:`ppr.Material`), plus static ``order = (n_u, n_phi)``, ``inner_order`` and

@@ -2,14 +2,14 @@ r"""Double-bounce term near exact backscatter from material-independent tables.
 
 PPR sensors are monostatic up to the velocity aberration (tens of microradians), and every
 facet of a mesh is then seen at exact backscatter ``k' = k``. There the double term of
-:mod:`ppr._double` has a structure that removes its quadrature from the per-evaluation cost:
+:mod:`ppr.brdf.double` has a structure that removes its quadrature from the per-evaluation cost:
 
 1. Every double path is coplanar (``h1 . h2 = 0``, paper eq. 14) and ``k = cos t1 h1 +
    cos t2 h2``, so ``t2 = pi/2 - t1``: the path's Jones matrix, in its own s/p frame, is
    ``diag(a, b)`` with ``a = r_s(t1) r_s(pi/2 - t1)``, ``b = r_p(t1) r_p(pi/2 - t1)``; the
    material enters only through the angle ``t1`` of the first facet.
 2. In the shared beam frame ``e``, ``J = a J_s + b J_p`` with real 2x2 matrices ``J_s``,
-   ``J_p`` fixed by the geometry (obtained from :func:`ppr._double._path_jones` with the
+   ``J_p`` fixed by the geometry (obtained from :func:`ppr.brdf.double._path_jones` with the
    probes ``(r_s, r_p) = (1, 0), (0, 1)``), so the path's coherency is
    ``|a|^2 U_ss + |b|^2 U_pp + Re(a b*) U_re + Im(a b*) U_im`` with geometric ``U``.
 3. The four products ``g(t) = (|a|^2, |b|^2, Re a b*, Im a b*)`` are smooth in ``t`` on
@@ -43,7 +43,7 @@ c)`` near grazing, where the term is a power of ``c``) on ``[0, X_MAX]`` (84 nod
 ``u = sqrt(m + 1) - 1`` (analytic at ``m = 0``; ``log E ~ -kappa m`` is quadratic in ``u``,
 reproduced exactly by cubic convolution) on ``[0, U_MAX]`` (100 nodes). Stored: ``log E``
 (``E`` the white M00 of the double term, a positive envelope spanning 300 decades over the
-grid) and ``T / E``, interpolated by tensor-product Catmull-Rom (:mod:`ppr._albedo`'s
+grid) and ``T / E``, interpolated by tensor-product Catmull-Rom (:mod:`ppr.brdf.albedo`'s
 kernel). Beyond ``X_MAX`` (``c < C_MIN = 1e-3``) ``log E`` continues linearly in ``x`` (a
 power law in ``c``) and ``T / E`` is held. Above ``M_MAX = 200`` the term is 0: at ``m =
 M_MAX`` the double term at backscatter is below 1e-30 of the rest of the BRDF at incidence
@@ -56,7 +56,7 @@ measured by bench/bench_double_table.py, table in bench/results/double_table.md;
 asserted are in tests/test_double_table.py.
 
 The table is built by ``scripts/double_backscatter_table.py`` from the quadrature of
-:mod:`ppr._double` at a high order (``BUILD_ORDER``); its error against that quadrature at a
+:mod:`ppr.brdf.double` at a high order (``BUILD_ORDER``); its error against that quadrature at a
 still higher order, off the grid nodes, is measured in tests/test_double_table.py and
 bench/bench_double.py.
 """
@@ -122,7 +122,7 @@ M_SHIFT: float = 1.0
 U_MAX: float = math.sqrt(M_MAX + M_SHIFT) - math.sqrt(M_SHIFT)
 
 BUILD_ORDER: tuple[int, int] = (24, 96)
-"""Quadrature order ``(n_u, n_phi)`` of :mod:`ppr._double` used to build the table."""
+"""Quadrature order ``(n_u, n_phi)`` of :mod:`ppr.brdf.double` used to build the table."""
 
 LOG_FLOOR: float = -700.0
 """``log E`` is clipped below at this value (``exp`` of it is 0 in float32 and subnormal in
@@ -211,7 +211,7 @@ def node_products(n_re: Array, n_im: Array, k: int, *, white: bool = False) -> A
 
 
 def _pack(s: list, p: list) -> list[Array]:
-    """16 coherency reals (``ppr._double`` layout) of ``U_ss, U_pp, U_re, U_im``."""
+    """16 coherency reals (``ppr.brdf.double`` layout) of ``U_ss, U_pp, U_re, U_im``."""
     z = jnp.zeros_like(s[0])
     pairs = D._PAIRS
     u_ss = [s[a] * s[a] for a in range(4)] + [s[a] * s[b] for a, b in pairs] + [z] * 6
@@ -229,7 +229,7 @@ def backscatter_moments(
     """``Z_{q j}(c, m)`` (module docstring, step 3): row-major e-frame Mueller matrices of the
     incoherent double term at exact backscatter, per Fresnel product ``q`` and node ``j``,
     with the prefactor ``<h.n> / <h.k>+^2``. ``k = (sin, 0, cos)``, ``n = z``,
-    ``e = normalize(n x k)`` (:func:`ppr._double._common_frame`)."""
+    ``e = normalize(n x k)`` (:func:`ppr.brdf.double._common_frame`)."""
     s = jnp.sqrt(jnp.clip((1.0 - c) * (1.0 + c), 0.0, 1.0))
     z = jnp.zeros_like(c)
     kv = jnp.stack([s, z, c], axis=-1)
@@ -443,7 +443,7 @@ def near_backscatter(
 
 
 def _rot2a3(x_from, x_to, d):
-    """SoA :func:`ppr._frames.rotation_cos_sin_2a`: ``(cos 2a, sin 2a)`` of the rotation about
+    """SoA :func:`ppr.optics.rotation_cos_sin_2a`: ``(cos 2a, sin 2a)`` of the rotation about
     ``d`` taking frame vector ``x_from`` to ``x_to`` (identity where undefined)."""
     c = _dot3(x_from, x_to)
     s = _dot3(d, _cross3(x_from, x_to))
@@ -520,7 +520,7 @@ def double_backscatter_44(
 ) -> Array:
     """:func:`double_backscatter_term` (``frame_in``/``frame_out`` may be SoA tuples of three
     arrays). The entries stay on a trailing axis throughout, and the frame rotations are
-    :func:`ppr._frames.rotate_mueller_44`: built ``(16, ...)`` and transposed at the end, the
+    :func:`ppr.optics._frames.rotate_mueller_44`: built ``(16, ...)`` and transposed at the end, the
     term ran 1.8x slower (bench/profile_brdf.py)."""
     f_in3, f_out3 = _split(frame_in), _split(frame_out)
     k, kp, nrm, _, _, m, n_re, n_im, dt, batch = D._broadcast_inputs(
@@ -536,7 +536,7 @@ def double_backscatter_44(
         gamma = jnp.zeros(batch, dt)
     M16, valid = backscatter_local(k3, n3, material, m, dt, batch, 1.0 + gamma)
     valid = valid & (_dot3(kp3, n3) > tiny(dt) * 1e8)
-    # frames: e = normalize(n x k) (as in the table; ppr._double._common_frame at k' = k),
+    # frames: e = normalize(n x k) (as in the table; ppr.brdf.double._common_frame at k' = k),
     # its projection _|_ k' for the output; component arithmetic throughout
     e = _default_frame3(k3, n3)
     ek = _dot3(e, kp3)
@@ -579,7 +579,7 @@ def double_backscatter_term(
     """Double-bounce Mueller BRDF (1/sr) at exact backscatter from the table, with the
     coherent enhancement ``(1 + gamma(psi))`` (module docstring). Valid where
     ``psi <= PSI_MAX`` (the incoherent part is taken at ``psi = 0``); same signature as
-    :func:`ppr._double.double_bounce_term`. Differentiable in the directions, ``m`` and
+    :func:`ppr.brdf.double.double_bounce_term`. Differentiable in the directions, ``m`` and
     ``n``; exactly grazing rows give 0."""
     dt = D.float_dtype(k_in, k_out, normal, frame_in, frame_out, material.m, material.n)
     fi = jnp.broadcast_to(jnp.asarray(frame_in, dt), jnp.broadcast_shapes(
@@ -603,11 +603,11 @@ def double_term_dispatch(
     branch: str | None = None,
 ) -> Float[Array, "*batch 4 4"]:
     """The double term: the backscatter table where *every* element of the batch is within
-    ``PSI_MAX`` of exact backscatter, else the quadrature of :mod:`ppr._double`.
+    ``PSI_MAX`` of exact backscatter, else the quadrature of :mod:`ppr.brdf.double`.
 
     One ``lax.cond`` on the whole batch (under ``vmap`` with a batched predicate it becomes a
     select that evaluates both; ``ppr.render`` therefore decides once per sensor, see
-    ``ppr._pulse.facet_weights``). A compiled ``lax.cond`` holds both branches, so a caller
+    ``ppr.pulse._pulse.facet_weights``). A compiled ``lax.cond`` holds both branches, so a caller
     that knows the answer on the host passes ``branch`` (static: ``"table"`` or
     ``"quadrature"``) and the program holds that branch only (``mueller_brdf`` does for
     concrete inputs). The frames may be SoA tuples of three arrays (as ``mueller_brdf``

@@ -389,7 +389,7 @@ class MeshArrays(eqx.Module):
 
     Faces with the same normal and part have the same Mueller BRDF at any pose, so the pulse
     kernel evaluates the BRDF once per group when there are fewer groups than facets to
-    render (:func:`ppr._pulse.facet_weights`): a subdivided flat-panelled satellite of 13600
+    render (:func:`ppr.pulse._pulse.facet_weights`): a subdivided flat-panelled satellite of 13600
     faces has 12 groups. Grouping is by exact equality of the float64 normals' bits, so it
     changes no result (tests/test_pulse.py).
     """

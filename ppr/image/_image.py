@@ -10,7 +10,7 @@ laser decides. From the per-pixel Mueller matrices the panels show the total ref
 ``M00 cos(theta_in)`` (the pixel's return per unit projected area, 1/sr) and, from the
 Lu-Chipman decomposition, depolarization index, polarizance, diattenuation and retardance.
 
-Geometry conventions are those of :mod:`ppr._scene` (and :mod:`ppr._conventions`): world
+Geometry conventions are those of :mod:`ppr.pulse._scene` (and :mod:`ppr.optics.conventions`): world
 vectors ``laser_dir`` (object -> laser) and ``receiver_dir`` (object -> receiver), Stokes frame
 x axes ``frame_tx``/``frame_rx`` of the transmitted and received beams, and the body-to-world
 attitude quaternion ``(w, x, y, z)``. The camera is the receiver: image columns run along
@@ -258,7 +258,7 @@ def evaluate_mueller(
 def _host_terms(terms, k_in: np.ndarray, k_out: np.ndarray):
     """``terms`` with the double term taken from the exact-backscatter table when every row
     is within its ``PSI_MAX`` of backscatter (a monostatic sensor), decided here on the host
-    as :func:`ppr._pulse.sensor_terms` does for ``ppr.render``: the run-time dispatch would
+    as :func:`ppr.pulse._pulse.sensor_terms` does for ``ppr.render``: the run-time dispatch would
     pick the same table, but its compiled program also holds the double-bounce quadrature
     (about 3x the compilation time)."""
     from ..brdf._brdf import mueller_brdf  # noqa: PLC0415
@@ -307,7 +307,7 @@ def render_mueller_image(
     """Render the per-pixel Mueller BRDF of ``mesh`` (one material per part) at a pose.
 
     Directions and frames are world vectors as in :class:`ppr.Sensor` (see
-    :mod:`ppr._scene`): the camera is the receiver, looking along ``-receiver_dir``.
+    :mod:`ppr.pulse._scene`): the camera is the receiver, looking along ``-receiver_dir``.
 
     **Arguments:**
 

@@ -38,7 +38,7 @@ class Material(eqx.Module):
     **Arguments:**
 
     - `n`: complex refractive index ``n' + i n''`` (``n'' >= 0``; time convention
-      ``exp(i(kz - wt))``, see :mod:`ppr._conventions`). Real input is promoted to complex.
+      ``exp(i(kz - wt))``, see :mod:`ppr.optics.conventions`). Real input is promoted to complex.
     - `m`: Blinn-Phong exponent, ``0 <= m <= 1e6`` (0 is Lambertian-like, large is a mirror).
     - `corr_length`: surface correlation length in metres, sets the width of the coherent
       enhanced-backscatter cone of the double-bounce term (``~ lambda / (4 d)``).

@@ -1,14 +1,15 @@
 r"""Beam frames, frame rotations, Jones -> Mueller, and a facet's Fresnel reflection expressed
 in the incident/outgoing beam frames.
 
-Conventions (:mod:`ppr._conventions`): a beam travelling along ``d`` carries a right-handed
+Conventions (:mod:`ppr.optics.conventions`): a beam travelling along ``d`` carries a right-handed
 frame ``(x, y = d x x, d)``. Rotating the frame vector by ``a`` (right-handed about ``d``)
 maps Stokes vectors by ``R(a) = [[1,0,0,0],[0,C,S,0],[0,-S,C,0],[0,0,0,1]]`` with
 ``C = cos 2a, S = sin 2a``, and Jones vectors by ``[[cos a, sin a], [-sin a, cos a]]``.
 
 A facet with normal ``h`` reflecting the beam travelling along ``-k_in`` into the beam along
 ``+k_out`` has its own s/p frames: ``s = normalize(k_in x k_out)`` (shared), ``p = d x s`` per
-beam; in those frames its Jones matrix is ``diag(r_s, r_p)`` (:mod:`ppr._fresnel`). The result
+beam; in those frames its Jones matrix is ``diag(r_s, r_p)`` (:mod:`ppr.optics._fresnel`). The
+result
 does not depend on the sign of ``s``. At exact backscatter (``k_out = k_in``) and exact forward
 geometry (``k_out = -k_in``) ``s`` is undefined, but so is the dependence on it (normal
 incidence: ``r_s = -r_p``; grazing: ``r_s = r_p``, ``d_in = d_out``): any ``s`` perpendicular
@@ -16,7 +17,7 @@ to ``k_in`` gives the same matrix, and the fallback below keeps values and gradi
 
 The array-valued public functions (:func:`default_frame`, :func:`mueller_rotator`,
 :func:`jones_to_mueller`, :func:`facet_jones_in_beam_frames`,
-:func:`facet_mueller_in_beam_frames`) are ``jax.jit``-wrapped, as in :mod:`ppr._fresnel`.
+:func:`facet_mueller_in_beam_frames`) are ``jax.jit``-wrapped, as in :mod:`ppr.optics._fresnel`.
 """
 
 from __future__ import annotations
@@ -54,7 +55,7 @@ __all__ = [
     "rotation_cos_sin_2a",
 ]
 
-# S = A (E (x) E^*): the Stokes definitions of ppr._conventions (S3 = -2 Im(E_x E_y^*))
+# S = A (E (x) E^*): the Stokes definitions of ppr.optics.conventions (S3 = -2 Im(E_x E_y^*))
 A_STOKES = np.array([[1, 0, 0, 1], [1, 0, 0, -1], [0, 1, 1, 0], [0, 1j, -1j, 0]], np.complex128)
 _A_STOKES_INV = np.linalg.inv(A_STOKES)
 
@@ -334,7 +335,7 @@ def facet_jones_in_beam_frames(
 
 def facet_rotated_params(n_re, n_im, k_in, k_out, h, x_in, x_out, *, white: bool = False):
     """``(a, b, c, d, Ca, Sa, Cb, Sb)``: the facet's Fresnel Mueller parameters
-    (:func:`ppr._fresnel.fresnel_mueller_params`; the ideal white reflector ``(1, 0, -1, 0)``
+    (:func:`ppr.optics._fresnel.fresnel_mueller_params`; the ideal white reflector ``(1, 0, -1, 0)``
     if ``white``) and ``cos 2a, sin 2a, cos 2b, sin 2b`` of the rotations ``x_in -> s`` about
     ``-k_in`` and ``s -> x_out`` about ``+k_out``. Arguments as in
     :func:`facet_mueller_in_beam_frames`; vectors ``(..., 3)`` or SoA tuples."""
@@ -554,7 +555,7 @@ def facet_mueller_in_beam_frames(
 ) -> Float[Array, "... 4 4"]:
     """Mueller matrix of a facet's Fresnel reflection in the beam frames (arguments as in
     :func:`facet_jones_in_beam_frames`): ``R(b) F R(a)``, ``a`` rotating ``x_in`` to ``s``
-    about ``-k_in``, ``F`` from :func:`ppr._fresnel.fresnel_mueller_params`, ``b`` rotating
+    about ``-k_in``, ``F`` from :func:`ppr.optics._fresnel.fresnel_mueller_params`, ``b`` rotating
     ``s`` to ``x_out`` about ``+k_out``. Unitless (multiply by the BRDF's scalar factors).
     """
     flat = rotated_mueller_flat(facet_rotated_params(n_re, n_im, k_in, k_out, h, x_in, x_out))

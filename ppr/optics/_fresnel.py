@@ -1,12 +1,12 @@
 r"""Complex Fresnel reflection coefficients, in real arithmetic with NaN-safe gradients.
 
-Conventions (see :mod:`ppr._conventions`): time dependence ``exp(i(kz - wt))``, absorbing media
-have ``Im n >= 0``, Hecht/Born-Wolf form
+Conventions (see :mod:`ppr.optics.conventions`): time dependence ``exp(i(kz - wt))``, absorbing
+media have ``Im n >= 0``, Hecht/Born-Wolf form
 
     r_s = (cos t - w) / (cos t + w),   r_p = (n^2 cos t - w) / (n^2 cos t + w),
     w = sqrt(n^2 - sin^2 t)   (principal branch, Im w >= 0 for Im n >= 0),
 
-in the s/p frames of :mod:`ppr._conventions` (``p = d x s`` for each beam), so that a perfect
+in the s/p frames of :mod:`ppr.optics.conventions` (``p = d x s`` for each beam), so that a perfect
 conductor is ``diag(-1, +1)`` and normal incidence gives ``r_s = -r_p = -(n-1)/(n+1)``.
 
 The Mueller matrix of the Jones matrix ``diag(r_s, r_p)`` is
@@ -16,7 +16,7 @@ The Mueller matrix of the Jones matrix ``diag(r_s, r_p)`` is
     c = Re(r_s r_p^*),          d = +Im(r_s r_p^*)
 
 (the sign of ``d`` follows from ``M = A (J (x) J^*) A^{-1}`` with S3 = -2 Im(E_x E_y^*); it is
-pinned by a test against :func:`ppr._frames.jones_to_mueller`).
+pinned by a test against :func:`ppr.optics._frames.jones_to_mueller`).
 
 Everything is written with explicit real and imaginary parts (2-3x faster than complex dtypes
 on XLA CPU, docs/DESIGN.md). The complex square root uses the cancellation-free form

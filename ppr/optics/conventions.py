@@ -40,7 +40,7 @@ Beam frames, Jones and Stokes
     ``exp(i(kz - wt))`` and S3 defined this way, S3 > 0 (e.g. Jones ``(1, i)/sqrt 2``) is a
     field that turns from ``x`` toward ``y``: right-handed about the propagation direction
     ``d`` (positive helicity), seen *counterclockwise* by a receiver looking back at the
-    source. The state names ``"R"``/``"L"`` (``ppr._pulse.STOKES_STATES``, and the
+    source. The state names ``"R"``/``"L"`` (``ppr.pulse._pulse.STOKES_STATES``, and the
     measurement states of ``inversion``) follow Chipman, Born & Wolf and Hecht ("clockwise
     looking at the source is right"): ``"R"`` is ``S3 = -1`` (Jones ``(1, -i)/sqrt 2``),
     ``"L"`` is ``S3 = +1`` (IEEE's right-hand circular). Those texts attach ``S3 > 0`` to their
@@ -54,7 +54,7 @@ Beam frames, Jones and Stokes
     ``S' = R(a) S`` with ``R(a) = [[1,0,0,0],[0,cos 2a, sin 2a,0],[0,-sin 2a,cos 2a,0],[0,0,0,1]]``
     and Jones components by ``E' = [[cos a, sin a], [-sin a, cos a]] E``. A facet's reflection
     in beam frames is ``R(b) F R(a)`` (``a``: ``x_in -> s`` about ``-k_in``; ``b``:
-    ``s -> x_out`` about ``+k_out``), see :mod:`ppr._frames`.
+    ``s -> x_out`` about ``+k_out``), see :mod:`ppr.optics._frames`.
 
 BRDF output
     ``mueller_brdf`` returns a 4x4 Mueller BRDF in 1/sr mapping the incident Stokes vector

@@ -8,7 +8,7 @@ r"""Polarimetric quantities of (batched) 4x4 Mueller matrices.
 - :func:`degree_of_polarization`: DOP of ``M @ s_in``.
 - :func:`cloude_eigenvalues`, :func:`is_realizable`: eigenvalues of the Cloude coherency
   matrix ``H = 1/4 sum_ij M_ij sigma_i (x) sigma_j^*`` (Pauli matrices in the Stokes order of
-  :mod:`ppr._conventions`: ``sigma_1 = diag(1,-1)``, ``sigma_2 = sigma_x``,
+  :mod:`ppr.optics.conventions`: ``sigma_1 = diag(1,-1)``, ``sigma_2 = sigma_x``,
   ``sigma_3 = sigma_y``), ``trace H = M00``; M is a convex sum of Jones-Mueller matrices
   (physically realizable) iff they are all >= 0.
 

@@ -7,7 +7,7 @@ full polarized BRDF and saves
 
 - ``pulse_stokes.png``: the received Stokes profiles ``S0..S3`` (sensor frame) for
   transmitted H, V, +45 deg and right-circular (``"R"``: clockwise seen looking toward the
-  laser, ``S3 = -1``; :data:`ppr._pulse.STOKES_STATES`) states, against one-way range
+  laser, ``S3 = -1``; :data:`ppr.pulse._pulse.STOKES_STATES`) states, against one-way range
   (bottom axis) and round-trip time (top axis);
 - ``pulse_depolarization.png``: the Mueller depolarization index per range bin and the
   degree of polarization of the return for each transmitted state, over the return profile.

@@ -39,7 +39,7 @@ Glossy pairs: image method with convolved lobes
     (``m < GLOSSY_M_MIN`` or another BRDF) takes ``k*`` from the glossy lobe and the broad
     side's full BRDF over it. The range of a point of that region is affine in its position,
     so each fan triangle of the clipped polygon is a range tent (the closed form of
-    :mod:`ppr._pulse`).
+    :mod:`ppr.pulse._pulse`).
 
 Broad pairs: point-to-solid-angle quadrature
     Both sides broad: (1) with Gauss points on ``I`` (:func:`triangle_rule`: ``level^2``
@@ -479,7 +479,7 @@ def _unit(xp, v, fallback):
 
 
 def _perp(xp, d):
-    """A unit vector perpendicular to unit ``d`` (as :func:`ppr._frames.perpendicular_unit`)."""
+    """A unit vector perpendicular to unit ``d`` (as :func:`ppr.optics.perpendicular_unit`)."""
     use_y = xp.abs(d[..., 0]) > 0.9
     z = xp.zeros_like(d[..., 0])
     v = xp.stack(
@@ -719,7 +719,7 @@ class MacroPairs(eqx.Module):
 
 def _pair_capacity(n: int) -> int:
     """Padded count: 0 for none (the kernel then leaves that path out), else the next power
-    of two from 8 up to 64, then :func:`ppr._mesh.capacity_for`."""
+    of two from 8 up to 64, then :func:`ppr.geometry._mesh.capacity_for`."""
     n = int(n)
     if n <= 0:
         return 0
@@ -1316,7 +1316,7 @@ def _visibility_gaussian(m, c):
 
 def _specular_factor(k_in, k_out, normal, m, n_re, n_im, x_in, x_out, white):
     """``F_M(k_in -> k_out) P(k|k') / (4 (k.n)(k'.n))`` as ``(16, P)``: the single-bounce term
-    without its lobe ``D(h)`` (as :func:`ppr._brdf._single_scalar3`, shadowing from
+    without its lobe ``D(h)`` (as :func:`ppr.brdf._brdf._single_scalar3`, shadowing from
     :func:`_visibility_gaussian`)."""
     from .._safe import tiny  # noqa: PLC0415
     from ..brdf._brdf import _azimuth_factor3, _geometry3, _split  # noqa: PLC0415

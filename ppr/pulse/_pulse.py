@@ -18,7 +18,7 @@ Radiometry
 
 Range-area density of a facet
     The range of a point is its depth along the bisector ``w = (u_in + u_out)/2`` (see
-    :mod:`ppr._scene`). The area of a flat triangle between depths ``z`` and ``z + dz`` is
+    :mod:`ppr.pulse._scene`). The area of a flat triangle between depths ``z`` and ``z + dz`` is
     piecewise linear in ``z``: the triangular density with vertex depths ``d0 <= d1 <= d2``
     (mode ``d1``), i.e. the linear B-spline ``g(z) = 2 [d0, d1, d2]_t (z - t)_+``.
     Convolved with a Gaussian pulse of range width ``sigma`` its cumulative distribution is
@@ -81,7 +81,7 @@ STOKES_STATES = {
 """Named transmitted states (sensor frame): horizontal (x), vertical, +45, -45, right and left
 circular. ``"R"`` turns clockwise for an observer looking toward the source (right-circular in
 Chipman's, Born & Wolf's and Hecht's naming): ppr's ``S3 = -1``. ``"L"`` is ``S3 = +1``
-(IEEE's right-hand circular). See :mod:`ppr._conventions`."""
+(IEEE's right-hand circular). See :mod:`ppr.optics.conventions`."""
 
 
 # ----------------------------------------------------------------------------- closed form
@@ -369,7 +369,7 @@ def facet_weights(
 
 def backscatter_terms(brdf: Callable, terms) -> tuple[str, ...] | None:
     """``terms`` for :func:`ppr.mueller_brdf` with its double term taken from the
-    exact-backscatter table (``"double:backscatter"``, :mod:`ppr._double_table`), or None when
+    exact-backscatter table (``"double:backscatter"``, :mod:`ppr.brdf.double_table`), or None when
     that changes nothing (another BRDF, or no double term). ``"auto"`` keeps the double term
     at backscatter: from the table it costs little, and leaving it out was only a saving."""
     from ..brdf._brdf import (  # noqa: PLC0415
@@ -457,7 +457,7 @@ def render(
       facets with ``vis == 0``. The result is the same; the cost scales with ``Fc``.
     - `macro`: optional :class:`ppr.MacroPairs` (host: the first item of
       :func:`ppr.macro_pairs` at this pose): adds the macro double bounce between the object's
-      surfaces (:mod:`ppr._macro`).
+      surfaces (:mod:`ppr.pulse._macro`).
 
     Facets deeper than the window lose the part of their return beyond it: choose
     ``window`` from the longest edge (``simulate`` does). Python scalars are converted to
@@ -491,7 +491,7 @@ def render(
 
 
 def _unchecked_if_concrete(brdf: Callable, materials: Material, pose: Pose) -> Callable:
-    """:func:`ppr._brdf.mueller_brdf_unchecked` in place of :func:`ppr.mueller_brdf` when the
+    """:func:`ppr.brdf._brdf.mueller_brdf_unchecked` in place of :func:`ppr.mueller_brdf` when the
     materials and the pose are concrete. The BRDF's inputs are then valid by construction:
     ``Material`` and ``Pose`` check concrete values when built, the sensor's directions and
     frames are validated unit vectors rotated by a normalized quaternion, mesh normals are
@@ -531,7 +531,7 @@ def _take_faces(arrays, vis, faces):
 
 def visible_faces(vis: np.ndarray, capacity: int | None = None) -> np.ndarray:
     """Host helper: indices of the facets with ``vis > 0`` padded (with a ``vis == 0`` facet,
-    or facet 0 if there is none) to ``capacity`` (default :func:`ppr._mesh.capacity_for`),
+    or facet 0 if there is none) to ``capacity`` (default :func:`ppr.geometry._mesh.capacity_for`),
     for ``render(..., faces=...)``; batches of poses share one capacity."""
     vis = np.asarray(vis)
     idx = np.flatnonzero(vis > 0)
@@ -748,7 +748,7 @@ def double_bounce(
     options=None,
     pairs=None,
 ) -> Profile:
-    """The macro double bounce alone (:mod:`ppr._macro`): light reflected by one surface of
+    """The macro double bounce alone (:mod:`ppr.pulse._macro`): light reflected by one surface of
     the object onto another (a panel against the body) before it returns, summed
     incoherently, as a Mueller :class:`Profile` (what ``simulate(multibounce=True)`` adds to
     the single bounce).
@@ -903,7 +903,7 @@ def simulate(
     - `prune`: drop back-facing and invisible facets before the kernel (same result).
     - `dtype`: kernel float dtype (default: the default float, float32 unless x64 is on).
     - `multibounce`: add the macro double bounce between the object's surfaces
-      (:mod:`ppr._macro`; e.g. solar panels against the body). ``"auto"`` (default) leaves it
+      (:mod:`ppr.pulse._macro`; e.g. solar panels against the body). ``"auto"`` (default) leaves it
       out exactly where it is zero: no two surfaces of the mesh face each other (a convex
       mesh), or none of the facing pairs is lit, seen and, for glossy pairs, within
       ``LOBE_CUT`` of sending light to the receiver (the skipped lobe overlaps are below

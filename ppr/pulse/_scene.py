@@ -24,7 +24,7 @@ Polarization frames
     ``Sensor.frame_tx`` is the x axis of the transmitted beam's Stokes frame (beam travelling
     along ``-laser_dir``), ``Sensor.frame_rx`` the x axis of the received beam's frame (beam
     travelling along ``+receiver_dir``), both in world coordinates and perpendicular to their
-    beam; the y axes follow from :mod:`ppr._conventions` (``y = d x x``). By default both are
+    beam; the y axes follow from :mod:`ppr.optics.conventions` (``y = d x x``). By default both are
     the projection of one world reference vector ``x_ref`` ("horizontal" of the sensor).
 
 Pulse
