@@ -210,3 +210,17 @@ def test_render_input_errors():
         _image.render_mueller_image(mesh, mats, laser_dir=(0, 0, np.nan))
     with pytest.raises(ValueError, match="shading"):
         _image.render_mueller_image(mesh, mats, laser_dir=(0, 0, 1), shading="phong")
+
+
+def test_deprecated_part_mesh_adapter_warns_once():
+    """``ppr.cli.part_mesh_from_ppr_mesh`` (the image renderer now takes a ``ppr.Mesh``) is a
+    deprecated no-op for one release: one warning per process, the mesh handed back."""
+    from ppr._deprecation import _WARNED, PprDeprecationWarning
+
+    _WARNED.discard("ppr.cli.part_mesh_from_ppr_mesh")
+    mesh = _plates()
+    with pytest.warns(PprDeprecationWarning, match="part_mesh_from_ppr_mesh") as rec:
+        first = cli.part_mesh_from_ppr_mesh(mesh, smooth=True)
+        second = cli.part_mesh_from_ppr_mesh(mesh)
+    assert first is mesh and second is mesh
+    assert len(rec) == 1

@@ -278,6 +278,52 @@ def test_quaternion_matches_scipy_and_sign():
     np.testing.assert_allclose(np.asarray(ppr.quat_to_matrix(q12)), r[0] @ r[1], atol=1e-12)
 
 
+def test_rotation_host_and_traceable_forms_agree():
+    """The host (NumPy) and traceable (JAX) forms of each rotation formula agree to float64
+    rounding, and each is the closed form: R(exp(w/2)) is Rodrigues' matrix of the rotation
+    vector w, R(q1 q2) = R(q1) R(q2), and the angle between q1 and q2 is the angle of
+    R(q1)^T R(q2), ``acos((tr - 1) / 2)``, down to 1e-7 deg where that acos has lost all
+    digits (the atan2 form stays accurate)."""
+    from ppr.geometry import (
+        quat_angle_deg,
+        quat_from_rotvec,
+        quat_from_rotvec_host,
+        quat_multiply_host,
+        quat_to_matrix_host,
+    )
+
+    rng = np.random.default_rng(7)
+    q = rng.normal(size=(50, 4))
+    r = quat_to_matrix_host(q)
+    np.testing.assert_allclose(r, np.asarray(ppr.quat_to_matrix(q)), atol=1e-15)
+    q12 = quat_multiply_host(q[:25], q[25:])
+    np.testing.assert_allclose(quat_to_matrix_host(q12), r[:25] @ r[25:], atol=1e-14)
+    np.testing.assert_allclose(q12, np.asarray(quat_multiply(q[:25], q[25:])), atol=1e-15)
+    w = rng.normal(size=(50, 3)) * rng.uniform(0, 3, (50, 1))
+    w[0] = 0.0
+    w[1] = [1e-9, -2e-9, 0.5e-9]
+    qw = quat_from_rotvec_host(w)
+    np.testing.assert_allclose(qw, np.asarray(quat_from_rotvec(w)), atol=1e-15)
+    a = np.linalg.norm(w, axis=1)
+    k = np.where(a[:, None] > 0, w / np.where(a > 0, a, 1.0)[:, None], 0.0)
+    z = np.zeros(len(k))
+    kx = np.stack(  # the cross-product matrix [k]x
+        [
+            np.stack([z, -k[:, 2], k[:, 1]], -1),
+            np.stack([k[:, 2], z, -k[:, 0]], -1),
+            np.stack([-k[:, 1], k[:, 0], z], -1),
+        ],
+        -2,
+    )
+    rod = np.eye(3) + np.sin(a)[:, None, None] * kx + (1 - np.cos(a))[:, None, None] * (kx @ kx)
+    np.testing.assert_allclose(quat_to_matrix_host(qw), rod, atol=1e-14)
+    rel = np.einsum("nji,njk->nik", r[:25], r[25:])
+    tr = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)
+    np.testing.assert_allclose(quat_angle_deg(q[:25], q[25:]), np.degrees(np.arccos(tr)), atol=1e-6)
+    tiny = quat_multiply_host(quat_from_rotvec_host([0.0, 0.0, np.radians(1e-7)]), q[2])
+    np.testing.assert_allclose(quat_angle_deg(q[2], tiny), 1e-7, rtol=1e-6)
+
+
 def test_quaternion_validation():
     with pytest.raises(ValueError, match=r"Pose.quaternion must be a unit quaternion.*norm 2.0"):
         ppr.Pose([2.0, 0, 0, 0])

@@ -19,19 +19,19 @@ EXAMPLES = [
 
 
 def _brdf(out):
-    from ..plots._demo import brdf_figures
+    from ..plots import brdf_figures
 
     return brdf_figures(out)
 
 
 def _double(out):
-    from ..plots._double import double_figures
+    from ..plots import double_figures
 
     return double_figures(out)
 
 
 def _pulse(out):
-    from ..plots._pulse import pulse_figures
+    from ..plots import pulse_figures
 
     return pulse_figures(out)
 

@@ -1,5 +1,7 @@
 """Matplotlib figures of the library's results and of the ``ppr`` commands' outputs.
-Imports matplotlib lazily (Agg unless a backend is already chosen)."""
+Imports matplotlib lazily (Agg unless a backend is already chosen); the demo figure writers
+``brdf_figures``, ``double_figures`` and ``pulse_figures`` (``ppr demo``) load the library on
+first use."""
 
 from __future__ import annotations
 
@@ -8,12 +10,31 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 __all__ = [
+    "brdf_figures",
+    "double_figures",
+    "pulse_figures",
     "brdf_quantity_figure",
     "plot_brdf_sweep",
     "plot_classification",
     "plot_fit",
     "plot_profiles",
 ]
+
+# demo figure writers: (module, name), imported on first use (they import JAX)
+_LAZY = {
+    "brdf_figures": ("._demo", "brdf_figures"),
+    "double_figures": ("._double", "double_figures"),
+    "pulse_figures": ("._pulse", "pulse_figures"),
+}
+
+
+def __getattr__(name: str):
+    if name not in _LAZY:
+        raise AttributeError(f"module 'ppr.plots' has no attribute {name!r}")
+    import importlib
+
+    module, attr = _LAZY[name]
+    return getattr(importlib.import_module(module, __name__), attr)
 
 
 def _pyplot():
