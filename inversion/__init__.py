@@ -38,6 +38,18 @@ from ._gof import (
     goodness_of_fit,
     poisson_deviance_moments,
 )
+# the whole workflow in one call (issue 26)
+from ._invert import (
+    INVERT_FILES,
+    Candidate,
+    InvertConfig,
+    Inversion,
+    invert,
+    load_invert_config,
+    log_evidence,
+    prior_scales,
+    screening_bank,
+)
 from ._grid import (
     AttitudeGrid,
     as_symmetry,
@@ -191,4 +203,13 @@ __all__ = [
     "to_inference_data",
     "write_posterior",
     "posterior_diagnostics",
+    "INVERT_FILES",
+    "Candidate",
+    "InvertConfig",
+    "Inversion",
+    "invert",
+    "load_invert_config",
+    "log_evidence",
+    "prior_scales",
+    "screening_bank",
 ]

@@ -1248,352 +1248,175 @@ class InvertObservation(StrictModel):
     seed: Seed = 0
 
 
-class InvertConfig(StrictModel):
-    """``ppr invert``: least-squares refinement and MCMC of attitude and materials."""
+def _invert_command_schema():
+    """``ppr invert``'s schema: :class:`inversion.InvertConfig`'s fields (same names, top
+    level) plus the scene, channels, BRDF, observation and the MCMC config file."""
+    import inversion
 
-    scene: str
-    channels: Literal["full", "stokes", "copol", "circular"] = "copol"
-    brdf: Literal["ppr", "glossy"] = "ppr"
-    free: list[Literal["attitude", "m", "n", "corr_length", "range_offset", "gain"]] = [
-        "attitude",
-        "m",
-        "n",
-        "range_offset",
-        "gain",
-    ]
-    solver: Literal["lm", "dogleg", "gauss_newton"] = "lm"
-    # "poisson": exact Poisson likelihood of photo-counts (inversion.PoissonCounts);
-    # "gaussian": Gaussian approximation mu + 1 (inversion.PoissonNoise) for scaled data
-    likelihood: Literal["poisson", "gaussian"] = "poisson"
-    n_starts: int = pydantic.Field(4, ge=1, le=64)
-    start_perturbation_deg: float = pydantic.Field(8.0, ge=0.0, le=180.0)
-    start_perturbation_frac: float = pydantic.Field(0.3, ge=0.0, lt=1.0)
-    mcmc: str | None = "../inversion/default.toml"
-    mcmc_walkers: int | None = pydantic.Field(None, ge=4)
-    mcmc_steps: int | None = pydantic.Field(None, ge=10)
-    mcmc_burn_in: int | None = pydantic.Field(None, ge=0)
-    mcmc_set: dict[str, Any] = {}
-    # the shape's symmetry class (dihedral:n, octahedral) to check the mirror ambiguity with
-    # (inversion.mirror_check; the mesh must have the z -> -z mirror plane); None: no check
-    mirror_symmetry: str | None = None
-    observation: InvertObservation = InvertObservation()
+    class InvertCommandConfig(inversion.InvertConfig):
+        """``ppr invert``: classify, refine, weigh materials and modes, sample (inversion.invert)."""
+
+        scene: str
+        channels: Literal["full", "stokes", "copol", "circular"] = "copol"
+        brdf: Literal["ppr", "glossy"] = "ppr"
+        # priors and sampler (configs/inversion/*.toml); None: no posterior sampling
+        mcmc: str | None = "../inversion/default.toml"  # type: ignore[assignment]
+        mcmc_walkers: int | None = pydantic.Field(None, ge=4)
+        mcmc_steps: int | None = pydantic.Field(None, ge=10)
+        mcmc_burn_in: int | None = pydantic.Field(None, ge=0)
+        mcmc_set: dict[str, Any] = {}
+        observation: InvertObservation = InvertObservation()
+
+    return InvertCommandConfig
 
 
-INVERT_OUTPUTS = [
-    "invert.json",
-    "invert_chain.npz",
-    "invert_posterior.nc",
-    "invert_fit.png",
-    "invert_corner.png",
-]
+# the sampler fields ppr invert sets directly, as written in its config
+_MCMC_FIELDS = {"n_walkers": "mcmc_walkers", "n_steps": "mcmc_steps", "burn_in": "mcmc_burn_in"}
 
 
-def cmd_invert(args) -> int:
-    import warnings
+def invert_config(cfg, cfg_path: Path, progress: bool):
+    """The library config (:class:`inversion.InvertConfig`) of a ``ppr invert`` config, with
+    its MCMC file read and the sampler overrides applied: every field validated before any
+    computation, errors naming the field as written in ``cfg_path`` (or the MCMC file)."""
+    import inversion
+    from inversion._mcmc import SamplerConfig
 
+    mcfg = None
+    if cfg.mcmc is not None:
+        mpath = _resolve_path(cfg.mcmc, cfg_path)
+        if not mpath.is_file():
+            raise ConfigError(f"{cfg_path}: mcmc = {cfg.mcmc!r}: no such file ({mpath})")
+        mcfg = inversion.load_mcmc_config(mpath, cfg.mcmc_set)
+        upd = {k: getattr(cfg, v) for k, v in _MCMC_FIELDS.items() if getattr(cfg, v) is not None}
+        samp = {**mcfg.sampler.model_dump(), **upd, "progress": progress}
+        try:
+            sampler = SamplerConfig.model_validate(samp)
+        except pydantic.ValidationError as err:
+            parts = []
+            for e in err.errors():
+                loc = e["loc"][0] if e["loc"] else None
+                msg = str(e["msg"]).removeprefix("Value error, ")
+                if loc in _MCMC_FIELDS:
+                    parts.append(f"{_MCMC_FIELDS[loc]} = {samp[loc]!r}: {msg}")
+                else:  # a check across fields (burn-in against steps)
+                    parts.append(
+                        f"mcmc_burn_in = {samp['burn_in']!r}, mcmc_steps = {samp['n_steps']!r} "
+                        f"(with {cfg.mcmc}): {msg}"
+                    )
+            raise ConfigError(f"{cfg_path}: " + "; ".join(parts)) from None
+        mcfg = mcfg.model_copy(update={"sampler": sampler})
+    lib_fields = set(inversion.InvertConfig.model_fields) - {"mcmc", "progress"}
+    data = {k: getattr(cfg, k) for k in lib_fields}
+    return inversion.InvertConfig.model_validate({**data, "mcmc": mcfg, "progress": progress})
+
+
+def _simulated_truth(model, scene, photons: float, offset: float):
     import jax.numpy as jnp
 
     import inversion
-    import ppr
-    from inversion._params import quat_angle_deg, quat_from_rotvec, quat_multiply
 
-    cfg_path = _config_path(args, "invert.toml")
-    cfg = load_toml_model(InvertConfig, cfg_path, _overrides(args))
-    _maybe_x64("float64")  # inversion runs in float64 (STYLE.md section 5)
-    scene = ppr.load_scene(_resolve_path(cfg.scene, cfg_path))
-    chm = inversion.MeasurementModel.preset(cfg.channels).channel_matrix()
-    brdf = None
-    if cfg.brdf == "glossy":
-        from ._pulse import glossy_fresnel_mueller as brdf
-    model = inversion.SimulatorModel(scene, chm, brdf=brdf, dense=True)
     mats = scene.materials
     truth = inversion.PhysicalParams(
         np.asarray(scene.pose.quaternion, np.float64),
         [float(np.asarray(m.m)) for m in mats],
         [complex(np.asarray(m.n)) for m in mats],
         [float(np.asarray(m.corr_length)) for m in mats],
-        range_offset=cfg.observation.range_offset_m,
+        range_offset=offset,
         gain=1.0,
     )
+    shape = np.asarray(model.expected(truth, model.prepare(truth)))
+    gain = photons / max(float(shape.sum()), 1e-300)
+    truth = eqx_replace(truth, gain=jnp.asarray(gain, jnp.float64))
+    return truth, shape * gain
+
+
+def run_invert(cfg, cfg_path: Path, out, overwrite: bool = False, progress: bool = False):
+    """``ppr invert`` on a parsed config: validate everything (MCMC included), build the
+    scene's forward model, read or simulate the observation, :func:`inversion.invert`,
+    :meth:`inversion.Inversion.write` into ``out`` (atomically). Returns the Inversion."""
+    import inversion
+    import ppr
+
+    lib_cfg = invert_config(cfg, cfg_path, progress)
     ob = cfg.observation
-    if ob.source == "simulate":
-        shape = np.asarray(model.expected(truth, model.prepare(truth)))
-        gain = ob.photons / max(float(shape.sum()), 1e-300)
-        truth = eqx_replace(truth, gain=jnp.asarray(gain, jnp.float64))
-        expected = shape * gain
+    data = None
+    if ob.source != "simulate":
+        path = _resolve_path(ob.source, cfg_path)
+        where = f"{cfg_path}: observation.source = {ob.source!r}"
+        if not path.is_file():
+            raise ConfigError(f"{where}: no such file")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                if "data" not in z.files:
+                    raise ConfigError(f"{where}: no 'data' array (it has {', '.join(z.files)})")
+                data = np.asarray(z["data"], np.float64)
+        except (OSError, ValueError, EOFError) as err:
+            if isinstance(err, ConfigError):
+                raise
+            raise ConfigError(f"{where}: not a NumPy .npz file of arrays") from None
+    _maybe_x64("float64")  # inversion runs in float64 (the MCMC needs it)
+    scene = ppr.load_scene(_resolve_path(cfg.scene, cfg_path))
+    chm = inversion.MeasurementModel.preset(cfg.channels).channel_matrix()
+    brdf = None
+    if cfg.brdf == "glossy":
+        from ._pulse import glossy_fresnel_mueller as brdf
+    model = inversion.SimulatorModel(scene, chm, brdf=brdf, dense=True)
+    if data is not None and data.shape != (model.n_channels, model.n_bins):
+        raise ConfigError(
+            f"{cfg_path}: observation.source = {ob.source!r}: data has shape {data.shape}; the "
+            f"scene and channels give ({model.n_channels} channels, {model.n_bins} bins)"
+        )
+    _outputs.refuse_existing(out, inversion.INVERT_FILES, overwrite)
+    truth = None
+    if data is None:
+        truth, expected = _simulated_truth(model, scene, ob.photons, ob.range_offset_m)
         # the kernel's roundoff can give -1e-22 counts; anything beyond roundoff is a bug
         if np.min(expected) < -1e-9 * max(float(np.max(expected)), 1e-300):
             raise RuntimeError(
                 f"simulated expected counts are negative beyond roundoff "
                 f"(min {np.min(expected):.3g}, max {np.max(expected):.3g}); refusing to observe"
             )
-        expected = np.maximum(expected, 0.0)
-        data = np.random.default_rng(ob.seed).poisson(expected).astype(np.float64)
-    else:
-        path = _resolve_path(ob.source, cfg_path)
-        if not path.is_file():
-            raise ConfigError(f"{cfg_path}: observation.source = {ob.source!r}: no such file")
-        with np.load(path) as z:
-            data = np.asarray(z["data"], np.float64)
-        truth = None
-    # starts: the reference (truth or scene) perturbed, as the classifier's candidates would be
-    ref = (
-        truth
-        if truth is not None
-        else inversion.PhysicalParams(
-            np.asarray(scene.pose.quaternion, np.float64),
-            [float(np.asarray(m.m)) for m in mats],
-            [complex(np.asarray(m.n)) for m in mats],
-            gain=max(float(data.sum()), 1.0),
-        )
-    )
-    rng = np.random.default_rng(ob.seed + 1)
-    starts = []
-    for _ in range(cfg.n_starts):
-        w = rng.normal(size=3)
-        w *= np.radians(cfg.start_perturbation_deg) / max(np.linalg.norm(w), 1e-12)
-        q = np.asarray(quat_multiply(quat_from_rotvec(jnp.asarray(w)), ref.quaternion))
-        f = 1.0 + cfg.start_perturbation_frac * rng.uniform(-1, 1, 4)
-        starts.append(
-            inversion.PhysicalParams(
-                q,
-                np.asarray(ref.m) * f[0],
-                np.asarray(ref.n).real * f[1] + 1j * np.asarray(ref.n).imag * f[2],
-                np.asarray(ref.corr_length),
-                range_offset=0.0,
-                gain=float(ref.gain) * f[3],
-            )
-        )
-    noise = inversion.PoissonCounts() if cfg.likelihood == "poisson" else inversion.PoissonNoise()
-    if cfg.mirror_symmetry is not None:
-        try:
-            normal = inversion.body_mirror_normal(cfg.mirror_symmetry)
-        except ValueError as err:
-            raise ConfigError(f"{cfg_path}: mirror_symmetry: {err}") from None
-        if normal is None:
-            raise ConfigError(
-                f"{cfg_path}: mirror_symmetry = {cfg.mirror_symmetry!r} implies no mirror plane "
-                "(use dihedral:n or octahedral, or leave it out)"
-            )
-        if not inversion.mesh_has_mirror(scene.mesh, normal):
-            raise ConfigError(
-                f"{cfg_path}: mirror_symmetry = {cfg.mirror_symmetry!r}: the scene's mesh has "
-                f"no mirror plane with normal {normal.tolist()} through the body origin"
-            )
-    optional = ["invert_corner.png", "invert_posterior.nc"]  # written with an MCMC config
-    with outputs(args.out, INVERT_OUTPUTS, args.overwrite, optional=optional) as out:
-        t0 = time.perf_counter()
-        try:
-            fit = inversion.refine(
-                model, data, starts, free=tuple(cfg.free), solver=cfg.solver, noise=noise
-            )
-        except ValueError as err:
-            raise ConfigError(f"{cfg_path}: {err}") from None
-        mirror = None
-        if cfg.mirror_symmetry is not None:
-            # the second mode no local fit or bound sees: refit from the mirror image, keep
-            # the better, report both
-            chk = inversion.mirror_check(
-                model, data, fit, cfg.mirror_symmetry, noise=noise, solver=cfg.solver
-            )
-            mirror = {
-                "delta_deviance": chk.delta_deviance,
-                "separation_deg": chk.separation_deg,
-                "mirror_probability": chk.mirror_probability,
-                "ambiguous": chk.ambiguous(),
-                "swapped": bool(chk.delta_deviance < 0),
-                "mirror_quaternion": np.asarray(chk.mirror.params.unit_quaternion()),
-                "summary": chk.summary(),
-            }
-            fit = chk.best
-        t_fit = time.perf_counter() - t0
-        # the fit against its noise (exact null distribution of the deviance), and what the
-        # data constrain (named unobservable directions; finite uncertainties otherwise)
-        los = inversion.line_of_sight_of(model)
-        gof = inversion.fit_goodness_of_fit(model, data, fit, noise)
-        obs_fit = fit.observability(line_of_sight=los)
-        _say(args, f"ppr invert: {gof.summary()}")
-        if obs_fit.unobservable:
-            _say(args, "ppr invert: unobservable: " + "; ".join(obs_fit.names))
-        summary = {
-            "command": "invert",
-            "config_file": str(cfg_path),
-            "config": cfg,
-            "n_channels": int(data.shape[0]),
-            "n_bins": int(data.shape[1]),
-            "refine": {
-                "success": fit.success,
-                "result": fit.result,
-                "message": fit.message,
-                "cost": fit.cost,
-                "reduced_chi2": fit.reduced_chi2
-                if not callable(fit.reduced_chi2)
-                else fit.reduced_chi2(),
-                "seconds": t_fit,
-                "labels": fit.labels,
-                "quaternion": np.asarray(fit.params.unit_quaternion()),
-                "m": np.asarray(fit.params.m),
-                "n": np.asarray(fit.params.n),
-                "range_offset_m": float(fit.params.range_offset),
-                "gain": float(fit.params.gain),
-                "starts": [{"result": st.result, "cost": st.cost} for st in fit.starts]
-                if hasattr(fit.starts[0], "result")
-                else len(fit.starts),
-                "sigma": obs_fit.to_dict()["sigma"],
-            },
-            "goodness_of_fit": gof.to_dict(),
-            "observability": obs_fit.to_dict(),
-        }
-        if mirror is not None:
-            summary["mirror_check"] = mirror
-        if truth is not None:
-            summary["truth"] = {
-                "quaternion": np.asarray(truth.quaternion),
-                "m": np.asarray(truth.m),
-                "n": np.asarray(truth.n),
-                "range_offset_m": float(truth.range_offset),
-                "gain": float(truth.gain),
-            }
-            # geodesic angle to the true attitude, not reduced by the shape's symmetry group
-            summary["refine"]["attitude_error_deg"] = float(
-                quat_angle_deg(fit.params.unit_quaternion(), truth.quaternion)
-            )
-            if cfg.mirror_symmetry is not None:
-                # modulo the shape's rotations, and the line of sight also modulo its mirror
-                q_fit = np.asarray(fit.params.unit_quaternion())
-                q_true = np.asarray(truth.quaternion)
-                sym = cfg.mirror_symmetry
-                summary["refine"]["attitude_error_mod_symmetry_deg"] = float(
-                    inversion.attitude_error_deg(q_true, q_fit, sym)[0]
-                )
-                summary["refine"]["los_error_deg"] = float(
-                    inversion.line_of_sight_error_deg(q_true, q_fit, sym)[0]
-                )
-                summary["refine"]["los_error_mod_mirror_deg"] = float(
-                    inversion.line_of_sight_error_deg(q_true, q_fit, sym, mirror=True)[0]
-                )
-            # what no unbiased estimator can beat on these data (infinite: an exact symmetry)
-            crb = inversion.cramer_rao(model, truth, noise, free=tuple(cfg.free))
-            obs_crb = crb.observability(line_of_sight=los)
-            summary["cramer_rao"] = {
+        data = np.random.default_rng(ob.seed).poisson(np.maximum(expected, 0.0)).astype(float)
+    name = Path(cfg.scene).stem  # the candidate's name: its scene file
+    try:
+        inv = inversion.invert(data, {name: model}, config=lib_cfg)
+    except ValueError as err:
+        raise ConfigError(f"{cfg_path}: {err}") from None
+    extra = {"command": "invert", "config_file": str(cfg_path), "observation": ob}
+    if truth is not None:
+        noise = inversion.PoissonCounts(lib_cfg.background)
+        crb = inversion.cramer_rao(model, truth, noise, free=tuple(inv.fit.parametrisation.free))
+        ob_crb = crb.observability(line_of_sight=inv.line_of_sight_world)
+        extra["truth"] = {
+            "quaternion": np.asarray(truth.quaternion),
+            "m": np.asarray(truth.m),
+            "n": np.asarray(truth.n),
+            "range_offset_m": float(truth.range_offset),
+            "gain": float(truth.gain),
+            "errors": inv.compare(truth, name),
+            # what no unbiased estimator can beat (observable subspace; null: unobservable)
+            "cramer_rao": {
                 "labels": crb.labels,
-                # in the observable subspace: null only for a parameter unobservable on its own
-                "sigma": obs_crb.to_dict()["sigma"],
-                "unobservable": obs_crb.names,
-                "condition": crb.condition,
-            }
-        chain = {}
-        post = None
-        if cfg.mcmc is not None:
-            mcfg = inversion.load_mcmc_config(_resolve_path(cfg.mcmc, cfg_path), cfg.mcmc_set)
-            upd = {
-                k: v
-                for k, v in (
-                    ("n_walkers", cfg.mcmc_walkers),
-                    ("n_steps", cfg.mcmc_steps),
-                    ("burn_in", cfg.mcmc_burn_in),
-                )
-                if v is not None
-            }
-            upd["progress"] = _progress(args)
-            samp = validate_sub(
-                type(mcfg.sampler), {**mcfg.sampler.model_dump(), **upd}, cfg_path, "mcmc"
-            )
-            mcfg = mcfg.model_copy(update={"sampler": samp})
-            t1 = time.perf_counter()
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always", inversion.ChainTooShortWarning)
-                try:
-                    post = inversion.sample_posterior(
-                        model, data, fit.params, config=mcfg, free=tuple(cfg.free), noise=noise
-                    )
-                    # an ambiguous mirror check: the posterior has a second mode the chain
-                    # cannot reach; sample it too (inversion.sample_modes' weighting)
-                    post_m = None
-                    if mirror is not None and mirror["ambiguous"]:
-                        other = chk.fit if chk.delta_deviance < 0 else chk.mirror
-                        post_m = inversion.sample_posterior(
-                            model,
-                            data,
-                            other.params,
-                            config=mcfg,
-                            free=tuple(cfg.free),
-                            noise=noise,
-                        )
-                except ValueError as err:
-                    raise ConfigError(f"{cfg_path}: mcmc: {err}") from None
-            lo68, hi68 = post.interval(0.68).T
-            lo95, hi95 = post.interval(0.95).T
-            post.write(out.path("invert_posterior.nc"), line_of_sight=los, observed=data)
-            # R-hat, bulk/tail ESS and MCSE from ArviZ (walkers as chains), as in the file
-            diag = post.diagnostics()
-            summary["mcmc"] = {
-                "seconds": time.perf_counter() - t1,
-                "labels": post.labels,
-                "median": post.median(),
-                "interval68": np.stack([lo68, hi68], -1),
-                "interval95": np.stack([lo95, hi95], -1),
-                "acceptance_fraction": float(np.mean(post.acceptance_fraction)),
-                "tau": post.tau,
-                **{
-                    key: [diag[lab][key] for lab in post.labels]
-                    for key in ("r_hat", "ess_bulk", "ess_tail", "mcse_mean", "mcse_sd")
-                },
-                "burn_in": post.burn_in,
-                "thin": post.thin,
-                "converged": bool(post.converged),
-                "warnings": [str(w.message) for w in caught],
-            }
-            if truth is not None:
-                tv = post.truth_vector(truth)
-                summary["mcmc"]["truth_vector"] = tv
-                summary["mcmc"]["truth_in_95"] = post.contains(tv, 0.95)
-            if post_m is not None:
-                # the other mirror image's mode: its probability (equal volumes), the
-                # quaternion it is centred on, and its intervals (attitude relative to it)
-                p_other = min(mirror["mirror_probability"], 1.0 - mirror["mirror_probability"])
-                lo68m, hi68m = post_m.interval(0.68).T
-                lo95m, hi95m = post_m.interval(0.95).T
-                summary["mcmc"]["mode_probability"] = 1.0 - p_other
-                summary["mcmc"]["mirror_mode"] = {
-                    "probability": p_other,
-                    "quaternion": np.asarray(other.params.unit_quaternion()),
-                    "median": post_m.median(),
-                    "interval68": np.stack([lo68m, hi68m], -1),
-                    "interval95": np.stack([lo95m, hi95m], -1),
-                    "acceptance_fraction": float(np.mean(post_m.acceptance_fraction)),
-                    "tau": post_m.tau,
-                    "converged": bool(post_m.converged),
-                }
-            chain = _chain_arrays(post)
-            if post_m is not None:
-                chain.update({f"mirror_{k}": v for k, v in _chain_arrays(post_m).items()})
-            post.corner_plot(out.path("invert_corner.png"), truth=truth)
-        write_json(out.path("invert.json"), summary)
-        np.savez_compressed(out.path("invert_chain.npz"), data=data, **chain)
-        fitted = np.asarray(model.expected(fit.params, model.prepare(fit.params)))
-        _plot_fit(out.path("invert_fit.png"), data, fitted)
-    _say(args, f"ppr invert: wrote {', '.join(str(Path(args.out) / n) for n in INVERT_OUTPUTS)}")
+                "sigma": ob_crb.to_dict()["sigma"],
+                "unobservable": ob_crb.names,
+            },
+        }
+    inv.write(out, overwrite=overwrite, extra=extra)
+    return inv
+
+
+def cmd_invert(args) -> int:
+    cfg_path = _config_path(args, "invert.toml")
+    cfg = load_toml_model(_invert_command_schema(), cfg_path, _overrides(args))
+    if not getattr(args, "quiet", False):
+        import logging
+
+        logging.basicConfig(level=logging.WARNING, format="%(message)s")
+        logging.getLogger("inversion.invert").setLevel(logging.INFO)
+    inv = run_invert(cfg, cfg_path, args.out, args.overwrite, _progress(args))
+    _say(args, inv.summary())
+    _say(args, f"ppr invert: wrote {Path(args.out) / 'invert.json'} and the posterior files")
     return 0
-
-
-def _chain_arrays(post) -> dict:
-    """The npz view of a posterior, every array in the units its labels state: ``samples``
-    ``(walkers, draws after burn-in, P)`` and ``warmup`` (the burn-in) in physical units
-    (``labels``), the log posterior, the solver-coordinate chain under its own labels."""
-    b, t = post.burn_in, post.thin
-    par = post.parametrisation
-    return {
-        "samples": np.swapaxes(post.physical_chain[b::t], 0, 1),
-        "warmup": np.swapaxes(post.physical_chain[:b:t], 0, 1),
-        "labels": np.array(post.labels),
-        "log_prob": np.swapaxes(post.log_prob[b::t], 0, 1),
-        "burn_in": np.array(b),
-        "thin": np.array(t),
-        "reference_quaternion": np.asarray(par.reference.unit_quaternion()),
-        "chain_theta": np.swapaxes(post.chain, 0, 1),
-        "theta_labels": np.array(par.theta_labels),
-    }
 
 
 def eqx_replace(module, **changes):
@@ -1602,28 +1425,6 @@ def eqx_replace(module, **changes):
     for k, v in changes.items():
         module = eqx.tree_at(lambda m, k=k: getattr(m, k), module, v)
     return module
-
-
-def validate_sub(model, data, cfg_path, field):
-    return _sub_model(model, data, cfg_path, field)
-
-
-def _plot_fit(path, data, fitted) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(8, 4))
-    for c in range(data.shape[0]):
-        ax.plot(data[c], ".", ms=3, label=f"channel {c} data")
-        ax.plot(fitted[c], "-", lw=1)
-    ax.set_xlabel("range bin")
-    ax.set_ylabel("counts")
-    ax.legend(fontsize=7, ncol=2)
-    ax.set_title("ppr invert: data (dots) and best fit (lines)")
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
 
 
 # ================================================================================= demo
