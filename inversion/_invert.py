@@ -93,7 +93,9 @@ from ._refine import (
     _refine_start,
     _to_physical,
     check_observation,
+    PhysicalBounds,
     mode_check,
+    refine_bounded,
     weighted_jacobian,
 )
 
@@ -111,8 +113,10 @@ __all__ = [
 log = logging.getLogger("inversion.invert")
 
 DEFAULT_FINISHES = {"rough": 10.0, "brushed": 300.0}
-N_RE_BOX = (0.05, 5.0)  # physical index box (PhysicalBounds' defaults)
-N_IM_BOX = (0.0, 15.0)
+# the physical box (the default priors' supports): fits that leave it are refit inside it
+BOUNDS = PhysicalBounds()
+N_RE_BOX = BOUNDS.n_re
+N_IM_BOX = BOUNDS.n_im
 MAX_MODES_SAMPLED = 8  # posterior files: invert_posterior.nc + invert_posterior_mode{1..7}.nc
 # per-axis prior sd of the attitude rotation vector (rad): the Haar volume of SO(3) in
 # rotation-vector coordinates is 8 pi^2, a box of that volume has sides (8 pi^2)^(1/3) =
@@ -715,10 +719,13 @@ class Inversion:
         labels = ob.labels
         par = self.fit.parametrisation
         tv = np.asarray(par.physical_vector(par.from_physical(_nearest_equivalent(truth, q_f, sym))))
+        # (truth - fit) / sigma for the parameters the data determine (None for the others:
+        # along an unobservable direction the fit's value is arbitrary)
         z = {}
         for i, lab in enumerate(labels):
             s = ob.sigma[i]
-            z[lab] = _num((tv[i] - ob.values[i]) / s) if np.isfinite(s) and s > 0 else None
+            ok = np.isfinite(s) and s > 0 and bool(ob.determined[i])
+            z[lab] = _num((tv[i] - ob.values[i]) / s) if ok else None
         out["z"] = z
         return out
 
@@ -1151,7 +1158,25 @@ class _Refiner:
     def polish(self, start: PhysicalParams, rounds: int | None = None) -> RefineResult:
         t0 = time.perf_counter()
         s = self.start(0, start, lift_start(start), False, rounds or self.cfg.rounds)
-        return self.finish(s, [s], t0)
+        return self.bounded(self.finish(s, [s], t0), start)
+
+    def bounded(self, fit: RefineResult, start: PhysicalParams) -> RefineResult:
+        """``fit``, or when the unbounded solver left the physical box (the index or the
+        roughness trading against the gain along a ridge), the box-bounded L-BFGS-B refit
+        from ``start`` (:func:`inversion.refine_bounded`; compiled only when needed)."""
+        if not fit.outside_bounds(BOUNDS):
+            return fit
+        log.info("refit inside the physical box: %s", "; ".join(fit.outside_bounds(BOUNDS)))
+        return refine_bounded(
+            self.model,
+            np.asarray(self.data_j),
+            [_clip_box(start)],
+            noise=self.noise,
+            bounds=BOUNDS,
+            free=self.free,
+            rounds=self.cfg.rounds,
+            range_scale=self.range_scale,
+        )
 
     def at(self, phys: PhysicalParams, free=None) -> RefineResult:
         """A RefineResult at ``phys`` without refining (Fisher and covariance there)."""
@@ -1269,19 +1294,34 @@ def invert(
             if n is None:
                 nm = bank_.names["materials"][i]
                 bank_mats[i] = complex(np.asarray(ppr.load_material(nm, wavelength).n))
+        # starts: each picked attitude with every finish of the bank (the cosine score
+        # cannot tell a broad lobe from a narrow glint of the same face, the deviance can),
+        # the gain matching the total counts; a start whose gain lies outside the physical
+        # range (a glint too faint for any real sensor) is dropped unless it is all there is
         starts: dict[str, list[PhysicalParams]] = {}
+        spare: dict[str, list[tuple[float, PhysicalParams]]] = {}
         for col in cols:
             row = int(cls.index[0, col])
-            c = cands[[x.name for x in cands].index(bank_.names["shapes"][bank_.shape_id[row]])]
+            c = by_name[bank_.names["shapes"][bank_.shape_id[row]]]
             k = c.n_materials
-            m = float(bank_.names["finish_m"][bank_.finish_id[row]])
             n = bank_mats[bank_.material_id[row]]
             w = c.bin_width
             off = 0.0 if w is None else float(cls.shift_refined[0, col]) * w
-            p = PhysicalParams(bank_.quat[row], [m] * k, [n] * k, range_offset=off, gain=1.0)
-            mu = _expect(c.model, p, c.model.prepare(p))
-            gain = float(max(data.sum(), 1.0) / max(mu.sum(), 1e-300))
-            starts.setdefault(c.name, []).append(_with(p, gain=jnp.asarray(gain, p.m.dtype)))
+            aux = None
+            for m in bank_.names["finish_m"]:
+                p = PhysicalParams(bank_.quat[row], [m] * k, [n] * k, range_offset=off, gain=1.0)
+                if aux is None or getattr(c.model, "multibounce", False):
+                    aux = c.model.prepare(p)
+                total = float(_expect(c.model, p, aux).sum())
+                gain = float(max(data.sum(), 1.0) / max(total, 1e-300))
+                p = _with(p, gain=jnp.asarray(min(max(gain, 1e-300), 1e300), p.m.dtype))
+                if BOUNDS.gain[0] <= gain <= BOUNDS.gain[1]:
+                    starts.setdefault(c.name, []).append(p)
+                else:
+                    spare.setdefault(c.name, []).append((abs(math.log(gain / 1e6)), p))
+        for name, sp in spare.items():
+            if name not in starts:
+                starts[name] = [_clip_box(min(sp, key=lambda x: x[0])[1])]
 
     # ---------------------------------------------------------------- screened refinement
     with stages("refine"):
@@ -1316,6 +1356,7 @@ def invert(
                     s, n_steps=s.n_steps + sc[0].n_steps, n_rounds=s.n_rounds + sc[0].n_rounds
                 )
                 fit = refiners[c.name].finish(s, [s, *sc[1:]], t0)
+                fit = refiners[c.name].bounded(fit, sc[0].start)
             shape_fits.append((c.name, len(sc), sc[0].cost, fit))
         lz = [log_evidence(f, priors) if f is not None else -math.inf for *_, f in shape_fits]
         p_shape = _probabilities(lz)
@@ -1379,6 +1420,7 @@ def invert(
             max_steps=cfg.max_steps,
             rounds=2,
             solver=cfg.solver,
+            bounds=BOUNDS,
         )
         distinct = [m for m in chk.modes if m.duplicate_of is None and np.isfinite(m.fit.cost)]
         lz = [log_evidence(m.fit, priors) for m in distinct]
@@ -1619,15 +1661,17 @@ def _sensor_geometry(model, los_world) -> tuple[bool, np.ndarray]:
     return mono, w / nrm
 
 
-def _index_fit(refiner: _Refiner, fit: RefineResult, free, cfg: InvertConfig, max_iter: int = 12):
-    """Fisher scoring with the index free, from a fit with the index fixed: steps
-    ``-F^+ J^T r`` (Pearson residuals ``r``, ``F = J^T J`` inverted in its observable
-    subspace, so no step along a direction the data do not fix), halved until the deviance
-    decreases; ``n`` kept inside the physical box. Uses the refiner's Jacobian program only
-    (no second solver to compile). Returns a RefineResult (method ``fisher_scoring``)."""
+def _index_fit(refiner: _Refiner, fit: RefineResult, free, cfg: InvertConfig, max_iter: int = 20):
+    """Fisher scoring with the index free, from a fit with the index fixed: damped steps
+    ``-(F + lambda diag F)^+ J^T r`` (Pearson residuals ``r``, ``F = J^T J`` inverted in
+    its observable subspace, so no step along a direction the data do not fix; ``lambda``
+    raised tenfold after a step that does not lower the deviance, lowered after one that
+    does, as Levenberg-Marquardt), every trial kept inside the physical box. Uses the
+    refiner's Jacobian program only (no second solver to compile). Returns a RefineResult
+    (method ``fisher_scoring``)."""
     model, noise, data = refiner.model, refiner.noise, refiner.data_j
     t0 = time.perf_counter()
-    phys = fit.params
+    phys = _clip_box(fit.params)
     bg = float(getattr(noise, "background", 0.0)) if isinstance(noise, PoissonCounts) else 0.0
     try:
         J, inv_sigma, mu, _, param, dev = weighted_jacobian(
@@ -1636,31 +1680,31 @@ def _index_fit(refiner: _Refiner, fit: RefineResult, free, cfg: InvertConfig, ma
     except FloatingPointError:
         return None
     data_np = np.asarray(data, np.float64)
-    steps, ok = 0, False
-    for _ in range(max_iter):
+    steps, ok, lam = 0, False, 1e-3
+    while steps < max_iter:
+        steps += 1
         r = ((data_np - mu - bg) * inv_sigma).ravel()
-        C, _ = observable_inverse(J.T @ J)
+        F = J.T @ J
+        C, _ = observable_inverse(F + lam * np.diag(np.diag(F)))
         delta = -C @ (J.T @ r)
         theta0 = np.asarray(_from_physical(param, phys), np.float64)
-        accepted = False
-        for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625):
-            trial = _clip_index(_to_physical(param, jnp.asarray(theta0 + alpha * delta)))
-            try:
-                Jt, inv_t, mu_t, _, par_t, dev_t = weighted_jacobian(
-                    model, noise, data, trial, free, None, refiner.range_scale
-                )
-            except FloatingPointError:
-                continue
-            if np.isfinite(dev_t) and dev_t < dev:
-                accepted = True
+        trial = _clip_box(_to_physical(param, jnp.asarray(theta0 + delta)))
+        try:
+            Jt, inv_t, mu_t, _, par_t, dev_t = weighted_jacobian(
+                model, noise, data, trial, free, None, refiner.range_scale
+            )
+        except FloatingPointError:
+            dev_t = math.inf
+        if not (np.isfinite(dev_t) and dev_t < dev):
+            lam *= 10.0
+            if lam > 1e8:  # no descent left along the observable directions: stationary
+                ok = True
                 break
-        steps += 1
-        if not accepted:
-            ok = True  # no descent left along the observable directions: stationary
-            break
+            continue
         gain = dev - dev_t
         phys, J, inv_sigma, mu, param, dev = trial, Jt, inv_t, mu_t, par_t, dev_t
-        if gain <= 1e-7 * max(dev, 1.0):
+        lam = max(lam / 10.0, 1e-9)
+        if gain <= 1e-8 * max(dev, 1.0):
             ok = True
             break
     s = StartSummary(
@@ -1677,11 +1721,19 @@ def _index_fit(refiner: _Refiner, fit: RefineResult, free, cfg: InvertConfig, ma
     return _finish(model, noise, data, s, (s,), tuple(free), refiner.range_scale, t0, "fisher_scoring")
 
 
-def _clip_index(phys: PhysicalParams) -> PhysicalParams:
+def _clip_box(phys: PhysicalParams) -> PhysicalParams:
+    """``phys`` with ``n``, ``m``, the gain and the offset inside :data:`BOUNDS`."""
+    b = BOUNDS
     n = np.asarray(phys.n)
-    re = np.clip(n.real, *N_RE_BOX)
-    im = np.clip(n.imag, *N_IM_BOX)
-    return _with(phys, n=jnp.asarray(re + 1j * im, phys.n.dtype))
+    re = np.clip(n.real, *b.n_re)
+    im = np.clip(n.imag, *b.n_im)
+    return _with(
+        phys,
+        n=jnp.asarray(re + 1j * im, phys.n.dtype),
+        m=jnp.clip(phys.m, *b.m),
+        gain=jnp.clip(phys.gain, *b.gain),
+        range_offset=jnp.clip(phys.range_offset, *b.range_offset),
+    )
 
 
 def _index_estimates(index_fit, k_parts: int, los_world) -> tuple[IndexEstimate, ...]:
