@@ -38,18 +38,6 @@ from ._gof import (
     goodness_of_fit,
     poisson_deviance_moments,
 )
-# the whole workflow in one call (issue 26)
-from ._invert import (
-    INVERT_FILES,
-    Candidate,
-    InvertConfig,
-    Inversion,
-    invert,
-    load_invert_config,
-    log_evidence,
-    prior_scales,
-    screening_bank,
-)
 from ._grid import (
     AttitudeGrid,
     as_symmetry,
@@ -61,6 +49,19 @@ from ._grid import (
     mesh_has_mirror,
     mirror_attitude,
     symmetry_group,
+)
+
+# the whole workflow in one call (issue 26)
+from ._invert import (
+    INVERT_FILES,
+    Candidate,
+    Inversion,
+    InvertConfig,
+    invert,
+    load_invert_config,
+    log_evidence,
+    prior_scales,
+    screening_bank,
 )
 
 # refiners and MCMC (issue 6)

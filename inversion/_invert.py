@@ -78,9 +78,10 @@ from ._gof import GoodnessOfFit, fit_goodness_of_fit
 from ._grid import AttitudeGrid, as_symmetry, symmetry_group
 from ._mcmc import ChainTooShortWarning, MCMCConfig, MCMCResult, PriorConfig, sample_posterior
 from ._noise import Observation
-from ._observability import Observability, line_of_sight_of, observable_inverse, observability
+from ._observability import Observability, line_of_sight_of, observability, observable_inverse
 from ._params import GROUPS, PhysicalParams, lift_start
 from ._refine import (
+    PhysicalBounds,
     PoissonCounts,
     PoissonNoise,
     RefineResult,
@@ -93,7 +94,6 @@ from ._refine import (
     _refine_start,
     _to_physical,
     check_observation,
-    PhysicalBounds,
     mode_check,
     refine_bounded,
     weighted_jacobian,
@@ -190,7 +190,9 @@ class InvertConfig(StrictModel):
     screen_tol: float = pydantic.Field(1e-3, gt=0.0, lt=1.0)
     materials: (
         Annotated[
-            list[str | InlineIndex], pydantic.Field(min_length=1), pydantic.AfterValidator(_distinct)
+            list[str | InlineIndex],
+            pydantic.Field(min_length=1),
+            pydantic.AfterValidator(_distinct),
         ]
         | None
     ) = None
@@ -718,7 +720,9 @@ class Inversion:
         ob = self.observability
         labels = ob.labels
         par = self.fit.parametrisation
-        tv = np.asarray(par.physical_vector(par.from_physical(_nearest_equivalent(truth, q_f, sym))))
+        tv = np.asarray(
+            par.physical_vector(par.from_physical(_nearest_equivalent(truth, q_f, sym)))
+        )
         # (truth - fit) / sigma for the parameters the data determine (None for the others:
         # along an unobservable direction the fit's value is arbitrary)
         z = {}
@@ -728,7 +732,6 @@ class Inversion:
             z[lab] = _num((tv[i] - ob.values[i]) / s) if ok else None
         out["z"] = z
         return out
-
 
     # ------------------------------------------------------------------ text and files
     def to_dict(self) -> dict:
@@ -801,8 +804,10 @@ class Inversion:
         """Human-readable verdict first, then the answer and its uncertainties."""
         lines = []
         if self.reliable:
-            lines.append("RELIABLE: fit acceptable, shape and modes resolved" + (
-                ", chains converged" if self.sampled else ""))
+            lines.append(
+                "RELIABLE: fit acceptable, shape and modes resolved"
+                + (", chains converged" if self.sampled else "")
+            )
         else:
             lines.append("NOT RELIABLE: " + "; ".join(self.reasons))
         lines.append(f"solver converged: {self.converged} ({self.fit.result})")
@@ -817,9 +822,7 @@ class Inversion:
         )
         for k, probs in enumerate(self.material_probabilities):
             items = sorted(probs.items(), key=lambda kv: -kv[1])
-            lines.append(
-                f"material (part {k}): " + ", ".join(f"{n} {p:.2f}" for n, p in items)
-            )
+            lines.append(f"material (part {k}): " + ", ".join(f"{n} {p:.2f}" for n, p in items))
         for e in self.index:
             if e.constrained:
                 lines.append(
@@ -923,9 +926,7 @@ def _nearest_equivalent(truth: PhysicalParams, q_fit, sym) -> PhysicalParams:
     cands = _equivalents(np.asarray(truth.unit_quaternion(), np.float64), sym, False, True)[0]
     d = np.abs(cands @ np.asarray(q_fit, np.float64))
     q = cands[int(np.argmax(d))]
-    return PhysicalParams(
-        q, truth.m, truth.n, truth.corr_length, truth.range_offset, truth.gain
-    )
+    return PhysicalParams(q, truth.m, truth.n, truth.corr_length, truth.range_offset, truth.gain)
 
 
 def _plot_fit(path, data, fitted) -> None:
@@ -1022,7 +1023,7 @@ def screening_bank(
     materials: Mapping[str, complex],
     finishes: Mapping[str, float],
     *,
-    grid: GridConfig | None = None,
+    grid: GridConfig | Mapping | None = None,
     symmetry: str = "auto",
     attitudes=None,
 ) -> TemplateBank:
@@ -1032,7 +1033,10 @@ def screening_bank(
     visibility is ray cast once (per finish for a model with the macro double bounce).
     `attitudes`: ``(A, 4)`` quaternions used for every shape instead of the grid (its stated
     resolution is then unknown: NaN)."""
-    grid = GridConfig() if grid is None else grid
+    if grid is None:
+        grid = GridConfig()
+    elif isinstance(grid, Mapping):
+        grid = validate_data(GridConfig, dict(grid), "screening_bank: grid")
     cands = _as_candidates(candidates)
     mats, fins = list(materials.items()), list(finishes.items())
     sigs, sid, aid, mid, fid, quats, res, syms = [], [], [], [], [], [], [], []
@@ -1185,9 +1189,7 @@ class _Refiner:
         free = self.free if free is None else tuple(free)
         # _finish evaluates the deviance and the Fisher matrix at phys (cost 0: a placeholder)
         s = StartSummary(0, phys, phys, 0.0, True, "successful", "evaluated", 0, 0)
-        return _finish(
-            self.model, self.noise, data, s, (s,), free, self.range_scale, t0, "laplace"
-        )
+        return _finish(self.model, self.noise, data, s, (s,), free, self.range_scale, t0, "laplace")
 
 
 # ============================================================================ the workflow
@@ -1606,9 +1608,10 @@ def _pick_rows(cls: Classification, bank: TemplateBank, top_k: int, per_shape: i
     every shape (the cosine rank is not a likelihood: a shape whose signature changes fast
     with attitude ranks low at the grid's resolution and can still fit best)."""
     idx = cls.index[0]
-    key = np.asarray(bank.shape_id)[idx].astype(np.int64) * (
-        int(np.max(bank.attitude_id)) + 1
-    ) + np.asarray(bank.attitude_id)[idx]
+    key = (
+        np.asarray(bank.shape_id)[idx].astype(np.int64) * (int(np.max(bank.attitude_id)) + 1)
+        + np.asarray(bank.attitude_id)[idx]
+    )
     _, first = np.unique(key, return_index=True)
     first = np.sort(first)  # rank order, one column per (shape, attitude)
     cols = list(first[:top_k])
@@ -1622,7 +1625,9 @@ def _sampler_progress(cfg: InvertConfig) -> MCMCConfig:
     mc = cfg.mcmc
     if mc.sampler.progress == cfg.progress:
         return mc
-    return mc.model_copy(update={"sampler": mc.sampler.model_copy(update={"progress": cfg.progress})})
+    return mc.model_copy(
+        update={"sampler": mc.sampler.model_copy(update={"progress": cfg.progress})}
+    )
 
 
 def _observation_data(observation) -> tuple[np.ndarray, str]:
@@ -1718,7 +1723,9 @@ def _index_fit(refiner: _Refiner, fit: RefineResult, free, cfg: InvertConfig, ma
         steps,
         steps,
     )
-    return _finish(model, noise, data, s, (s,), tuple(free), refiner.range_scale, t0, "fisher_scoring")
+    return _finish(
+        model, noise, data, s, (s,), tuple(free), refiner.range_scale, t0, "fisher_scoring"
+    )
 
 
 def _clip_box(phys: PhysicalParams) -> PhysicalParams:
@@ -1746,13 +1753,15 @@ def _index_estimates(index_fit, k_parts: int, los_world) -> tuple[IndexEstimate,
         i_re, i_im = ob.labels.index(f"n_re[{k}]"), ob.labels.index(f"n_im[{k}]")
         s_re, s_im = float(ob.sigma[i_re]), float(ob.sigma[i_im])
         det = bool(ob.determined[i_re] and ob.determined[i_im])
-        at_box = not (
-            N_RE_BOX[0] < n[k].real < N_RE_BOX[1] and n[k].imag < N_IM_BOX[1]
-        )
+        at_box = not (N_RE_BOX[0] < n[k].real < N_RE_BOX[1] and n[k].imag < N_IM_BOX[1])
         # determined, and the 2-sigma box smaller than half the prior box
-        small = np.isfinite(s_re) and np.isfinite(s_im) and (
-            4 * s_re < 0.5 * (N_RE_BOX[1] - N_RE_BOX[0])
-            and 4 * s_im < 0.5 * (N_IM_BOX[1] - N_IM_BOX[0])
+        small = (
+            np.isfinite(s_re)
+            and np.isfinite(s_im)
+            and (
+                4 * s_re < 0.5 * (N_RE_BOX[1] - N_RE_BOX[0])
+                and 4 * s_im < 0.5 * (N_IM_BOX[1] - N_IM_BOX[0])
+            )
         )
         if det and small and not at_box and index_fit.success:
             out.append(IndexEstimate(k, complex(n[k]), (s_re, s_im), True, "determined"))

@@ -1254,7 +1254,7 @@ def _invert_command_schema():
     import inversion
 
     class InvertCommandConfig(inversion.InvertConfig):
-        """``ppr invert``: classify, refine, weigh materials and modes, sample (inversion.invert)."""
+        """``ppr invert``: classify, refine, weigh materials and modes, sample (invert)."""
 
         scene: str
         channels: Literal["full", "stokes", "copol", "circular"] = "copol"

@@ -63,9 +63,7 @@ def box_case():
     ]
     truth, data = _observe(cands[0].model, Q0)
     mats = {m: complex(np.asarray(ppr.load_material(m).n)) for m in MATERIALS}
-    bank = inversion.screening_bank(
-        cands, mats, {"rough": 6.0}, attitudes=_bank_attitudes(Q0)
-    )
+    bank = inversion.screening_bank(cands, mats, {"rough": 6.0}, attitudes=_bank_attitudes(Q0))
     return cands, truth, data, bank
 
 
@@ -181,7 +179,10 @@ class _Untouchable(eqx.Module):
 @pytest.mark.parametrize(
     "config, words",
     [
-        ({"mcmc": {"sampler": {"n_walkers": 2}}}, ["mcmc.sampler.n_walkers = 2", "greater than or equal to 4"]),
+        (
+            {"mcmc": {"sampler": {"n_walkers": 2}}},
+            ["mcmc.sampler.n_walkers = 2", "greater than or equal to 4"],
+        ),
         ({"mcmc": {"sampler": {"n_steps": 100, "burn_in": 200}}}, ["burn_in (200)", "n_steps"]),
         ({"mcmc": {"priors": {"m": {"kind": "uniform", "low": 5.0}}}}, ["mcmc.priors.m"]),
         ({"top_k": 0}, ["top_k = 0"]),
