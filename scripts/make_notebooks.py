@@ -450,7 +450,8 @@ config = {
 }
 t0 = time.perf_counter()
 inv = inversion.invert(data, {"cube": model}, config=config)
-print(f"invert: {time.perf_counter() - t0:.1f} s\n")
+print(f"invert: {time.perf_counter() - t0:.1f} s")
+print()
 print(inv.summary())""",
     """md:## Reading the verdict
 - **Goodness of fit**: the deviance against its exact null distribution (per-bin Poisson
