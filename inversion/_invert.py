@@ -1026,13 +1026,15 @@ def screening_bank(
     grid: GridConfig | Mapping | None = None,
     symmetry: str = "auto",
     attitudes=None,
+    progress: bool = False,
 ) -> TemplateBank:
     """A template bank from the candidate models themselves: every shape at the attitudes of
     a grid (reduced by its exact symmetry) x `materials` (every part the same) x `finishes`
     (Blinn-Phong ``m``), energy-normalized, for :func:`inversion.classify`. Each attitude's
     visibility is ray cast once (per finish for a model with the macro double bounce).
     `attitudes`: ``(A, 4)`` quaternions used for every shape instead of the grid (its stated
-    resolution is then unknown: NaN)."""
+    resolution is then unknown: NaN). `progress`: a tqdm bar per shape (after its first,
+    compiling, attitude)."""
     if grid is None:
         grid = GridConfig()
     elif isinstance(grid, Mapping):
@@ -1053,6 +1055,7 @@ def screening_bank(
         syms.append(symmetry_group(sym).tolist() if not isinstance(sym, str) else sym)
         k = c.n_materials
         per_finish = bool(getattr(c.model, "multibounce", False))
+        bar = _Bar(progress, len(grid_quats), f"templates {c.name}")
         for a, q in enumerate(grid_quats):
             aux = None
             for fi, (_, m) in enumerate(fins):
@@ -1067,6 +1070,8 @@ def screening_bank(
                     mid.append(mi)
                     fid.append(fi)
                     quats.append(q)
+            bar.step()
+        bar.close()
     return TemplateBank(
         signatures=np.stack(sigs),
         shape_id=np.asarray(sid, np.int32),
@@ -1127,10 +1132,16 @@ class _Refiner:
         self.model, self.noise, self.free, self.cfg = model, noise, tuple(free), cfg
         self.data_j = jnp.asarray(data, jnp.result_type(float))
         self.range_scale = range_scale
+        # tolerances are traced: the three solvers share one compiled program
         self.full = _make_solver(cfg.solver, 1e-8, 1e-8)
         self.loose = _make_solver(cfg.solver, cfg.screen_tol, cfg.screen_tol)
+        self.local = _make_solver(cfg.solver, 1e-6, 1e-6)
 
-    def start(self, idx, start: PhysicalParams, phys, loose: bool, rounds: int) -> StartSummary:
+    def start(self, idx, start: PhysicalParams, phys, loose, rounds: int) -> StartSummary:
+        """One start: ``loose`` True (screening tolerance), False (full) or ``"local"``
+        (1e-6: a refit near an optimum, e.g. with another material's index). The step limit
+        is static in the compiled solver: one value (``max_steps``) for every call."""
+        solver = self.local if loose == "local" else self.loose if loose else self.full
         return _refine_start(
             self.model,
             self.noise,
@@ -1140,7 +1151,7 @@ class _Refiner:
             idx,
             start,
             phys,
-            self.loose if loose else self.full,
+            solver,
             rounds,
             None,
             max_steps=self.cfg.max_steps,
@@ -1159,9 +1170,14 @@ class _Refiner:
             method if self.cfg.solver == "lm" else self.cfg.solver,
         )
 
-    def polish(self, start: PhysicalParams, rounds: int | None = None) -> RefineResult:
+    def polish(self, start: PhysicalParams, rounds: int | None = None, local: bool = False):
+        """Refine one start to convergence (``local``: one round at tolerance 1e-6, for a
+        start next to an optimum), refit inside the box if needed."""
         t0 = time.perf_counter()
-        s = self.start(0, start, lift_start(start), False, rounds or self.cfg.rounds)
+        if local:
+            s = self.start(0, start, lift_start(start), "local", 1)
+        else:
+            s = self.start(0, start, lift_start(start), False, rounds or self.cfg.rounds)
         return self.bounded(self.finish(s, [s], t0), start)
 
     def bounded(self, fit: RefineResult, start: PhysicalParams) -> RefineResult:
@@ -1285,7 +1301,14 @@ def invert(
     # ---------------------------------------------------------------- classification
     with stages("classify"):
         if bank_ is None:
-            bank_ = screening_bank(cands, materials, finishes, grid=cfg.grid, symmetry=cfg.symmetry)
+            bank_ = screening_bank(
+                cands,
+                materials,
+                finishes,
+                grid=cfg.grid,
+                symmetry=cfg.symmetry,
+                progress=cfg.progress,
+            )
         if prep is None:
             prep = prepare(bank_)
         obs = Observation(data=data, sensor=sensor) if sensor else data
@@ -1386,7 +1409,7 @@ def invert(
                 if abs(complex(np.asarray(fit.params.n)[part]) - n) < 1e-12:
                     f = fit  # the shape fit already holds this material
                 else:
-                    f = refiner.polish(_with(fit.params, n=_set_part(n_best, part, n)), rounds=2)
+                    f = refiner.polish(_with(fit.params, n=_set_part(n_best, part, n)), local=True)
                 fits.append(f)
                 bar.step()
             lz = [log_evidence(f, priors) for f in fits]
@@ -1400,6 +1423,9 @@ def invert(
             n_best[part] = best_m.n
             fit = best_m.fit
         bar.close()
+        if fit is not best_shape.fit:
+            # the most probable material came from a local refit: polish it to convergence
+            fit = refiner.polish(fit.params)
 
     # ---------------------------------------------------------------- modes
     with stages("modes"):

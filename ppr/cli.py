@@ -1639,30 +1639,42 @@ Outputs: classify.json (candidates, accuracy if simulated, ms per observation),
 classify.npz, classify.png."""
 
 INVERT_HELP = """\
-Recover attitude, roughness m, complex index n, range offset (m) and gain from one
-observation: multi-start least squares (optimistix Levenberg-Marquardt) then posterior
-sampling (emcee, vmapped log-probability) with priors from an MCMC config.
+One observation -> shape, attitude, roughness m, material, range offset (metres) and gain,
+and how far to believe them (inversion.invert): templates of the scene's mesh over an
+attitude grid are matched to the data, screened starts are refined (optimistix
+Levenberg-Marquardt), every library material is weighed by its evidence, every mirror image
+and near symmetry of the mesh is refit as a mode, the fit is tested against its noise, the
+unobservable directions are named, and each mode's posterior is sampled (emcee).
 
-Config fields (configs/cli/invert.toml):
+Config fields (configs/cli/invert.toml); every one, the MCMC file included, is checked
+before any computation:
   scene          scene config (mesh, sensor, pulse, bins; its pose and materials are the
-                 truth of simulated observations and the reference for the starts)
+                 truth of simulated observations)
   channels       PSG/PSA preset (transmitted; analyzed): full (H,V,D,L; H,V,D,L), stokes
                  (H,L; H,V,D,L), copol (H; H,V), circular (L; L,R). R/L: right/left
                  circular, clockwise/counterclockwise seen looking into the beam
   brdf           "ppr" (ppr.mueller_brdf) or "glossy" (cheap polarizing stand-in)
-  free           parameter groups to fit; solver "lm" | "dogleg" | "gauss_newton"
-  n_starts, start_perturbation_deg (degrees), start_perturbation_frac (fraction)
+  free           parameter groups to fit (attitude, m, n, corr_length, range_offset, gain)
+  likelihood     "poisson" (photo-counts) or "gaussian"; solver "lm" | "dogleg" |
+                 "gauss_newton"; max_steps, rounds, screen_tol
+  materials      library materials weighed per mesh part (probabilities); finishes
+                 {name = Blinn-Phong m} and [grid] kind, size: the templates' roughness
+                 and attitudes (Hopf nside: 72 nside^3 attitudes, ~55/nside degrees apart)
+  top_k, per_shape  distinct template attitudes refined
+  symmetry       "auto" (the mesh's own group), a class (dihedral:n, octahedral) or
+                 "none"; near_tol (fraction of the mesh size): near symmetries refit as
+                 modes; ambiguity: weight above which a second mode is unresolved
+  mismatch_p     goodness-of-fit p-value below which the model does not fit the data
   mcmc           priors + sampler config (configs/inversion/*.toml); mcmc_walkers,
                  mcmc_steps, mcmc_burn_in override its sampler; mcmc_set = {"dotted.key" =
                  value} overrides any of its fields (e.g. "priors.gain.high")
-  mirror_symmetry  the shape's symmetry class (dihedral:n, octahedral) to check the mirror
-                 ambiguity: refit from the fit's mirror image (inversion.mirror_check), keep
-                 the better, report both in invert.json "mirror_check"
   [observation]  source ("simulate" or an .npz with data (channels, bins)), photons
                  (expected total counts), range_offset_m (metres), seed
-Outputs: invert.json (fit, result codes, attitude error, credible intervals, diagnostics),
-invert_chain.npz (physical samples with walker and draw axes), invert_posterior.nc (ArviZ
-InferenceData, netCDF), invert_fit.png, invert_corner.png."""
+Outputs: invert.json (converged, reliable and the reasons, goodness of fit, observability,
+shapes, material probabilities, modes with weights, credible intervals and ArviZ
+diagnostics, errors against a simulated truth), invert_posterior.nc (+ _mode<j>.nc: ArviZ
+InferenceData, netCDF, physical units), invert_fit.npz (data and fitted counts),
+invert_fit.png, invert_corner.png."""
 
 REPORT_HELP = """\
 Evaluate the classifier on held-out simulated observations (random attitudes off the grid,
