@@ -164,9 +164,10 @@ class InvertConfig(StrictModel):
       tables; default: the bank's materials, or every library material at the sensor's
       wavelength. `finishes`: ``name = m`` of the screening bank (default rough 10,
       brushed 300). `grid`: the screening bank's attitude grid.
-    - `top_k`, `per_shape`: classifier rows refined (the best `top_k` and the best
-      `per_shape` of every shape); `polish_factor`, `polish_abs`: shapes whose screened
-      deviance is within ``factor x best + abs`` are polished.
+    - `top_k`, `per_shape`: template attitudes refined: the best `top_k` distinct
+      (shape, attitude) rows of the classification and the best `per_shape` of every shape,
+      each started at every finish of the bank; `polish_factor`, `polish_abs`: shapes whose
+      screened deviance is within ``factor x best + abs`` are polished.
     - `symmetry`: ``"auto"`` (each candidate mesh's own group), a named class
       (``dihedral:4``) or ``"none"``; `near_tol`: tolerance (fraction of the mesh size) of
       the near symmetries refit as modes (0: exact ones only); `mirror`: refit mirror
@@ -1735,7 +1736,8 @@ def _index_fit(refiner: _Refiner, fit: RefineResult, free, cfg: InvertConfig, ma
         gain = dev - dev_t
         phys, J, inv_sigma, mu, param, dev = trial, Jt, inv_t, mu_t, par_t, dev_t
         lam = max(lam / 10.0, 1e-9)
-        if gain <= 1e-8 * max(dev, 1.0):
+        # a deviance change of 1e-3 (a likelihood ratio of 1.0005) is no change at all
+        if gain <= max(1e-3, 1e-9 * dev):
             ok = True
             break
     s = StartSummary(
