@@ -480,6 +480,7 @@ class MaterialFit:
             "n": [float(self.n.real), float(self.n.imag)],
             "deviance": _num(self.fit.cost),
             "converged": bool(self.fit.success),
+            "n_steps": int(self.fit.n_steps),
             "log_evidence": _num(self.log_evidence),
             "probability": float(self.probability),
         }
@@ -1693,7 +1694,7 @@ def _sensor_geometry(model, los_world) -> tuple[bool, np.ndarray]:
     return mono, w / nrm
 
 
-def _index_fit(refiner: _Refiner, fit: RefineResult, free, cfg: InvertConfig, max_iter: int = 20):
+def _index_fit(refiner: _Refiner, fit: RefineResult, free, cfg: InvertConfig, max_iter: int = 12):
     """Fisher scoring with the index free, from a fit with the index fixed: damped steps
     ``-(F + lambda diag F)^+ J^T r`` (Pearson residuals ``r``, ``F = J^T J`` inverted in
     its observable subspace, so no step along a direction the data do not fix; ``lambda``
