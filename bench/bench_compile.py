@@ -62,13 +62,20 @@ STEADY: dict[str, list[str]] = {"invert": ["--set", "observation.seed=1"]}
 
 # command -> (module, attribute, stage): library calls timed as stages (outermost call wins)
 STAGES: dict[str, list[tuple[str, str, str]]] = {
+    # the stages of inversion.invert (its Inversion.timings name them the same way)
     "invert": [
-        ("inversion", "SimulatorModel.expected", "observe"),
-        ("inversion", "refine", "refine"),
-        ("inversion", "mirror_check", "mirror_check"),
+        ("ppr.cli", "_simulated_truth", "observe"),
+        ("inversion._invert", "screening_bank", "classify"),
+        ("inversion._invert", "classify", "classify"),
+        ("inversion._invert", "_Refiner.start", "refine"),
+        ("inversion._invert", "_Refiner.finish", "refine"),
+        ("inversion._invert", "refine_bounded", "refine"),
+        ("inversion._invert", "mode_check", "modes"),
+        ("inversion._invert", "_index_fit", "index"),
+        ("inversion._invert", "fit_goodness_of_fit", "check"),
+        ("inversion._invert", "sample_posterior", "mcmc"),
         ("inversion", "cramer_rao", "cramer_rao"),
-        ("inversion", "sample_posterior", "mcmc"),
-        ("inversion", "MCMCResult.corner_plot", "corner_plot"),
+        ("inversion", "Inversion.write", "write"),
     ],
     "report": [
         ("inversion._report", "bank_in_memory", "bank"),

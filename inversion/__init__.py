@@ -51,6 +51,19 @@ from ._grid import (
     symmetry_group,
 )
 
+# the whole workflow in one call (issue 26)
+from ._invert import (
+    INVERT_FILES,
+    Candidate,
+    Inversion,
+    InvertConfig,
+    invert,
+    load_invert_config,
+    log_evidence,
+    prior_scales,
+    screening_bank,
+)
+
 # refiners and MCMC (issue 6)
 from ._mcmc import (
     ChainTooShortWarning,
@@ -191,4 +204,13 @@ __all__ = [
     "to_inference_data",
     "write_posterior",
     "posterior_diagnostics",
+    "INVERT_FILES",
+    "Candidate",
+    "InvertConfig",
+    "Inversion",
+    "invert",
+    "load_invert_config",
+    "log_evidence",
+    "prior_scales",
+    "screening_bank",
 ]

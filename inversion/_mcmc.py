@@ -494,6 +494,7 @@ def sample_posterior(
     path: str | Path | None = None,
     range_scale: float = 0.01,
     shear: bool = True,
+    progress_desc: str | None = None,
 ) -> MCMCResult:
     """Sample the posterior with emcee, started in a small ball around ``start``.
 
@@ -512,6 +513,8 @@ def sample_posterior(
       whose log gain is shifted by the log normal-incidence reflectance
       (:class:`_ReflectanceShear`: unit Jacobian, same posterior), which straightens the
       index-gain ridge.
+    - `progress_desc`: label of the progress bar (``config.sampler.progress``), which
+      starts after the log-probability has compiled.
 
     Raises ``ValueError`` when the data do not match the model, contain NaN, or a prior has
     no support at the start. Warns :class:`ChainTooShortWarning` when the chain is too short
@@ -576,7 +579,12 @@ def sample_posterior(
         sc.n_walkers, ndim, target, vectorize=True, backend=backend, moves=_moves(sc.moves)
     )
     sampler.random_state = np.random.RandomState(sc.seed).get_state()
-    sampler.run_mcmc(p_start, sc.n_steps, progress=sc.progress)
+    sampler.run_mcmc(
+        p_start,
+        sc.n_steps,
+        progress=sc.progress,
+        progress_kwargs=None if progress_desc is None else {"desc": progress_desc},
+    )
 
     chain = sampler.get_chain()
     if sh is not None:

@@ -396,151 +396,115 @@ for i in range(ns):
 
 # ------------------------------------------------------------ 04 inversion with MCMC
 INVERSION = [
-    """md:# Pose and material inversion with least squares and MCMC
+    """md:# Pose and material inversion: one call, and how far to believe it
 
 From a noisy PPR observation of a CubeSat we recover the attitude, the roughness `m`, the
-complex index `n`, the range offset and the gain: a multi-start Levenberg-Marquardt fit
-(optimistix) from perturbed starts (in practice: the classifier's top candidates), then the
-posterior with emcee (log-probability jitted and vectorized over walkers with `jax.vmap`).
-In small mode the forward model uses the simulator's cheap polarizing stand-in BRDF
-(`ppr.pulse.glossy_fresnel_mueller`, smooth in attitude, m and n) and a short chain, so the
-notebook runs in the test suite; set `PPR_SMALL=0` for the full BRDF and a converged chain.""",
+material, the range offset and the gain with one library call, `inversion.invert`: it
+classifies the observation against templates of the candidate shapes, refines screened
+starts (Levenberg-Marquardt, optimistix), weighs every library material by its evidence,
+refits every equivalent attitude (mirror image, near symmetries), tests the fit against its
+noise, names what the data cannot constrain and samples the posterior (emcee) of each mode.
+The answer comes with `converged` (the solver) and `reliable` (fit acceptable, modes resolved,
+chains converged) and the reasons when it is not. In small mode the forward model uses the
+simulator's cheap polarizing stand-in BRDF (`glossy_fresnel_mueller`, smooth in attitude, m
+and n) and a short chain, so the notebook runs in the test suite; set `PPR_SMALL=0` for the
+full BRDF and a longer chain.""",
     SETUP,
     """import inversion
-from inversion._noise import MeasurementModel
-from inversion._params import PhysicalParams
-from inversion._refine import SimulatorModel
-from ppr.geometry import quat_angle_deg
 from ppr.pulse import glossy_fresnel_mueller
 
 n_bins = 32
 scene = ppr.Scene(ppr.shapes.cubesat(1), (ppr.Material(1.5, 10.0),), ppr.Pose([1.0, 0, 0, 0]),
                   ppr.Sensor.make(), ppr.Pulse.gaussian(100e-12), ppr.RangeBins.centred(0.01, n_bins))
-channels = MeasurementModel.preset("copol").channel_matrix()
-model = SimulatorModel(scene, channels, brdf=glossy_fresnel_mueller if SMALL else None, dense=True)
+channels = inversion.MeasurementModel.preset("copol").channel_matrix()
+model = inversion.SimulatorModel(scene, channels, brdf=glossy_fresnel_mueller if SMALL else None, dense=True)
 q_true = np.array([0.93, 0.25, 0.2, 0.17]); q_true /= np.linalg.norm(q_true)
-unit = PhysicalParams(q_true, [20.0], [1.4 + 0.05j], range_offset=0.003, gain=1.0)
-# the simulator returns m^2/sr per bin: the gain (optics, range, detector) sets the counts,
-# here 2e6 expected in all (SNR ~ 1400; at 2e4 the cube's three faces leave m and the gain
-# on a ridge: m from 20 to 50 within a deviance of 1e-3, and a Cramer-Rao bound of 14 on m)
-gain = 2e6 / float(np.asarray(model.expected(unit, model.prepare(unit))).sum())
-truth = PhysicalParams(q_true, [20.0], [1.4 + 0.05j], range_offset=0.003, gain=gain)
+n_true = complex(np.asarray(ppr.load_material("fused_silica").n))
+unit = inversion.PhysicalParams(q_true, [20.0], [n_true], range_offset=0.003, gain=1.0)
+# the simulator returns m^2/sr per bin: the gain (optics, range, detector; counts per
+# m^2 sr^-1) sets the counts, here 2e5 expected in all
+gain = 2e5 / float(np.asarray(model.expected(unit, model.prepare(unit))).sum())
+truth = inversion.PhysicalParams(q_true, [20.0], [n_true], range_offset=0.003, gain=gain)
 expected = np.asarray(model.expected(truth, model.prepare(truth)))
-# bins where a channel's true value is 0 come out as round-off of either sign (~1e-20 here)
-print(f"most negative expected count: {expected.min():.1e} (round-off, set to 0)")
 rng = np.random.default_rng(0)
-data = rng.poisson(np.maximum(expected, 0.0)).astype(float)
+data = rng.poisson(np.maximum(expected, 0.0)).astype(float)   # round-off below 0 set to 0
 print("channels x bins:", data.shape, "| total counts:", data.sum())""",
-    """md:## Multi-start least squares
-Starts: the truth perturbed by 5-10 deg in attitude and 30% in the continuous parameters
-(what the classifier's candidates look like). In small mode the index stays fixed: the
-stand-in BRDF's backscattered return is a normal-incidence Fresnel reflection whose scalar
-the unknown gain absorbs, so the data cannot tell `n` (its Cramer-Rao bound below is
-infinite). The full BRDF's depolarizing terms carry it.""",
-    """import jax.numpy as jnp
-from inversion._params import quat_from_rotvec, quat_multiply
-starts = []
-for _ in range(1 if SMALL else 6):
-    w = rng.normal(size=3); w *= np.radians(rng.uniform(5, 10)) / np.linalg.norm(w)
-    q = np.asarray(quat_multiply(quat_from_rotvec(jnp.asarray(w)), jnp.asarray(q_true)))
-    f = rng.uniform(0.7, 1.3, 4)
-    n0 = 1.4 + 0.05j if SMALL else 1.4 * f[1] + 0.05j * f[2]   # small mode: n fixed (below)
-    starts.append(PhysicalParams(q, [20.0 * f[0]], [n0],
-                                 range_offset=0.0, gain=gain * f[3]))
+    """md:## One call
+The candidate is the cube's forward model (a mapping `name -> model`; several shapes, or a
+template bank with `bank=`, work the same way). The config is validated whole, the MCMC
+settings included, before anything is computed: a typo in `mcmc` costs nothing. Priors and
+sampler settings come from `configs/inversion/default.toml` (the file `ppr invert` reads),
+shortened in small mode. Stage timings go to the `inversion.invert` logger.""",
+    """import logging
+logging.basicConfig(level=logging.WARNING)
+logging.getLogger("inversion.invert").setLevel(logging.INFO)
+mcmc = inversion.load_mcmc_config(ROOT / "configs/inversion/default.toml")
+steps = dict(n_walkers=16, n_steps=150, burn_in=50) if SMALL else dict(n_walkers=32, n_steps=2000, burn_in=500)
+mcmc = mcmc.model_copy(update={"sampler": mcmc.sampler.model_copy(update={**steps, "progress": False})})
+config = {
+    "materials": ["aluminium", "gold", "fused_silica", "kapton"],
+    "finishes": {"rough": 10.0, "glossy": 60.0},
+    "grid": {"size": 2},
+    "mcmc": mcmc,
+}
 t0 = time.perf_counter()
-noise = inversion.PoissonCounts()   # exact Poisson likelihood of the photo-counts
-from inversion._params import DEFAULT_FREE
-free = ("attitude", "m", "range_offset", "gain") if SMALL else DEFAULT_FREE
-fit = inversion.refine(model, data, starts, noise=noise, free=free)
-status = fit.result if hasattr(fit, "result") else ""
-print(f"refine: {time.perf_counter() - t0:.1f} s, result: {status}")
-p = fit.params
-print("attitude error [deg]:", float(quat_angle_deg(p.unit_quaternion(), q_true)))
-print("m:", np.asarray(p.m), "(true 20)   n:", np.asarray(p.n), "(true 1.4+0.05j)")
-print("range offset [mm]:", 1e3 * float(p.range_offset), "(true 3)   gain:", float(p.gain), f"(true {gain:.4g})")""",
-    """md:## What the data can tell: the Cramer-Rao bound
-The Poisson likelihood (`inversion.PoissonCounts`) makes the least-squares optimum the
-maximum-likelihood estimate. `inversion.cramer_rao` gives the bound no unbiased estimator
-can beat at the truth (inverse expected Fisher information); it scales as 1/sqrt(counts). A
-direction the data cannot see at all is an exact symmetry of the measurement: e.g. the roll
-about the line of sight when every return is a normal-incidence reflection (Mueller
-`R diag(1, 1, -1, -1)`), which no polarization channel can see. `observability()` names such
-directions and gives the uncertainties in the observable subspace (finite; only a parameter
-that is unobservable on its own has none). The fit is then checked against its noise: the
-deviance against its exact null distribution (`inversion.fit_goodness_of_fit`).""",
-    """crb = inversion.cramer_rao(model, truth, noise, free=free)   # the same free parameters
-assert crb.labels == fit.labels
-ob_fit, ob_crb = fit.observability(), crb.observability()
-print("unobservable at the fit:", ob_fit.names or "none")
-print(f"attitude bound (observable components): {ob_crb.attitude_sigma_deg:.3g} deg")
-for lab, s_fit, s_crb, seen in zip(crb.labels, ob_fit.sigma, ob_crb.sigma, ob_crb.observable, strict=True):
-    if not seen:
-        print(f"{lab:>18s}: unobservable on its own")
-        continue
-    print(f"{lab:>18s}: fit sigma {s_fit:.3g}   Cramer-Rao bound {s_crb:.3g}")
-print(inversion.fit_goodness_of_fit(model, data, fit, noise).summary())
-""",
-    """md:## The mirror image: a second mode no local bound sees
-The cube has a mirror plane (`z -> -z`). At the attitude `P R sigma` (`inversion.mirror_attitude`:
-`P` the world mirror through the line of sight and the x polarization reference) the scene is the
-exact mirror image of the one at `R`: the same range profiles, and Mueller profiles `D M D` with
-`D = diag(1, 1, -1, -1)`. Only the off-block Mueller elements tell the two apart. These
-co-polarized channels measure none of them, so the mirror image fits exactly as well, whatever
-the BRDF. The Cramer-Rao bound above, a local curvature, cannot show it.
-`inversion.mirror_check` refits from the mirror image and reports the deviance difference,
-the mirror mode's probability and how far apart the two lines of sight are. A fit whose line
-of sight lies in a mirror plane (e.g. along the cube's body diagonal) is its own mirror image:
-the check then reports 0 deg apart and no second mode.""",
-    """from inversion._classifier import line_of_sight_error_deg
-# the truth's mirror image: same expected counts in every co-polarized channel and bin
-q_m = inversion.mirror_attitude(q_true, inversion.body_mirror_normal("octahedral"))
-mirror_truth = PhysicalParams(q_m, truth.m, truth.n, truth.corr_length, truth.range_offset,
-                              truth.gain)
-mu_t = np.asarray(model.expected(truth, model.prepare(truth)))
-mu_m = np.asarray(model.expected(mirror_truth, model.prepare(mirror_truth)))
-print(f"mirror image of the truth: line of sight "
-      f"{line_of_sight_error_deg(q_true, q_m, 'octahedral')[0]:.3g} deg away (modulo the cube's "
-      f"rotations), expected counts equal to {np.abs(mu_t - mu_m).max() / mu_t.max():.1e} of the peak")
-# the check on the fit: refit from its mirror image
-chk = inversion.mirror_check(model, data, fit, "octahedral", noise=noise)
-print(chk.summary())
-q_fit, q_mir = np.asarray(fit.params.quaternion), np.asarray(chk.mirror.params.quaternion)
-for name, q in (("fit", q_fit), ("mirror fit", q_mir)):
-    plain = line_of_sight_error_deg(q_true, q, "octahedral")[0]
-    both = line_of_sight_error_deg(q_true, q, "octahedral", mirror=True)[0]
-    print(f"{name:>10s}: line-of-sight error {plain:.3g} deg modulo the cube's rotations, "
-          f"{both:.3g} deg modulo its mirror image too")""",
-    """md:## Posterior sampling
-Priors and sampler settings come from `configs/inversion/default.toml` (the same file
-`ppr invert` reads); here the chain is shortened in small mode.""",
-    """import warnings
-# the gain is in counts per (m^2 sr^-1) (the simulator returns m^2/sr per bin): ~1e10 here,
-# inside the default prior
-cfg = inversion.load_mcmc_config(ROOT / "configs/inversion/default.toml")
-if SMALL:
-    cfg = cfg.model_copy(update={"sampler": cfg.sampler.model_copy(
-        update={"n_walkers": 16, "n_steps": 150, "burn_in": 50, "progress": False})})
-with warnings.catch_warnings():
-    warnings.simplefilter("ignore", inversion.ChainTooShortWarning)   # short chain in small mode
-    t0 = time.perf_counter()
-    # start the walkers in a small isotropic ball about the optimum (fit.params); passing `fit`
-    # itself would shape the ball by the Gauss-Newton covariance
-    post = inversion.sample_posterior(model, data, fit.params, config=cfg, noise=noise,
-                                      free=free)
-print(f"MCMC: {time.perf_counter() - t0:.1f} s")
-print(post)""",
-    """print(post.summary())
-lo, hi = post.interval(0.95).T
-med = post.median()
-tv = post.truth_vector(truth)
-for lab, lo_, m_, hi_, t in zip(post.labels, lo, med, hi, tv, strict=True):
-    print(f"{lab:>14s}: {m_: .4g}  95% [{lo_: .4g}, {hi_: .4g}]  truth {t: .4g}")""",
-    """import tempfile
+inv = inversion.invert(data, {"cube": model}, config=config)
+print(f"invert: {time.perf_counter() - t0:.1f} s")
+print()
+print(inv.summary())""",
+    """md:## Reading the verdict
+- **Goodness of fit**: the deviance against its exact null distribution (per-bin Poisson
+  moments, the fitted degrees of freedom removed): a `MODEL MISMATCH` would mean no parameter
+  values of this shape explain the data (a shape or material the candidates lack).
+- **Modes**: the cube has mirror planes. At the attitude `P R sigma` (`P` the world mirror
+  through the line of sight and the x polarization reference) the scene is the exact mirror
+  image of the one at `R`: the same range profiles and Mueller profiles `D M D`,
+  `D = diag(1, 1, -1, -1)`. Only the off-block Mueller elements tell the two apart and these
+  co-polarized channels measure none of them: the mirror image is refit and comes out with
+  half the posterior weight. A local bound (the Cramer-Rao bound, a curvature) cannot show
+  this; the result is therefore not `reliable` although the solver converged.
+- **Materials**: with a monostatic sensor the returning facets face the sensor, the Fresnel
+  factor is the normal-incidence scalar and the unknown gain absorbs it: the probabilities
+  are spread over the materials rather than a confident wrong index. The continuous index is
+  reported only where the data determine it.
+- **Observability**: the directions the data do not constrain are named (the roll about the
+  line of sight when every return is a normal-incidence reflection; the index against the
+  gain), and the uncertainties are given in the observable subspace, finite.""",
+    """print("converged:", inv.converged, "| reliable:", inv.reliable)
+for r in inv.reasons:
+    print("  reason:", r)
+print("material probabilities:", inv.material_probabilities[0])
+print("mode weights:", np.round(inv.mode_weights, 3), [m.label for m in inv.modes])
+print("unobservable:", inv.observability.names)""",
+    """md:## Against the truth and the Cramer-Rao bound
+`Inversion.compare` measures the errors against a known truth modulo the cube's exact
+symmetry (and, for the line of sight, modulo the mirror image the data cannot tell).
+`inversion.cramer_rao` is the bound no unbiased estimator can beat at the truth, reported in
+the observable subspace.""",
+    """err = inv.compare(truth, "cube")
+print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in err.items() if k != "z"})
+crb = inversion.cramer_rao(model, truth, inversion.PoissonCounts(), free=tuple(inv.fit.parametrisation.free))
+ob_crb = crb.observability()
+print("unobservable at the truth:", ob_crb.names)
+i = ob_crb.labels.index("rot_x [deg]")
+los_sigma = float(np.hypot(ob_crb.sigma[i], ob_crb.sigma[i + 1]))
+print(f"line-of-sight error {err['los_error_mod_mirror_deg']:.3g} deg modulo the mirror image; "
+      f"Cramer-Rao bound {los_sigma:.3g} deg")""",
+    """md:## The posterior
+One emcee chain per mode with real weight, in physical units as ArviZ `InferenceData`
+(walkers as chains, the burn-in kept as warm-up) with R-hat, bulk and tail ESS and MCSE from
+ArviZ. `Inversion.write(folder)` writes `invert.json` (no inf/NaN), the posterior netCDF of
+each sampled mode and the fit, atomically.""",
+    """import arviz as az
+import tempfile
+idata = inv.posterior
+print(az.summary(idata, var_names=["m", "range_offset", "gain", "los_polar", "los_azimuth"]))
 with tempfile.TemporaryDirectory() as d:
-    post.corner_plot(Path(d) / "corner.png", truth=truth)
+    written = inv.write(Path(d) / "inversion")
+    print("wrote", sorted(p.name for p in written))
     if not SMALL:
         from IPython.display import Image, display
-        display(Image(filename=str(Path(d) / "corner.png")))""",
+        display(Image(filename=str(Path(d) / "inversion" / "invert_corner.png")))""",
 ]
 
 # ------------------------------------------------------------ 05 validation

@@ -101,6 +101,7 @@ SLOW_FIRST = (
     "test_refine.py::test_noise_free_recovery_from_classifier_like_start",  # 32
     "test_furnace.py::test_white_furnace_all_terms",  # 32
     "test_compile_level.py::test_unoptimized_compilation_gives_the_same_values_and_gradients",
+    "test_invert.py::test_invert_recovers_box_attitude_material_and_is_reliable",  # ~27 (load 5)
     "test_notebooks.py::test_notebook_runs[03_classifier_evaluation]",  # 27
 )
 

@@ -516,77 +516,69 @@ samples_per_face = 1
 
 
 def test_invert_end_to_end(tmp_path, capsys):
+    """``ppr invert`` is config + inversion.invert + Inversion.write: the JSON separates
+    converged from reliable with the reasons (a 20-step chain has not converged; the glossy
+    stand-in's copolarized returns cannot tell the cube from its mirror image), the posterior
+    file is ArviZ netCDF in physical units, no inf/NaN anywhere, errors against the
+    simulated truth; bad MCMC settings are refused by name before any computation."""
     _write(tmp_path / "sensor.toml", INV_SENSOR)
     _write(tmp_path / "scene.toml", INV_SCENE)
     mcmc = ROOT / "configs" / "inversion" / "default.toml"
     cfg = _write(
         tmp_path / "inv.toml",
-        f'scene = "scene.toml"\nbrdf = "glossy"\nn_starts = 1\nmcmc = "{mcmc}"\n'
+        f'scene = "scene.toml"\nbrdf = "glossy"\nmcmc = "{mcmc}"\n'
         "mcmc_walkers = 16\nmcmc_steps = 20\nmcmc_burn_in = 5\n"
-        'mirror_symmetry = "octahedral"\n',
+        'materials = ["aluminium", "fused_silica"]\ntop_k = 2\n[grid]\nsize = 2\n',
     )
     out = tmp_path / "inv"
     assert run("invert", "-q", "-c", cfg, "-o", out) == 0
-    for name in cli.INVERT_OUTPUTS:
+    for name in ("invert.json", "invert_fit.npz", "invert_posterior.nc", "invert_fit.png"):
         assert (out / name).is_file(), name
-    summary = json.loads((out / "invert.json").read_text())
-    assert summary["refine"]["result"]
-    crb = summary["cramer_rao"]  # bound at the simulated truth (null: an exact symmetry)
-    assert len(crb["sigma"]) == len(crb["labels"]) == len(summary["refine"]["labels"])
-    assert len(summary["mcmc"]["interval95"]) == len(summary["mcmc"]["labels"])
-    assert summary["mcmc"]["warnings"]  # a 20-step chain is flagged as too short
-    # the glossy stand-in's returns are normal-incidence reflections: the mirror image of the
-    # cube fits exactly as well (a second mode, probability 1/2)
-    mc = summary["mirror_check"]
-    assert abs(mc["delta_deviance"]) < 1e-6 * summary["refine"]["cost"] + 1e-6
-    assert mc["ambiguous"] and abs(mc["mirror_probability"] - 0.5) < 1e-3
-    # ... which the MCMC samples too, centred on the mirror image, with its probability
-    mm = summary["mcmc"]["mirror_mode"]
-    assert abs(mm["probability"] - 0.5) < 1e-3
-    assert abs(summary["mcmc"]["mode_probability"] + mm["probability"] - 1) < 1e-12
-    if not mc["swapped"]:  # centred on the mirror image (else on the fit it replaced)
-        assert abs(abs(np.dot(mm["quaternion"], mc["mirror_quaternion"])) - 1) < 1e-9
-    assert abs(np.dot(mm["quaternion"], summary["refine"]["quaternion"])) < 1 - 1e-6
-    assert len(mm["interval95"]) == len(summary["mcmc"]["labels"])
-    with np.load(out / "invert_chain.npz") as z:
-        assert z["mirror_samples"].shape == z["samples"].shape
-        # the npz is in the units its labels say: gain = exp(log_gain) of the solver chain
-        labels, tl = list(z["labels"]), list(z["theta_labels"])
-        np.testing.assert_allclose(
-            z["samples"][..., labels.index("gain")],
-            np.exp(z["chain_theta"][:, 5:, tl.index("log_gain")]),
-            rtol=1e-12,
-        )
-        assert z["samples"].shape[:2] == (16, 15) and int(z["burn_in"]) == 5
-    # the posterior file: ArviZ InferenceData; the JSON quotes ArviZ's diagnostics of it
-    import arviz as az
-
-    idata = az.from_netcdf(out / "invert_posterior.nc")
-    rhat = az.rhat(idata)
-    i_gain = summary["mcmc"]["labels"].index("gain")
-    assert summary["mcmc"]["r_hat"][i_gain] == float(rhat["gain"].values)
-    assert "ess" not in summary["mcmc"] and len(summary["mcmc"]["ess_bulk"]) == len(labels)
-    # goodness of fit and observability: finite, named, JSON null only for a parameter
-    # unobservable on its own
+    text = (out / "invert.json").read_text()
+    assert "Infinity" not in text and "NaN" not in text and '"success"' not in text
+    summary = json.loads(text)
+    assert summary["converged"] in (True, False) and summary["reliable"] is False
+    assert any("not converged" in r for r in summary["reasons"]), summary["reasons"]
+    # the glossy stand-in: the mirror image of the cube fits as well (weight about 1/2)
+    mirror = [m for m in summary["modes"] if m["kind"] == "mirror"]
+    assert mirror and abs(mirror[0]["weight"] - 0.5) < 0.05, summary["modes"]
+    assert any("attitude modes not resolved" in r for r in summary["reasons"])
     gof = summary["goodness_of_fit"]
     assert gof["statistic"] == "poisson_deviance" and 0 <= gof["p_value"] <= 1
-    assert abs(gof["deviance"] - summary["refine"]["cost"]) < 1e-6 * summary["refine"]["cost"]
+    assert abs(gof["deviance"] - summary["fit"]["deviance"]) < 1e-6 * gof["deviance"]
     obs = summary["observability"]
     nulls = [lab for lab, sg in zip(obs["labels"], obs["sigma"], strict=True) if sg is None]
     assert nulls == obs["unobservable_on_own"]
-    ref = summary["refine"]  # errors modulo the cube's rotations (and mirror) are no larger
-    assert ref["attitude_error_mod_symmetry_deg"] <= ref["attitude_error_deg"] + 1e-9
-    assert ref["los_error_mod_mirror_deg"] <= ref["los_error_deg"] + 1e-9
-    # a symmetry without a mirror, and a mesh without the plane, are refused by name
-    for extra, msg in (
-        ('mirror_symmetry = "cyclic:4"', "implies no mirror plane"),
-        ('mirror_symmetry = "dihedral"', "mirror_symmetry"),
+    probs = summary["material_probabilities"][0]["probabilities"]
+    assert set(probs) == {"aluminium", "fused_silica"} and abs(sum(probs.values()) - 1) < 1e-9
+    err = summary["truth"]["errors"]
+    assert err["los_error_mod_mirror_deg"] <= err["los_error_deg"] + 1e-9
+    crb = summary["truth"]["cramer_rao"]
+    assert len(crb["sigma"]) == len(crb["labels"])
+    # the posterior file: ArviZ InferenceData in physical units, the JSON quotes it
+    import arviz as az
+
+    idata = az.from_netcdf(out / "invert_posterior.nc")
+    post = summary["modes"][0]["posterior"]
+    assert summary["modes"][0]["posterior"]["file"] == "invert_posterior.nc"
+    i_gain = post["labels"].index("gain")
+    np.testing.assert_allclose(
+        float(np.median(idata.posterior["gain"].values)), post["median"][i_gain], rtol=1e-12
+    )
+    assert idata.posterior.attrs["burn_in"] == 5 and idata.posterior.sizes["chain"] == 16
+    # bad MCMC settings: refused by name before any computation (no output folder)
+    for extra, words in (
+        (["--set", "mcmc_steps=5"], ["mcmc_steps = 5"]),
+        (["--set", "mcmc_burn_in=50"], ["mcmc_burn_in = 50", "mcmc_steps = 20"]),
+        (["--set", 'mcmc_set={"sampler.n_walkers"=2}'], ["sampler.n_walkers = 2"]),
+        (["--set", "top_k=0"], ["top_k = 0"]),
     ):
-        text = cfg.read_text().replace('mirror_symmetry = "octahedral"', extra)
-        bad = _write(tmp_path / "bad.toml", text)
         capsys.readouterr()
-        assert run("invert", "-q", "-c", bad, "-o", tmp_path / "bad") == 2
-        assert msg in error_line(capsys)
+        assert run("invert", "-q", "-c", cfg, "-o", tmp_path / "bad", *extra) == 2
+        line = error_line(capsys)
+        for w in words:
+            assert w in line, line
+        assert not (tmp_path / "bad").exists()
 
 
 # ------------------------------------------------------- bad inputs, interruptions (issue 28)

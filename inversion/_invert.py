@@ -1,0 +1,1813 @@
+r"""One call from an observation to an answer and how far to believe it: :func:`invert`.
+
+Stages (each logged with its wall time on the ``inversion.invert`` logger):
+
+1. **validate**: the config (:class:`InvertConfig`, MCMC settings included), the observation
+   against every candidate model, the candidate names against the bank, the materials and
+   the symmetry names, all before any computation. Errors name the field as written
+   (``mcmc.sampler.n_walkers = 2: ...``) and the value.
+2. **classify**: the observation against a template bank (a :class:`~inversion.TemplateBank`
+   or :class:`~inversion.PreparedBank` given as ``bank=``, or one built from the candidate
+   models over an attitude grid x materials x finishes, :func:`screening_bank`). Starts: the
+   top-k rows and the best rows of every shape (:meth:`~inversion.Classification.candidates`),
+   with the row's attitude, material, finish, the fitted range shift and the gain that
+   matches the total counts.
+3. **refine**: screened multi-start refinement per shape: every start one loose round (the
+   solver's tolerances are traced, so the same compiled program), the best screened start of
+   each competitive shape polished to full tolerance; shapes weighted by their evidence.
+   The index ``n`` is held at the start's material here (see 4).
+4. **materials**: the chosen shape refit with the index of every library material, part by
+   part (the other parts at their best); each fit weighted by its evidence (Laplace
+   approximation, :func:`log_evidence`, ``docs/physics/model_evidence.md``): posterior
+   probabilities over the materials. A material whose reflectance the gain absorbs gives
+   (nearly) equal deviances and volumes, hence spread probabilities.
+5. **modes**: every equivalent and near-equivalent attitude of the best fit refit and
+   weighted (:func:`inversion.mode_check` with the candidate mesh's own symmetry at the
+   config's near tolerance: mirror images, near symmetries, the half turn of a bistatic
+   sensor), weights from the same evidence.
+6. **index**: with ``"n"`` among the free groups, Fisher scoring from the best
+   library-material fit with the index free (the refiner's Jacobian program, the step in the
+   observable subspace only): the continuous index, reported only where the data determine
+   it (:func:`inversion.observability`).
+7. **check**: goodness of fit of the final fit against its exact null distribution
+   (:func:`inversion.fit_goodness_of_fit`; ``model_mismatch``) and its observability.
+8. **sample** (optional, ``config.mcmc``): one emcee chain per mode with posterior weight
+   above ``mcmc_min_weight`` (:func:`inversion.sample_posterior`), ArviZ diagnostics.
+
+The result, :class:`Inversion`, separates ``converged`` (the solver of the final fit) from
+``reliable``: the fit is acceptable, the modes and shapes are resolved and, when sampled, the
+chains converged; ``reasons`` lists what failed. :meth:`Inversion.write` writes
+``invert.json`` (no inf/NaN), the posterior netCDF files and the fit arrays atomically
+(:mod:`ppr.outputs`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import json
+import logging
+import math
+import platform
+import time
+import warnings
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pydantic
+
+import ppr
+from ppr.config import ConfigError, StrictModel, validate_data
+
+from ._classifier import (
+    Classification,
+    PreparedBank,
+    attitude_error_deg,
+    classify,
+    line_of_sight_error_deg,
+    prepare,
+)
+from ._database import TemplateBank
+from ._gof import GoodnessOfFit, fit_goodness_of_fit
+from ._grid import AttitudeGrid, as_symmetry, symmetry_group
+from ._mcmc import ChainTooShortWarning, MCMCConfig, MCMCResult, PriorConfig, sample_posterior
+from ._noise import Observation
+from ._observability import Observability, line_of_sight_of, observability, observable_inverse
+from ._params import GROUPS, PhysicalParams, lift_start
+from ._refine import (
+    PhysicalBounds,
+    PoissonCounts,
+    PoissonNoise,
+    RefineResult,
+    StartSummary,
+    _expected_jit,
+    _finish,
+    _from_physical,
+    _make_solver,
+    _pure,
+    _refine_start,
+    _to_physical,
+    check_observation,
+    mode_check,
+    refine_bounded,
+    weighted_jacobian,
+)
+
+__all__ = [
+    "InvertConfig",
+    "Candidate",
+    "Inversion",
+    "invert",
+    "screening_bank",
+    "log_evidence",
+    "prior_scales",
+    "load_invert_config",
+]
+
+log = logging.getLogger("inversion.invert")
+
+DEFAULT_FINISHES = {"rough": 10.0, "brushed": 300.0}
+# the physical box (the default priors' supports): fits that leave it are refit inside it
+BOUNDS = PhysicalBounds()
+N_RE_BOX = BOUNDS.n_re
+N_IM_BOX = BOUNDS.n_im
+MAX_MODES_SAMPLED = 8  # posterior files: invert_posterior.nc + invert_posterior_mode{1..7}.nc
+# per-axis prior sd of the attitude rotation vector (rad): the Haar volume of SO(3) in
+# rotation-vector coordinates is 8 pi^2, a box of that volume has sides (8 pi^2)^(1/3) =
+# 4.29 rad, and a uniform law of that width has sd 4.29 / sqrt(12)
+ATTITUDE_PRIOR_SD = (8.0 * math.pi**2) ** (1.0 / 3.0) / math.sqrt(12.0)
+
+
+def _distinct(v: list) -> list:
+    dup = sorted({str(x) for x in v if v.count(x) > 1})
+    if dup:
+        raise ValueError(f"{dup[0]!r} is listed twice")
+    return v
+
+
+# ============================================================================ config
+class GridConfig(StrictModel):
+    """Attitude grid of the screening bank built from candidate models (no ``bank=``)."""
+
+    kind: Literal["hopf", "fibonacci"] = "hopf"
+    size: int = pydantic.Field(1, ge=1, le=4096)  # Hopf nside, or Fibonacci points
+
+
+class InlineIndex(StrictModel):
+    """A material given by its index ``n_real + i n_imag`` (not in the library)."""
+
+    name: str
+    n_real: float = pydantic.Field(gt=0.0)
+    n_imag: float = pydantic.Field(ge=0.0)
+
+
+Group = Literal["attitude", "m", "n", "corr_length", "range_offset", "gain"]
+
+
+class InvertConfig(StrictModel):
+    """Settings of :func:`invert` (validated whole before any computation).
+
+    - `free`: parameter groups fitted (``attitude``, ``m``, ``n``, ``corr_length``,
+      ``range_offset``, ``gain``); ``n`` free adds the continuous-index stage.
+    - `likelihood`: ``"poisson"`` (photo-counts, :class:`~inversion.PoissonCounts` with
+      `background` counts per bin) or ``"gaussian"`` (``mu + 1`` variance,
+      :class:`~inversion.PoissonNoise`, for scaled data).
+    - `solver`: ``lm`` | ``dogleg`` | ``gauss_newton``; `max_steps` per round, `rounds` of
+      visibility/weights when polishing; `screen_tol` the screening round's tolerance.
+    - `materials`: library names (``ppr.load_material``) or ``{name, n_real, n_imag}``
+      tables; default: the bank's materials, or every library material at the sensor's
+      wavelength. `finishes`: ``name = m`` of the screening bank (default rough 10,
+      brushed 300). `grid`: the screening bank's attitude grid.
+    - `top_k`, `per_shape`: template attitudes refined: the best `top_k` distinct
+      (shape, attitude) rows of the classification and the best `per_shape` of every shape,
+      each started at every finish of the bank; `polish_factor`, `polish_abs`: shapes whose
+      screened deviance is within ``factor x best + abs`` are polished.
+    - `symmetry`: ``"auto"`` (each candidate mesh's own group), a named class
+      (``dihedral:4``) or ``"none"``; `near_tol`: tolerance (fraction of the mesh size) of
+      the near symmetries refit as modes (0: exact ones only); `mirror`: refit mirror
+      images; `min_separation_deg`: optima closer than this are one mode.
+    - `ambiguity`: a second shape or mode above this posterior weight is unresolved.
+    - `mismatch_p`: p-value below which the goodness of fit reports a model mismatch.
+    - `mcmc`: priors and sampler (:class:`~inversion.MCMCConfig`) or None (no sampling);
+      `mcmc_min_weight`: modes sampled above this weight (at most `max_sampled_modes`);
+      `rhat_max`: largest ArviZ R-hat of a converged chain.
+    - `progress`: tqdm bars (they start after the first, compiling, item).
+    """
+
+    free: Annotated[
+        list[Group], pydantic.Field(min_length=1), pydantic.AfterValidator(_distinct)
+    ] = ["attitude", "m", "n", "range_offset", "gain"]
+    likelihood: Literal["poisson", "gaussian"] = "poisson"
+    background: float = pydantic.Field(1e-3, gt=0.0)
+    solver: Literal["lm", "dogleg", "gauss_newton"] = "lm"
+    max_steps: int = pydantic.Field(100, ge=1, le=100_000)
+    rounds: int = pydantic.Field(3, ge=1, le=50)
+    screen_tol: float = pydantic.Field(1e-3, gt=0.0, lt=1.0)
+    materials: (
+        Annotated[
+            list[str | InlineIndex],
+            pydantic.Field(min_length=1),
+            pydantic.AfterValidator(_distinct),
+        ]
+        | None
+    ) = None
+    finishes: dict[str, Annotated[float, pydantic.Field(ge=0.0, le=1e6)]] | None = None
+    grid: GridConfig = GridConfig()
+    top_k: int = pydantic.Field(4, ge=1, le=10_000)
+    per_shape: int = pydantic.Field(1, ge=0, le=10_000)
+    polish_factor: float = pydantic.Field(1.25, ge=1.0)
+    polish_abs: float = pydantic.Field(25.0, ge=0.0)
+    symmetry: str = "auto"
+    near_tol: float = pydantic.Field(1e-2, ge=0.0, lt=0.5)
+    mirror: bool = True
+    min_separation_deg: float = pydantic.Field(1.0, ge=0.0, le=180.0)
+    ambiguity: float = pydantic.Field(0.05, gt=0.0, lt=0.5)
+    mismatch_p: float = pydantic.Field(1e-3, gt=0.0, lt=1.0)
+    mcmc: MCMCConfig | None = None
+    mcmc_min_weight: float = pydantic.Field(0.01, ge=0.0, le=1.0)
+    max_sampled_modes: int = pydantic.Field(4, ge=1, le=MAX_MODES_SAMPLED)
+    rhat_max: float = pydantic.Field(1.1, gt=1.0)
+    progress: bool = False
+
+    @pydantic.field_validator("symmetry")
+    @classmethod
+    def _symmetry(cls, v):
+        if v not in ("auto", "none"):
+            symmetry_group(v)  # raises ValueError naming the class
+        return v
+
+    @pydantic.field_validator("finishes")
+    @classmethod
+    def _finishes(cls, v):
+        if v is not None and len(v) == 0:
+            raise ValueError("must not be empty")
+        return v
+
+
+def load_invert_config(path, overrides: dict | None = None) -> InvertConfig:
+    """An :class:`InvertConfig` from a TOML file (errors name the file, field and value)."""
+    from ppr.config import load_toml_model
+
+    return load_toml_model(InvertConfig, path, overrides)
+
+
+def _as_config(config) -> InvertConfig:
+    if config is None:
+        return InvertConfig()
+    if isinstance(config, InvertConfig):
+        return config
+    if isinstance(config, Mapping):
+        return validate_data(InvertConfig, dict(config), "invert config")
+    raise ConfigError(
+        f"invert config: expected an InvertConfig or a mapping, got {type(config).__name__}"
+    )
+
+
+# ============================================================================ candidates
+@dataclasses.dataclass(frozen=True)
+class Candidate:
+    """One candidate shape: its forward model (``prepare``/``expected``, e.g. an
+    :class:`~inversion.SimulatorModel`), its name (as in a bank's ``names["shapes"]``), and
+    optionally its symmetry (a named class, :class:`ppr.MeshSymmetry` or :class:`ppr.Mesh`;
+    default: the model's mesh, ``model.scene.mesh``) and its range bin width in metres
+    (default: a :class:`~inversion.SimulatorModel`'s; it turns the classifier's shift into
+    a range-offset start)."""
+
+    name: str
+    model: Any
+    symmetry: Any = None
+    bin_width_m: float | None = None  # range bin width (default: the model's)
+
+    @property
+    def mesh(self):
+        scene = getattr(self.model, "scene", None)
+        return getattr(scene, "mesh", None)
+
+    @property
+    def n_materials(self) -> int:
+        mesh = self.mesh
+        if mesh is not None:
+            return len(mesh.parts)
+        return int(getattr(self.model, "n_materials", 1))
+
+    @property
+    def wavelength(self) -> float:
+        scene = getattr(self.model, "scene", None)
+        sensor = getattr(scene, "sensor", None)
+        wl = getattr(sensor, "wavelength", None)
+        return 532e-9 if wl is None else float(np.asarray(wl))
+
+    @property
+    def bin_width(self) -> float | None:
+        if self.bin_width_m is not None:
+            return float(self.bin_width_m)
+        pure = getattr(self.model, "pure_model", None)
+        w = getattr(pure, "width", None)
+        if w is None:
+            w = getattr(self.model, "bin_width_m", None)
+        return None if w is None else float(np.asarray(w))
+
+    def exact_symmetry(self, setting: str):
+        """The exact group (attitude grid, errors): a named class or the mesh's own."""
+        if setting != "auto":
+            return setting
+        if self.symmetry is not None:
+            return self.symmetry if isinstance(self.symmetry, str) else as_symmetry(self.symmetry)
+        return "none" if self.mesh is None else as_symmetry(self.mesh)
+
+    def mode_symmetry(self, setting: str, near_tol: float):
+        """The group whose elements are refit as modes (near ones at ``near_tol``)."""
+        if setting != "auto":
+            return setting
+        mesh = self.symmetry if self.symmetry is not None else self.mesh
+        if mesh is None:
+            return "none"
+        if not isinstance(mesh, ppr.Mesh):
+            return mesh  # a named class or a ready MeshSymmetry
+        return as_symmetry(mesh, tol=near_tol) if near_tol > 0 else as_symmetry(mesh)
+
+
+def _as_candidates(candidates) -> list[Candidate]:
+    if isinstance(candidates, Candidate):
+        return [candidates]
+    if isinstance(candidates, Mapping):
+        out = [Candidate(str(k), v) for k, v in candidates.items()]
+    elif isinstance(candidates, list | tuple):
+        out = []
+        for i, c in enumerate(candidates):
+            if isinstance(c, Candidate):
+                out.append(c)
+            elif hasattr(c, "expected") and hasattr(c, "prepare"):
+                out.append(Candidate(f"shape{i}", c))
+            else:
+                raise ValueError(
+                    f"candidates[{i}] is {type(c).__name__}: expected an inversion.Candidate "
+                    "or a forward model (prepare/expected)"
+                )
+    elif hasattr(candidates, "expected") and hasattr(candidates, "prepare"):
+        out = [Candidate("shape", candidates)]
+    else:
+        raise ValueError(
+            f"candidates: expected a forward model, an inversion.Candidate, a list of them or "
+            f"a mapping name -> model, got {type(candidates).__name__}"
+        )
+    if not out:
+        raise ValueError("candidates: empty (give at least one forward model)")
+    names = [c.name for c in out]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"candidates: the name {dup[0]!r} is given twice")
+    return out
+
+
+# ============================================================================ evidence
+def prior_scales(parametrisation, priors: PriorConfig | None = None) -> np.ndarray:
+    """Prior standard deviation of every solver coordinate ``theta`` of ``parametrisation``
+    (its ``theta_labels``), from the priors of the MCMC config (default
+    :class:`~inversion.PriorConfig`): a uniform law over the prior's support mapped to the
+    coordinate (log for ``m``, the gain, the correlation length and ``n'``; metres over the
+    range scale for the offset) has sd ``width / sqrt(12)``; normal priors their sigma
+    (through the coordinate's derivative at the reference); the attitude's Haar measure
+    :data:`ATTITUDE_PRIOR_SD` rad per axis (or a Gaussian attitude prior's ``sigma_deg``).
+    ``docs/physics/model_evidence.md``."""
+    pri = PriorConfig() if priors is None else priors
+    ref = parametrisation.reference
+    out = []
+
+    def one(prior, to_theta, value, deriv):
+        lo, hi = prior.support()
+        if prior.kind in ("uniform", "loguniform"):
+            return abs(to_theta(hi) - to_theta(lo)) / math.sqrt(12.0)
+        sd = prior.sigma if prior.kind != "lognormal" else prior.sigma * float(value)
+        return abs(sd * deriv(value))
+
+    for lab in parametrisation.theta_labels:
+        if lab.startswith("rotvec"):
+            if pri.attitude.kind == "gaussian":
+                out.append(math.radians(pri.attitude.sigma_deg))
+            else:
+                out.append(ATTITUDE_PRIOR_SD)
+            continue
+        k = int(lab.split("[")[1].rstrip("]")) if "[" in lab else 0
+        if lab.startswith("log_m"):
+            v = max(float(np.asarray(ref.m)[k]), 1e-9)
+            out.append(one(pri.m, lambda x: math.log(max(x, 1e-9)), v, lambda x: 1.0 / x))
+        elif lab.startswith("log_n_re"):
+            v = float(np.real(np.asarray(ref.n)[k]))
+            out.append(one(pri.n_re, lambda x: math.log(max(x, 1e-9)), v, lambda x: 1.0 / x))
+        elif lab.startswith("softplus_inv_n_im"):
+            v = max(float(np.imag(np.asarray(ref.n)[k])), 1e-9)
+
+            def sp_inv(x):
+                x = max(x, 1e-9)
+                return x + math.log(-math.expm1(-x))
+
+            out.append(one(pri.n_im, sp_inv, v, lambda x: 1.0 / -math.expm1(-max(x, 1e-9))))
+        elif lab.startswith("log_corr"):
+            v = float(np.asarray(ref.corr_length)[k])
+            out.append(one(pri.corr_length, lambda x: math.log(max(x, 1e-300)), v, lambda x: 1 / x))
+        elif lab.startswith("range_offset"):
+            s = parametrisation.range_scale
+            v = float(ref.range_offset)
+            out.append(one(pri.range_offset, lambda x, s=s: x / s, v, lambda x, s=s: 1.0 / s))
+        elif lab == "log_gain":
+            v = float(ref.gain)
+            out.append(one(pri.gain, lambda x: math.log(max(x, 1e-300)), v, lambda x: 1.0 / x))
+        else:  # pragma: no cover - a new group
+            raise ValueError(f"prior_scales: unknown coordinate {lab!r}")
+    return np.asarray(out, np.float64)
+
+
+def log_evidence(fit: RefineResult, priors: PriorConfig | None = None) -> float:
+    r"""Laplace approximation of the log evidence of a fit, up to a constant common to every
+    fit of the same data with the same free groups:
+
+        log Z = -D / 2 - 1/2 log det(I + S F S),   S = diag(prior sd of each coordinate)
+
+    with ``D`` the fit's deviance (``-2 log L`` + a constant of the data) and ``F`` its Fisher
+    (Gauss-Newton) matrix in the solver coordinates. ``S F S`` is the information in units of
+    the prior's width: ``log det(I + S F S)`` is the Occam factor (how much the data shrink the
+    prior volume) and stays finite along unobservable directions, which keep their prior
+    width (``docs/physics/model_evidence.md``). ``-inf`` for a failed fit."""
+    F = fit.fisher_theta
+    if F is None or not np.isfinite(fit.cost) or not np.all(np.isfinite(F)):
+        return -math.inf
+    s = prior_scales(fit.parametrisation, priors)
+    A = np.eye(len(s)) + s[:, None] * (0.5 * (F + F.T)) * s[None, :]
+    sign, logdet = np.linalg.slogdet(A)
+    if sign <= 0:
+        return -math.inf
+    return float(-0.5 * fit.cost - 0.5 * logdet)
+
+
+def _probabilities(logz: Sequence[float]) -> np.ndarray:
+    lz = np.asarray(logz, np.float64)
+    ok = np.isfinite(lz)
+    p = np.zeros(len(lz))
+    if ok.any():
+        w = np.exp(lz[ok] - lz[ok].max())
+        p[ok] = w / w.sum()
+    return p
+
+
+# ============================================================================ results
+@dataclasses.dataclass(frozen=True)
+class ShapeFit:
+    """One candidate shape refined: screened and (if competitive) polished."""
+
+    name: str
+    n_starts: int
+    screened_deviance: float
+    fit: RefineResult | None  # polished, or None when not competitive
+    log_evidence: float
+    probability: float
+
+    def to_dict(self) -> dict:
+        f = self.fit
+        return {
+            "name": self.name,
+            "n_starts": self.n_starts,
+            "screened_deviance": _num(self.screened_deviance),
+            "polished": f is not None,
+            "deviance": None if f is None else _num(f.cost),
+            "converged": None if f is None else bool(f.success),
+            "log_evidence": _num(self.log_evidence),
+            "probability": float(self.probability),
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class MaterialFit:
+    """One library material in one material slot (mesh part) of the chosen shape."""
+
+    part: int
+    name: str
+    n: complex
+    fit: RefineResult
+    log_evidence: float
+    probability: float
+
+    def to_dict(self) -> dict:
+        return {
+            "part": self.part,
+            "name": self.name,
+            "n": [float(self.n.real), float(self.n.imag)],
+            "deviance": _num(self.fit.cost),
+            "converged": bool(self.fit.success),
+            "n_steps": int(self.fit.n_steps),
+            "log_evidence": _num(self.log_evidence),
+            "probability": float(self.probability),
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class IndexEstimate:
+    """The continuous index of one material slot where the data determine it."""
+
+    part: int
+    n: complex
+    sigma: tuple[float, float] | None  # (n', n'') 1-sigma, observable subspace; None: not
+    constrained: bool
+    note: str
+
+    def to_dict(self) -> dict:
+        return {
+            "part": self.part,
+            "n": [float(self.n.real), float(self.n.imag)],
+            "sigma": None if self.sigma is None else [_num(s) for s in self.sigma],
+            "constrained": bool(self.constrained),
+            "note": self.note,
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class ModeResult:
+    """One distinct mode of the posterior (an equivalent or near-equivalent attitude)."""
+
+    label: str
+    kind: str
+    fit: RefineResult
+    delta_deviance: float
+    separation_deg: float
+    los_separation_deg: float
+    log_evidence: float
+    weight: float
+    posterior: MCMCResult | None = None
+    posterior_converged: bool | None = None
+    posterior_warnings: tuple[str, ...] = ()
+    diagnostics: dict | None = None
+
+    def to_dict(self, los_world=None) -> dict:
+        q = np.asarray(self.fit.params.unit_quaternion(), np.float64)
+        out = {
+            "label": self.label,
+            "kind": self.kind,
+            "quaternion": q.tolist(),
+            "line_of_sight_body": _body_los(q, los_world).tolist(),
+            "deviance": _num(self.fit.cost),
+            "delta_deviance": _num(self.delta_deviance),
+            "separation_deg": _num(self.separation_deg),
+            "los_separation_deg": _num(self.los_separation_deg),
+            "converged": bool(self.fit.success),
+            "log_evidence": _num(self.log_evidence),
+            "weight": float(self.weight),
+            "sampled": self.posterior is not None,
+        }
+        if self.posterior is not None:
+            post = self.posterior
+            iv68, iv95 = post.interval(0.68), post.interval(0.95)
+            out["posterior"] = {
+                "labels": list(post.labels),
+                "median": post.median(),
+                "interval68": iv68,
+                "interval95": iv95,
+                "acceptance_fraction": float(np.mean(post.acceptance_fraction)),
+                "tau": post.tau,
+                "burn_in": int(post.burn_in),
+                "thin": int(post.thin),
+                "converged": bool(self.posterior_converged),
+                "warnings": list(self.posterior_warnings),
+                "diagnostics": self.diagnostics,
+            }
+        return out
+
+
+def _num(x) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _jsonable(obj: Any) -> Any:
+    """Plain JSON values; non-finite floats become ``None``."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, np.generic):
+        return _jsonable(obj.item())
+    if isinstance(obj, np.ndarray | jax.Array):
+        return _jsonable(np.asarray(obj).tolist())
+    if isinstance(obj, complex):
+        return [_num(obj.real), _num(obj.imag)]
+    if isinstance(obj, float):
+        return _num(obj)
+    if isinstance(obj, pydantic.BaseModel):
+        return _jsonable(obj.model_dump(mode="json"))
+    return obj
+
+
+def _body_los(q, los_world=None) -> np.ndarray:
+    """``R(q)^T k``: the world line of sight (toward the sensor, default ``+z``) in the body
+    frame."""
+    k = np.array([0.0, 0.0, 1.0]) if los_world is None else np.asarray(los_world, np.float64)
+    return np.asarray(ppr.quat_to_matrix(np.asarray(q, np.float64))).T @ k
+
+
+def _polar_azimuth(v) -> tuple[float, float]:
+    v = np.asarray(v, np.float64) / np.linalg.norm(v)
+    return (
+        float(np.degrees(np.arccos(np.clip(v[2], -1.0, 1.0)))),
+        float(np.degrees(np.arctan2(v[1], v[0]))),
+    )
+
+
+INVERT_FILES = (
+    "invert.json",
+    "invert_fit.npz",
+    "invert_posterior.nc",
+    *[f"invert_posterior_mode{j}.nc" for j in range(1, MAX_MODES_SAMPLED)],
+    "invert_fit.png",
+    "invert_corner.png",
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class Inversion:
+    """The result of :func:`invert` (module docstring).
+
+    - `shape`: the chosen candidate's name; `shapes`: every candidate refined
+      (:class:`ShapeFit`: deviances, evidence, probability).
+    - `fit`: the final fit (:class:`~inversion.RefineResult`; with ``n`` free, the
+      continuous-index fit); `params` its :class:`~inversion.PhysicalParams`.
+    - `materials`: per material slot, the library materials' fits and probabilities
+      (:class:`MaterialFit`); `material`: the most probable per slot; `index`: the
+      continuous index where the data determine it (:class:`IndexEstimate`).
+    - `modes`: the distinct modes (:class:`ModeResult`: label, weight, optional posterior),
+      best first.
+    - `goodness_of_fit`, `observability`: of the final fit.
+    - `converged`: the final fit's solver converged. `reliable`: the fit is acceptable (no
+      model mismatch), shapes and modes are resolved and the sampled chains converged;
+      `reasons`: what is not, in words.
+    - `timings`: seconds per stage; `provenance`: versions and the resolved config;
+      `classification`: the classifier's answer; `data`: the observation; `expected`: the
+      final fit's expected counts.
+    """
+
+    shape: str
+    shapes: tuple[ShapeFit, ...]
+    fit: RefineResult
+    materials: tuple[tuple[MaterialFit, ...], ...]
+    index: tuple[IndexEstimate, ...]
+    modes: tuple[ModeResult, ...]
+    goodness_of_fit: GoodnessOfFit
+    observability: Observability
+    converged: bool
+    reliable: bool
+    reasons: tuple[str, ...]
+    timings: dict
+    provenance: dict
+    classification: Classification | None
+    data: np.ndarray
+    expected: np.ndarray
+    line_of_sight_world: np.ndarray
+    sampled: bool = False
+
+    # ------------------------------------------------------------------ views
+    @property
+    def params(self) -> PhysicalParams:
+        return self.fit.params
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        return np.asarray(self.fit.params.unit_quaternion(), np.float64)
+
+    @property
+    def line_of_sight(self) -> np.ndarray:
+        """Unit line of sight (toward the sensor) in the body frame."""
+        return _body_los(self.quaternion, self.line_of_sight_world)
+
+    @property
+    def material(self) -> tuple[str, ...]:
+        """The most probable library material of each slot."""
+        return tuple(max(ms, key=lambda m: m.probability).name for ms in self.materials)
+
+    @property
+    def material_probabilities(self) -> tuple[dict[str, float], ...]:
+        return tuple({m.name: float(m.probability) for m in ms} for ms in self.materials)
+
+    @property
+    def shape_probabilities(self) -> dict[str, float]:
+        return {s.name: float(s.probability) for s in self.shapes}
+
+    @property
+    def mode_weights(self) -> np.ndarray:
+        return np.array([m.weight for m in self.modes])
+
+    @property
+    def posteriors(self) -> tuple[MCMCResult, ...]:
+        return tuple(m.posterior for m in self.modes if m.posterior is not None)
+
+    @functools.cached_property
+    def posterior(self):
+        """ArviZ ``InferenceData`` of the most probable sampled mode (physical units), or
+        None without sampling."""
+        posts = self.posteriors
+        if not posts:
+            return None
+        return posts[0].to_inference_data(
+            line_of_sight=self.line_of_sight_world, observed=self.data
+        )
+
+    # ------------------------------------------------------------------ checks
+    def compare(self, truth: PhysicalParams, shape: str | None = None) -> dict:
+        """Errors against a known truth (simulation studies): attitude error modulo the
+        chosen shape's exact symmetry, line-of-sight error (also modulo the mirror images and
+        the half turn, which the data may not tell apart), parameter errors in units of the
+        reported uncertainty, and whether the truth lies in the sampled intervals."""
+        q_t = np.asarray(truth.unit_quaternion(), np.float64)
+        q_f = self.quaternion
+        sym = self.provenance.get("_exact_symmetry")
+        out: dict[str, Any] = {"shape_ok": None if shape is None else shape == self.shape}
+        if shape is not None and shape != self.shape:
+            return out
+        if sym is None:
+            sym = "none"
+        mirror = len(as_symmetry(sym).improper) > 0
+        out["attitude_error_deg"] = float(attitude_error_deg(q_t, q_f, sym)[0])
+        out["attitude_error_mod_half_turn_deg"] = float(
+            attitude_error_deg(q_t, q_f, sym, mirror=mirror, half_turn=True)[0]
+        )
+        out["los_error_deg"] = float(line_of_sight_error_deg(q_t, q_f, sym)[0])
+        out["los_error_mod_mirror_deg"] = (
+            float(line_of_sight_error_deg(q_t, q_f, sym, mirror=True)[0]) if mirror else None
+        )
+        ob = self.observability
+        labels = ob.labels
+        par = self.fit.parametrisation
+        tv = np.asarray(
+            par.physical_vector(par.from_physical(_nearest_equivalent(truth, q_f, sym)))
+        )
+        # (truth - fit) / sigma for the parameters the data determine (None for the others:
+        # along an unobservable direction the fit's value is arbitrary)
+        z = {}
+        for i, lab in enumerate(labels):
+            s = ob.sigma[i]
+            ok = np.isfinite(s) and s > 0 and bool(ob.determined[i])
+            z[lab] = _num((tv[i] - ob.values[i]) / s) if ok else None
+        out["z"] = z
+        return out
+
+    # ------------------------------------------------------------------ text and files
+    def to_dict(self) -> dict:
+        los = self.line_of_sight
+        polar, azim = _polar_azimuth(los)
+        ob = self.observability
+        fit = self.fit
+        cls = self.classification
+        cls_d = None
+        if cls is not None:
+            cls_d = {
+                "seconds": float(cls.seconds),
+                "no_template_fits": None
+                if cls.no_template_fits is None
+                else bool(cls.no_template_fits[0]),
+                "template_p_value": None if cls.fit is None else _num(cls.fit[0].p_value),
+            }
+        return _jsonable(
+            {
+                "converged": self.converged,
+                "reliable": self.reliable,
+                "reasons": list(self.reasons),
+                "shape": self.shape,
+                "material": list(self.material),
+                "attitude": {
+                    "quaternion": self.quaternion,
+                    "line_of_sight_body": los,
+                    "los_polar_deg": polar,
+                    "los_azimuth_deg": azim,
+                    "line_of_sight_world": self.line_of_sight_world,
+                },
+                "parameters": {
+                    "labels": list(ob.labels),
+                    "values": ob.values,
+                    "sigma": [_num(s) for s in ob.sigma],
+                    "note": "sigma in the observable subspace (null: unobservable on its own); "
+                    "attitude as a rotation vector (deg) about the quaternion above",
+                    "range_offset_m": float(fit.params.range_offset),
+                    "gain": float(fit.params.gain),
+                    "gain_unit": "counts per (m^2 sr^-1) for SimulatorModel",
+                    "m": np.asarray(fit.params.m),
+                    "n": [[float(z.real), float(z.imag)] for z in np.asarray(fit.params.n)],
+                },
+                "fit": {
+                    "method": fit.method,
+                    "result": fit.result,
+                    "message": fit.message,
+                    "deviance": fit.cost,
+                    "dof": fit.dof,
+                    "n_steps": fit.n_steps,
+                    "free": list(fit.parametrisation.free),
+                },
+                "goodness_of_fit": self.goodness_of_fit.to_dict(),
+                "observability": ob.to_dict(),
+                "shapes": [s.to_dict() for s in self.shapes],
+                "material_probabilities": [
+                    {"part": k, "probabilities": p}
+                    for k, p in enumerate(self.material_probabilities)
+                ],
+                "materials": [[m.to_dict() for m in ms] for ms in self.materials],
+                "index": [e.to_dict() for e in self.index],
+                "modes": [m.to_dict(self.line_of_sight_world) for m in self.modes],
+                "classification": cls_d,
+                "timings_s": self.timings,
+                "provenance": {k: v for k, v in self.provenance.items() if not k.startswith("_")},
+            }
+        )
+
+    def summary(self) -> str:
+        """Human-readable verdict first, then the answer and its uncertainties."""
+        lines = []
+        if self.reliable:
+            lines.append(
+                "RELIABLE: fit acceptable, shape and modes resolved"
+                + (", chains converged" if self.sampled else "")
+            )
+        else:
+            lines.append("NOT RELIABLE: " + "; ".join(self.reasons))
+        lines.append(f"solver converged: {self.converged} ({self.fit.result})")
+        lines.append(self.goodness_of_fit.summary())
+        shp = ", ".join(f"{s.name} {s.probability:.3g}" for s in self.shapes)
+        lines.append(f"shape: {self.shape} (probabilities: {shp})")
+        polar, azim = _polar_azimuth(self.line_of_sight)
+        q = self.quaternion
+        lines.append(
+            f"attitude: quaternion [{', '.join(f'{x:.5f}' for x in q)}]; line of sight in the "
+            f"body frame: polar {polar:.2f} deg, azimuth {azim:.2f} deg"
+        )
+        for k, probs in enumerate(self.material_probabilities):
+            items = sorted(probs.items(), key=lambda kv: -kv[1])
+            lines.append(f"material (part {k}): " + ", ".join(f"{n} {p:.2f}" for n, p in items))
+        for e in self.index:
+            if e.constrained:
+                lines.append(
+                    f"index (part {e.part}): n = {e.n.real:.4g} + {e.n.imag:.4g}i "
+                    f"+- ({e.sigma[0]:.2g}, {e.sigma[1]:.2g})"
+                )
+            else:
+                lines.append(f"index (part {e.part}): not determined by the data ({e.note})")
+        lines.append(f"modes: {len(self.modes)} distinct")
+        for j, m in enumerate(self.modes):
+            lines.append(
+                f"  {j}: {m.label}: weight {m.weight:.3g}, delta deviance "
+                f"{m.delta_deviance:+.4g}, line of sight {m.los_separation_deg:.3g} deg from "
+                "the best" + (" (sampled)" if m.posterior is not None else "")
+            )
+        lines.append(self.observability.summary())
+        for j, m in enumerate(self.modes):
+            if m.posterior is None:
+                continue
+            post = m.posterior
+            iv = post.interval(0.95)
+            lines.append(
+                f"posterior, mode {j} ({m.label}): converged {m.posterior_converged}, "
+                f"acceptance {np.mean(post.acceptance_fraction):.2f}"
+            )
+            med = post.median()
+            for i, lab in enumerate(post.labels):
+                lines.append(
+                    f"  {lab:>22s} median {med[i]: .6g}  95% [{iv[i, 0]:.6g}, {iv[i, 1]:.6g}]"
+                )
+        t = ", ".join(f"{k} {v:.2f} s" for k, v in self.timings.items())
+        lines.append(f"timings: {t}")
+        return "\n".join(lines)
+
+    def output_names(self) -> list[str]:
+        return list(INVERT_FILES)
+
+    def write(
+        self,
+        out_dir,
+        *,
+        overwrite: bool = False,
+        extra: Mapping | None = None,
+        plots: bool = True,
+    ) -> list[Path]:
+        """Write ``invert.json`` (:meth:`to_dict` plus `extra`), ``invert_fit.npz`` (data,
+        expected counts of the final fit), one posterior netCDF per sampled mode
+        (``invert_posterior.nc`` for the most probable, ``invert_posterior_mode{j}.nc``) and,
+        with `plots`, ``invert_fit.png`` and ``invert_corner.png``, as one atomic commit into
+        ``out_dir`` (:mod:`ppr.outputs`: a failed write leaves the previous result as it
+        was; files of a previous run that this one does not produce are removed with it).
+        Returns the paths written."""
+        from ppr import outputs as _outputs
+
+        optional = [n for n in INVERT_FILES if n not in ("invert.json", "invert_fit.npz")]
+        with _outputs.outputs(out_dir, INVERT_FILES, overwrite, optional=optional) as out:
+            self.write_into(out.folder, extra=extra, plots=plots)
+        return out.written
+
+    def write_into(self, folder, *, extra: Mapping | None = None, plots: bool = True) -> None:
+        """Write the files of :meth:`write` into an existing (staging) folder."""
+        folder = Path(folder)
+        d = self.to_dict()
+        post_files = []
+        k = 0
+        for j, m in enumerate(self.modes):
+            if m.posterior is None:
+                continue
+            name = "invert_posterior.nc" if k == 0 else f"invert_posterior_mode{k}.nc"
+            m.posterior.write(
+                folder / name, line_of_sight=self.line_of_sight_world, observed=self.data
+            )
+            d["modes"][j]["posterior"]["file"] = name
+            post_files.append(name)
+            k += 1
+        d["posterior_files"] = post_files
+        if extra:
+            clash = sorted(set(extra) & set(d))
+            if clash:
+                raise ValueError(f"Inversion.write: extra keys {clash} clash with the result's")
+            d.update(_jsonable(dict(extra)))
+        (folder / "invert.json").write_text(json.dumps(d, indent=2, allow_nan=False) + "\n")
+        np.savez_compressed(
+            folder / "invert_fit.npz",
+            data=self.data,
+            expected=self.expected,
+            quaternion=self.quaternion,
+        )
+        if plots:
+            _plot_fit(folder / "invert_fit.png", self.data, self.expected)
+            posts = self.posteriors
+            if posts:
+                posts[0].corner_plot(folder / "invert_corner.png")
+
+
+def _nearest_equivalent(truth: PhysicalParams, q_fit, sym) -> PhysicalParams:
+    """The truth at the exactly equivalent attitude (its images under the shape's rotations
+    and the half turn about the line of sight) nearest the fit."""
+    from ._classifier import _equivalents
+
+    cands = _equivalents(np.asarray(truth.unit_quaternion(), np.float64), sym, False, True)[0]
+    d = np.abs(cands @ np.asarray(q_fit, np.float64))
+    q = cands[int(np.argmax(d))]
+    return PhysicalParams(q, truth.m, truth.n, truth.corr_length, truth.range_offset, truth.gain)
+
+
+def _plot_fit(path, data, fitted) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for c in range(data.shape[0]):
+        ax.plot(data[c], ".", ms=3, label=f"channel {c} data")
+        ax.plot(fitted[c], "-", lw=1)
+    ax.set_xlabel("range bin")
+    ax.set_ylabel("counts")
+    ax.legend(fontsize=7, ncol=2)
+    ax.set_title("inversion: data (dots) and best fit (lines)")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+# ============================================================================ helpers
+class _Stages:
+    """Wall time per stage, logged as each ends."""
+
+    def __init__(self):
+        self.timings: dict[str, float] = {}
+        self.t0 = time.perf_counter()
+
+    @contextlib.contextmanager
+    def __call__(self, name: str):
+        t = time.perf_counter()
+        log.info("stage %s ...", name)
+        try:
+            yield
+        finally:
+            dt = time.perf_counter() - t
+            self.timings[name] = self.timings.get(name, 0.0) + dt
+            log.info("stage %s done in %.2f s", name, dt)
+
+
+class _Bar:
+    """A labelled tqdm bar that appears after the first item (which compiles)."""
+
+    def __init__(self, enabled: bool, total: int, desc: str):
+        self.enabled, self.total, self.desc = enabled and total > 1, total, desc
+        self.done, self.bar = 0, None
+
+    def step(self):
+        self.done += 1
+        if not self.enabled:
+            return
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.total, initial=self.done, desc=self.desc, leave=False)
+        else:
+            self.bar.update(1)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _resolve_materials(cfg: InvertConfig, bank: TemplateBank | None, wavelength: float):
+    """``{name: n}`` of the materials the material stage weighs (and, without a bank, the
+    screening bank's)."""
+    out: dict[str, complex] = {}
+
+    def lib(name: str, where: str) -> complex:
+        try:
+            return complex(np.asarray(ppr.load_material(name, wavelength).n))
+        except (KeyError, ValueError) as err:
+            raise ConfigError(f"{where} = {name!r}: {str(err).strip(chr(39))}") from None
+
+    if cfg.materials is not None:
+        for i, m in enumerate(cfg.materials):
+            if isinstance(m, InlineIndex):
+                out[m.name] = complex(m.n_real, m.n_imag)
+            else:
+                out[m] = lib(m, f"invert config: materials[{i}]")
+        return out
+    if bank is not None:
+        for i, name in enumerate(bank.names["materials"]):
+            out[name] = lib(name, f"bank: names.materials[{i}]")
+        return out
+    for name in ppr.material_names():
+        with contextlib.suppress(KeyError, ValueError):
+            out[name] = complex(np.asarray(ppr.load_material(name, wavelength).n))
+    return out
+
+
+def screening_bank(
+    candidates,
+    materials: Mapping[str, complex],
+    finishes: Mapping[str, float],
+    *,
+    grid: GridConfig | Mapping | None = None,
+    symmetry: str = "auto",
+    attitudes=None,
+    progress: bool = False,
+) -> TemplateBank:
+    """A template bank from the candidate models themselves: every shape at the attitudes of
+    a grid (reduced by its exact symmetry) x `materials` (every part the same) x `finishes`
+    (Blinn-Phong ``m``), energy-normalized, for :func:`inversion.classify`. Each attitude's
+    visibility is ray cast once (per finish for a model with the macro double bounce).
+    `attitudes`: ``(A, 4)`` quaternions used for every shape instead of the grid (its stated
+    resolution is then unknown: NaN). `progress`: a tqdm bar per shape (after its first,
+    compiling, attitude)."""
+    if grid is None:
+        grid = GridConfig()
+    elif isinstance(grid, Mapping):
+        grid = validate_data(GridConfig, dict(grid), "screening_bank: grid")
+    cands = _as_candidates(candidates)
+    mats, fins = list(materials.items()), list(finishes.items())
+    sigs, sid, aid, mid, fid, quats, res, syms = [], [], [], [], [], [], [], []
+    for s, c in enumerate(cands):
+        sym = c.exact_symmetry(symmetry)
+        if attitudes is None:
+            g = AttitudeGrid(grid.kind, grid.size, sym)
+            res.append(g.resolution_deg)
+            grid_quats = g.quats
+        else:
+            grid_quats = np.asarray(attitudes, np.float64).reshape(-1, 4)
+            grid_quats = grid_quats / np.linalg.norm(grid_quats, axis=1, keepdims=True)
+            res.append(math.nan)
+        syms.append(symmetry_group(sym).tolist() if not isinstance(sym, str) else sym)
+        k = c.n_materials
+        per_finish = bool(getattr(c.model, "multibounce", False))
+        bar = _Bar(progress, len(grid_quats), f"templates {c.name}")
+        for a, q in enumerate(grid_quats):
+            aux = None
+            for fi, (_, m) in enumerate(fins):
+                for mi, (_, n) in enumerate(mats):
+                    phys = PhysicalParams(q, [m] * k, [n] * k, range_offset=0.0, gain=1.0)
+                    if aux is None or (per_finish and mi == 0):
+                        aux = c.model.prepare(phys)
+                    mu = np.maximum(_expect(c.model, phys, aux), 0.0)
+                    sigs.append((mu / max(mu.sum(), 1e-300)).astype(np.float32))
+                    sid.append(s)
+                    aid.append(a)
+                    mid.append(mi)
+                    fid.append(fi)
+                    quats.append(q)
+            bar.step()
+        bar.close()
+    return TemplateBank(
+        signatures=np.stack(sigs),
+        shape_id=np.asarray(sid, np.int32),
+        attitude_id=np.asarray(aid, np.int32),
+        material_id=np.asarray(mid, np.int32),
+        finish_id=np.asarray(fid, np.int32),
+        quat=np.asarray(quats, np.float64),
+        names={
+            "shapes": [c.name for c in cands],
+            "materials": [n for n, _ in mats],
+            "finishes": [n for n, _ in fins],
+            "finish_m": [float(m) for _, m in fins],
+            "symmetry": syms,
+        },
+        sensor="",
+        resolution_deg=res,
+    )
+
+
+def _expect(model, phys, aux) -> np.ndarray:
+    """Expected counts, jitted: the refiner's program for an equinox model (a
+    SimulatorModel's kernel or a toy), the model's own ``expected`` otherwise."""
+    pure = _pure(model)
+    if isinstance(pure, eqx.Module):
+        return np.asarray(_expected_jit(pure, phys, aux), np.float64)
+    return np.asarray(model.expected(phys, aux), np.float64)
+
+
+def _noise_of(cfg: InvertConfig):
+    if cfg.likelihood == "poisson":
+        return PoissonCounts(background=cfg.background)
+    return PoissonNoise()
+
+
+def _with(phys: PhysicalParams, **kw) -> PhysicalParams:
+    d = {
+        "quaternion": phys.quaternion,
+        "m": phys.m,
+        "n": phys.n,
+        "corr_length": phys.corr_length,
+        "range_offset": phys.range_offset,
+        "gain": phys.gain,
+    }
+    d.update(kw)
+    return PhysicalParams(**d)
+
+
+def _set_part(a, k: int, v):
+    a = np.array(np.asarray(a))
+    a[k] = v
+    return a
+
+
+class _Refiner:
+    """The refiner's per-start loop (:func:`inversion.refine`'s programs) for one model."""
+
+    def __init__(self, model, noise, data, free, cfg: InvertConfig, range_scale=0.01):
+        self.model, self.noise, self.free, self.cfg = model, noise, tuple(free), cfg
+        self.data_j = jnp.asarray(data, jnp.result_type(float))
+        self.range_scale = range_scale
+        # tolerances are traced: the three solvers share one compiled program
+        self.full = _make_solver(cfg.solver, 1e-8, 1e-8)
+        self.loose = _make_solver(cfg.solver, cfg.screen_tol, cfg.screen_tol)
+        self.local = _make_solver(cfg.solver, 1e-6, 1e-6)
+
+    def start(self, idx, start: PhysicalParams, phys, loose, rounds: int) -> StartSummary:
+        """One start: ``loose`` True (screening tolerance), False (full) or ``"local"``
+        (1e-6: a refit near an optimum, e.g. with another material's index). The step limit
+        is static in the compiled solver: one value (``max_steps``) for every call."""
+        solver = self.local if loose == "local" else self.loose if loose else self.full
+        return _refine_start(
+            self.model,
+            self.noise,
+            self.data_j,
+            self.free,
+            self.range_scale,
+            idx,
+            start,
+            phys,
+            solver,
+            rounds,
+            None,
+            max_steps=self.cfg.max_steps,
+        )
+
+    def finish(self, best: StartSummary, ordered, t0, method="levenberg_marquardt"):
+        return _finish(
+            self.model,
+            self.noise,
+            self.data_j,
+            best,
+            tuple(ordered),
+            self.free,
+            self.range_scale,
+            t0,
+            method if self.cfg.solver == "lm" else self.cfg.solver,
+        )
+
+    def polish(self, start: PhysicalParams, rounds: int | None = None, local: bool = False):
+        """Refine one start to convergence (``local``: one round at tolerance 1e-6, for a
+        start next to an optimum), refit inside the box if needed."""
+        t0 = time.perf_counter()
+        if local:
+            s = self.start(0, start, lift_start(start), "local", 1)
+        else:
+            s = self.start(0, start, lift_start(start), False, rounds or self.cfg.rounds)
+        return self.bounded(self.finish(s, [s], t0), start)
+
+    def bounded(self, fit: RefineResult, start: PhysicalParams) -> RefineResult:
+        """``fit``, or when the unbounded solver left the physical box (the index or the
+        roughness trading against the gain along a ridge), the box-bounded L-BFGS-B refit
+        from ``start`` (:func:`inversion.refine_bounded`; compiled only when needed)."""
+        if not fit.outside_bounds(BOUNDS):
+            return fit
+        log.info("refit inside the physical box: %s", "; ".join(fit.outside_bounds(BOUNDS)))
+        return refine_bounded(
+            self.model,
+            np.asarray(self.data_j),
+            [_clip_box(start)],
+            noise=self.noise,
+            bounds=BOUNDS,
+            free=self.free,
+            rounds=self.cfg.rounds,
+            range_scale=self.range_scale,
+        )
+
+    def at(self, phys: PhysicalParams, free=None) -> RefineResult:
+        """A RefineResult at ``phys`` without refining (Fisher and covariance there)."""
+        t0 = time.perf_counter()
+        data = self.data_j
+        free = self.free if free is None else tuple(free)
+        # _finish evaluates the deviance and the Fisher matrix at phys (cost 0: a placeholder)
+        s = StartSummary(0, phys, phys, 0.0, True, "successful", "evaluated", 0, 0)
+        return _finish(self.model, self.noise, data, s, (s,), free, self.range_scale, t0, "laplace")
+
+
+# ============================================================================ the workflow
+def invert(
+    observation,
+    candidates,
+    *,
+    config: InvertConfig | Mapping | None = None,
+    bank: TemplateBank | PreparedBank | None = None,
+    noise=None,
+) -> Inversion:
+    """From one observation to shape, attitude, materials and how far to believe them.
+
+    **Arguments:**
+
+    - `observation`: counts ``(channels, bins)`` (an array or an
+      :class:`~inversion.Observation`).
+    - `candidates`: the candidate shapes' forward models: one model, an
+      :class:`Candidate`, a list of them, or a mapping ``name -> model`` (names as in the
+      bank's ``names["shapes"]`` when a bank is given).
+    - `config`: :class:`InvertConfig` or a mapping validated into one (errors name the
+      field and value, before any computation).
+    - `bank`: a :class:`~inversion.TemplateBank` or :class:`~inversion.PreparedBank` made
+      with the same sensor settings as the models; default: :func:`screening_bank` of the
+      candidates over ``config.grid`` x materials x finishes.
+    - `noise`: a noise model overriding ``config.likelihood`` (e.g.
+      :class:`~inversion.GaussianNoise`).
+
+    **Returns:** :class:`Inversion` (see the module docstring for the stages).
+
+    Raises :class:`ppr.config.ConfigError` (a ``ValueError``) for a bad config and
+    ``ValueError`` for data or candidates that do not fit together, all before computing.
+    """
+    stages = _Stages()
+    with stages("validate"):
+        cfg = _as_config(config)
+        cands = _as_candidates(candidates)
+        data, sensor = _observation_data(observation)
+        noise = _noise_of(cfg) if noise is None else noise
+        prep = bank if isinstance(bank, PreparedBank) else None
+        bank_ = prep.bank if prep is not None else bank
+        if bank_ is not None and not isinstance(bank_, TemplateBank):
+            raise ValueError(
+                f"bank: expected an inversion.TemplateBank or PreparedBank, got "
+                f"{type(bank).__name__}"
+            )
+        by_name = {c.name: c for c in cands}
+        if bank_ is not None:
+            missing = [s for s in bank_.names["shapes"] if s not in by_name]
+            if missing:
+                raise ValueError(
+                    f"bank shape {missing[0]!r} has no candidate model (candidates: "
+                    f"{', '.join(by_name)}); pass a mapping name -> model with the bank's names"
+                )
+            extra = [c for c in by_name if c not in bank_.names["shapes"]]
+            if extra:
+                raise ValueError(
+                    f"candidate {extra[0]!r} is not a shape of the bank (its shapes: "
+                    f"{', '.join(bank_.names['shapes'])})"
+                )
+            if bank_.n_channels != data.shape[0] or bank_.n_bins != data.shape[1]:
+                raise ValueError(
+                    f"observation: shape {data.shape} (channels, bins) does not match the "
+                    f"bank's ({bank_.n_channels}, {bank_.n_bins})"
+                )
+        for c in cands:
+            shape = _expected_shape(c.model)
+            if shape is not None:
+                check_observation(data, shape, f"observation (candidate {c.name!r})")
+        if hasattr(noise, "check_data"):
+            noise.check_data(data, "observation")
+        wavelength = cands[0].wavelength
+        materials = _resolve_materials(cfg, bank_, wavelength)
+        if not materials:
+            raise ValueError(
+                f"materials: the library has no material at wavelength {wavelength:g} m; give "
+                "materials = [{name, n_real, n_imag}, ...]"
+            )
+        finishes = dict(DEFAULT_FINISHES if cfg.finishes is None else cfg.finishes)
+        if cfg.mcmc is not None and not jax.config.jax_enable_x64:
+            raise ValueError(
+                "mcmc: posterior sampling needs float64 (jax.config.update("
+                "'jax_enable_x64', True) before building the models)"
+            )
+        free_all = tuple(g for g in GROUPS if g in cfg.free)
+        free_fixed = tuple(g for g in free_all if g != "n")
+        if not free_fixed:
+            raise ValueError(
+                "free: at least one group besides n (the index is weighed per material)"
+            )
+        priors = cfg.mcmc.priors if cfg.mcmc is not None else PriorConfig()
+
+    # ---------------------------------------------------------------- classification
+    with stages("classify"):
+        if bank_ is None:
+            bank_ = screening_bank(
+                cands,
+                materials,
+                finishes,
+                grid=cfg.grid,
+                symmetry=cfg.symmetry,
+                progress=cfg.progress,
+            )
+        if prep is None:
+            prep = prepare(bank_)
+        obs = Observation(data=data, sensor=sensor) if sensor else data
+        cls = classify(prep, obs, k=len(bank_), noise=noise, threshold=cfg.mismatch_p)
+        cols = _pick_rows(cls, bank_, cfg.top_k, cfg.per_shape)
+        bank_mats = [materials.get(n) for n in bank_.names["materials"]]
+        for i, n in enumerate(bank_mats):
+            if n is None:
+                nm = bank_.names["materials"][i]
+                bank_mats[i] = complex(np.asarray(ppr.load_material(nm, wavelength).n))
+        # starts: each picked attitude with every finish of the bank (the cosine score
+        # cannot tell a broad lobe from a narrow glint of the same face, the deviance can),
+        # the gain matching the total counts; a start whose gain lies outside the physical
+        # range (a glint too faint for any real sensor) is dropped unless it is all there is
+        starts: dict[str, list[PhysicalParams]] = {}
+        spare: dict[str, list[tuple[float, PhysicalParams]]] = {}
+        for col in cols:
+            row = int(cls.index[0, col])
+            c = by_name[bank_.names["shapes"][bank_.shape_id[row]]]
+            k = c.n_materials
+            n = bank_mats[bank_.material_id[row]]
+            w = c.bin_width
+            off = 0.0 if w is None else float(cls.shift_refined[0, col]) * w
+            aux = None
+            for m in bank_.names["finish_m"]:
+                p = PhysicalParams(bank_.quat[row], [m] * k, [n] * k, range_offset=off, gain=1.0)
+                if aux is None or getattr(c.model, "multibounce", False):
+                    aux = c.model.prepare(p)
+                total = float(_expect(c.model, p, aux).sum())
+                gain = float(max(data.sum(), 1.0) / max(total, 1e-300))
+                p = _with(p, gain=jnp.asarray(min(max(gain, 1e-300), 1e300), p.m.dtype))
+                if BOUNDS.gain[0] <= gain <= BOUNDS.gain[1]:
+                    starts.setdefault(c.name, []).append(p)
+                else:
+                    spare.setdefault(c.name, []).append((abs(math.log(gain / 1e6)), p))
+        for name, sp in spare.items():
+            if name not in starts:
+                starts[name] = [_clip_box(min(sp, key=lambda x: x[0])[1])]
+
+    # ---------------------------------------------------------------- screened refinement
+    with stages("refine"):
+        total = sum(len(v) for v in starts.values())
+        bar = _Bar(cfg.progress, total, "screening starts")
+        screened: dict[str, list[StartSummary]] = {}
+        refiners = {}
+        for name, sts in starts.items():
+            r = refiners[name] = _Refiner(by_name[name].model, noise, data, free_fixed, cfg)
+            out = []
+            for i, s in enumerate(sts):
+                out.append(r.start(i, s, lift_start(s), True, 1))
+                bar.step()
+            screened[name] = sorted(out, key=lambda x: x.cost)
+        bar.close()
+        best_screen = min(v[0].cost for v in screened.values())
+        if not np.isfinite(best_screen):
+            raise RuntimeError(
+                "invert: every start failed in screening (non-finite deviance); "
+                + "; ".join(f"{n}: {v[0].message}" for n, v in screened.items())
+            )
+        shape_fits = []
+        for c in cands:
+            if c.name not in screened:
+                continue
+            sc = screened[c.name]
+            fit = None
+            if sc[0].cost <= cfg.polish_factor * best_screen + cfg.polish_abs:
+                t0 = time.perf_counter()
+                s = refiners[c.name].start(0, sc[0].start, sc[0].params, False, cfg.rounds)
+                s = dataclasses.replace(
+                    s, n_steps=s.n_steps + sc[0].n_steps, n_rounds=s.n_rounds + sc[0].n_rounds
+                )
+                fit = refiners[c.name].finish(s, [s, *sc[1:]], t0)
+                fit = refiners[c.name].bounded(fit, sc[0].start)
+            shape_fits.append((c.name, len(sc), sc[0].cost, fit))
+        lz = [log_evidence(f, priors) if f is not None else -math.inf for *_, f in shape_fits]
+        p_shape = _probabilities(lz)
+        shapes = tuple(
+            ShapeFit(n, ns, d, f, z, float(p))
+            for (n, ns, d, f), z, p in zip(shape_fits, lz, p_shape, strict=True)
+        )
+        best_shape = max(shapes, key=lambda s: (s.probability, -(s.fit.cost if s.fit else np.inf)))
+        cand = by_name[best_shape.name]
+        model = cand.model
+        refiner = refiners[cand.name]
+        fit = best_shape.fit
+
+    # ---------------------------------------------------------------- materials
+    with stages("materials"):
+        k_parts = cand.n_materials
+        mat_names = list(materials)
+        tables: list[list[MaterialFit]] = []
+        n_best = np.asarray(fit.params.n).copy()
+        bar = _Bar(cfg.progress, k_parts * len(mat_names), "material fits")
+        for part in range(k_parts):
+            fits = []
+            for name in mat_names:
+                n = materials[name]
+                if abs(complex(np.asarray(fit.params.n)[part]) - n) < 1e-12:
+                    f = fit  # the shape fit already holds this material
+                else:
+                    f = refiner.polish(_with(fit.params, n=_set_part(n_best, part, n)), local=True)
+                fits.append(f)
+                bar.step()
+            lz = [log_evidence(f, priors) for f in fits]
+            p = _probabilities(lz)
+            table = [
+                MaterialFit(part, nm, materials[nm], f, z, float(pp))
+                for nm, f, z, pp in zip(mat_names, fits, lz, p, strict=True)
+            ]
+            tables.append(table)
+            best_m = max(table, key=lambda m: m.probability)
+            n_best[part] = best_m.n
+            fit = best_m.fit
+        bar.close()
+        if fit is not best_shape.fit:
+            # the most probable material came from a local refit: polish it to convergence
+            fit = refiner.polish(fit.params)
+
+    # ---------------------------------------------------------------- modes
+    with stages("modes"):
+        los_world = line_of_sight_of(model)
+        los_world = np.array([0.0, 0.0, 1.0]) if los_world is None else los_world
+        half_turn_exact, world_normal = _sensor_geometry(model, los_world)
+        sym = cand.mode_symmetry(cfg.symmetry, cfg.near_tol)
+        chk = mode_check(
+            model,
+            data,
+            fit,
+            sym,
+            noise=noise,
+            mirror=cfg.mirror,
+            near=cfg.near_tol > 0,
+            half_turn_exact=half_turn_exact,
+            los=tuple(los_world),
+            world_normal=tuple(world_normal),
+            min_separation_deg=cfg.min_separation_deg,
+            max_steps=cfg.max_steps,
+            rounds=2,
+            solver=cfg.solver,
+            bounds=BOUNDS,
+        )
+        distinct = [m for m in chk.modes if m.duplicate_of is None and np.isfinite(m.fit.cost)]
+        lz = [log_evidence(m.fit, priors) for m in distinct]
+        w = _probabilities(lz)
+        order = np.argsort(-w, kind="stable")
+        distinct = [distinct[i] for i in order]
+        lz = [lz[i] for i in order]
+        w = w[order]
+        best_mode_fit = distinct[0].fit
+        base_cost = best_mode_fit.cost
+        q_best = np.asarray(best_mode_fit.params.unit_quaternion(), np.float64)
+        from ._modes import mode_separation_deg
+
+        mode_rows = []
+        for m, z, wt in zip(distinct, lz, w, strict=True):
+            q = np.asarray(m.fit.params.unit_quaternion(), np.float64)
+            mode_rows.append(
+                dict(
+                    label=m.label if m.label != "fit" else "refined fit",
+                    kind=m.kind,
+                    fit=m.fit,
+                    delta_deviance=float(m.fit.cost - base_cost),
+                    separation_deg=mode_separation_deg(
+                        q_best, q, sym, half_turn_exact=half_turn_exact, los=tuple(los_world)
+                    ),
+                    los_separation_deg=float(
+                        line_of_sight_error_deg(q_best, q, cand.exact_symmetry(cfg.symmetry))[0]
+                    ),
+                    log_evidence=z,
+                    weight=float(wt),
+                )
+            )
+        fit = best_mode_fit
+
+    # ---------------------------------------------------------------- continuous index
+    index_fit = None
+    with stages("index"):
+        if "n" in free_all:
+            index_fit = _index_fit(refiner, fit, free_all, cfg)
+        final = fit
+        if index_fit is not None and np.isfinite(index_fit.cost) and index_fit.cost <= fit.cost:
+            final = index_fit
+        # the index per part: determined by the data, inside the physical box
+        index = _index_estimates(index_fit, k_parts, los_world)
+
+    # ---------------------------------------------------------------- checks
+    with stages("check"):
+        gof = fit_goodness_of_fit(model, data, final, noise, threshold=cfg.mismatch_p)
+        ob = observability(final, line_of_sight=los_world)
+        expected = _expect(model, final.params, model.prepare(final.params))
+
+    # ---------------------------------------------------------------- posterior sampling
+    mode_results = []
+    mcmc_reasons = []
+    with stages("sample"):
+        n_sampled = 0
+        for j, row in enumerate(mode_rows):
+            post = diag = None
+            conv = None
+            warns: tuple[str, ...] = ()
+            want = (
+                cfg.mcmc is not None
+                and row["weight"] >= cfg.mcmc_min_weight
+                and n_sampled < cfg.max_sampled_modes
+            )
+            if want:
+                start = final if j == 0 else row["fit"]
+                if start.parametrisation.free != free_all:
+                    start = refiner.at(start.params, free_all)
+                try:
+                    with warnings.catch_warnings(record=True) as caught:
+                        warnings.simplefilter("always", ChainTooShortWarning)
+                        post = sample_posterior(
+                            model,
+                            data,
+                            start,
+                            config=_sampler_progress(cfg),
+                            noise=noise,
+                            free=free_all,
+                            progress_desc=f"MCMC mode {j} ({row['label']})",
+                        )
+                    warns = tuple(str(x.message) for x in caught)
+                    diag = post.diagnostics()
+                    rh = [d["r_hat"] for d in diag.values() if d["r_hat"] is not None]
+                    max_rhat = max(rh, default=math.inf)
+                    conv = bool(post.converged and max_rhat <= cfg.rhat_max)
+                    if not conv:
+                        why = []
+                        if not post.converged:
+                            why.append("chain shorter than autocorr_tol x tau")
+                        if not max_rhat <= cfg.rhat_max:
+                            why.append(f"max R-hat {max_rhat:.3g} > {cfg.rhat_max:g}")
+                        mcmc_reasons.append(
+                            f"posterior of mode {j} ({row['label']}) not converged: "
+                            + ", ".join(why)
+                        )
+                    n_sampled += 1
+                except ValueError as err:
+                    mcmc_reasons.append(f"posterior of mode {j} not sampled: {err}")
+                    post = None
+            mode_results.append(
+                ModeResult(
+                    **row,
+                    posterior=post,
+                    posterior_converged=conv,
+                    posterior_warnings=warns,
+                    diagnostics=diag,
+                )
+            )
+        if final is not fit and mode_results:
+            # the best mode's fit is reported with the index free when that fits better
+            mode_results[0] = dataclasses.replace(mode_results[0], fit=final)
+
+    # ---------------------------------------------------------------- status
+    reasons = []
+    if gof.model_mismatch:
+        reasons.append(
+            f"model mismatch: p = {gof.p_value:.3g} < {gof.threshold:g} (z = {gof.z:+.1f}): no "
+            f"parameter values of shape {cand.name!r} explain the data"
+        )
+    converged = bool(final.success)
+    if not converged:
+        reasons.append(f"solver did not converge ({final.result}: {final.message})")
+    other_shapes = [s for s in shapes if s.name != cand.name and s.probability > cfg.ambiguity]
+    if other_shapes:
+        reasons.append(
+            "shape not resolved: "
+            + ", ".join(f"{s.name} probability {s.probability:.2g}" for s in other_shapes)
+        )
+    amb = [m for m in mode_results[1:] if m.weight > cfg.ambiguity]
+    if amb:
+        reasons.append(
+            "attitude modes not resolved: "
+            + ", ".join(
+                f"{m.label} weight {m.weight:.2g} (line of sight {m.los_separation_deg:.2g} deg "
+                "away)"
+                for m in amb
+            )
+        )
+    reasons += mcmc_reasons
+    prov = {
+        "ppr": ppr.__version__,
+        "jax": jax.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "config": cfg.model_dump(mode="json"),
+        "noise": repr(noise),
+        "candidates": [c.name for c in cands],
+        "materials": {k: [v.real, v.imag] for k, v in materials.items()},
+        "finishes": finishes,
+        "bank": {"n_templates": len(bank_), "resolution_deg": list(bank_.resolution_deg)},
+        "_exact_symmetry": cand.exact_symmetry(cfg.symmetry),
+    }
+    stages.timings["total"] = time.perf_counter() - stages.t0
+    result = Inversion(
+        shape=cand.name,
+        shapes=shapes,
+        fit=final,
+        materials=tuple(tuple(t) for t in tables),
+        index=index,
+        modes=tuple(mode_results),
+        goodness_of_fit=gof,
+        observability=ob,
+        converged=converged,
+        reliable=not reasons,
+        reasons=tuple(reasons),
+        timings=dict(stages.timings),
+        provenance=prov,
+        classification=cls,
+        data=data,
+        expected=expected,
+        line_of_sight_world=np.asarray(los_world, np.float64),
+        sampled=cfg.mcmc is not None,
+    )
+    log.info("invert: %s", "reliable" if result.reliable else "NOT reliable: " + "; ".join(reasons))
+    return result
+
+
+def _pick_rows(cls: Classification, bank: TemplateBank, top_k: int, per_shape: int) -> list[int]:
+    """Columns of the classification to start from: the best `top_k` *distinct* templates
+    (one per shape and attitude: the materials and finishes of one attitude are one start,
+    the material stage weighs the materials) and the best `per_shape` distinct attitudes of
+    every shape (the cosine rank is not a likelihood: a shape whose signature changes fast
+    with attitude ranks low at the grid's resolution and can still fit best)."""
+    idx = cls.index[0]
+    key = (
+        np.asarray(bank.shape_id)[idx].astype(np.int64) * (int(np.max(bank.attitude_id)) + 1)
+        + np.asarray(bank.attitude_id)[idx]
+    )
+    _, first = np.unique(key, return_index=True)
+    first = np.sort(first)  # rank order, one column per (shape, attitude)
+    cols = list(first[:top_k])
+    sid = np.asarray(bank.shape_id)[idx[first]]
+    for s in np.unique(bank.shape_id):
+        cols += [int(c) for c in first[sid == s][:per_shape] if c not in cols]
+    return sorted(int(c) for c in cols)
+
+
+def _sampler_progress(cfg: InvertConfig) -> MCMCConfig:
+    mc = cfg.mcmc
+    if mc.sampler.progress == cfg.progress:
+        return mc
+    return mc.model_copy(
+        update={"sampler": mc.sampler.model_copy(update={"progress": cfg.progress})}
+    )
+
+
+def _observation_data(observation) -> tuple[np.ndarray, str]:
+    if isinstance(observation, Observation):
+        return np.asarray(observation.data, np.float64), observation.sensor
+    arr = np.asarray(observation)
+    if arr.dtype == object or not np.issubdtype(arr.dtype, np.number):
+        raise ValueError(f"observation: expected a numeric array, got dtype {arr.dtype}")
+    if arr.ndim != 2:
+        raise ValueError(f"observation: expected (channels, bins), got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        bad = int((~np.isfinite(arr)).sum())
+        raise ValueError(f"observation: {bad} non-finite value(s) (NaN/inf)")
+    return arr.astype(np.float64), ""
+
+
+def _expected_shape(model) -> tuple[int, int] | None:
+    c, b = getattr(model, "n_channels", None), getattr(model, "n_bins", None)
+    if c is None or b is None:
+        return None
+    return (int(c), int(b))
+
+
+def _sensor_geometry(model, los_world) -> tuple[bool, np.ndarray]:
+    """(half turn exact: monostatic sensor, world mirror normal: perpendicular to the line of
+    sight and the transmitter's x polarization reference)."""
+    sensor = getattr(getattr(model, "pure_model", model), "sensor", None)
+    if sensor is None:
+        return True, np.array([0.0, 1.0, 0.0])
+    mono = bool(getattr(sensor, "monostatic", True))
+    x = np.asarray(sensor.frame_tx, np.float64).reshape(-1, 3)[0]
+    w = np.cross(np.asarray(los_world, np.float64), x)
+    nrm = np.linalg.norm(w)
+    if nrm < 1e-9:  # pragma: no cover - a reference along the line of sight
+        return mono, np.array([0.0, 1.0, 0.0])
+    return mono, w / nrm
+
+
+def _index_fit(refiner: _Refiner, fit: RefineResult, free, cfg: InvertConfig, max_iter: int = 12):
+    """Fisher scoring with the index free, from a fit with the index fixed: damped steps
+    ``-(F + lambda diag F)^+ J^T r`` (Pearson residuals ``r``, ``F = J^T J`` inverted in
+    its observable subspace, so no step along a direction the data do not fix; ``lambda``
+    raised tenfold after a step that does not lower the deviance, lowered after one that
+    does, as Levenberg-Marquardt), every trial kept inside the physical box. Uses the
+    refiner's Jacobian program only (no second solver to compile). Returns a RefineResult
+    (method ``fisher_scoring``)."""
+    model, noise, data = refiner.model, refiner.noise, refiner.data_j
+    t0 = time.perf_counter()
+    phys = _clip_box(fit.params)
+    bg = float(getattr(noise, "background", 0.0)) if isinstance(noise, PoissonCounts) else 0.0
+    try:
+        J, inv_sigma, mu, _, param, dev = weighted_jacobian(
+            model, noise, data, phys, free, None, refiner.range_scale
+        )
+    except FloatingPointError:
+        return None
+    data_np = np.asarray(data, np.float64)
+    steps, ok, lam = 0, False, 1e-3
+    while steps < max_iter:
+        steps += 1
+        r = ((data_np - mu - bg) * inv_sigma).ravel()
+        F = J.T @ J
+        C, _ = observable_inverse(F + lam * np.diag(np.diag(F)))
+        delta = -C @ (J.T @ r)
+        theta0 = np.asarray(_from_physical(param, phys), np.float64)
+        trial = _clip_box(_to_physical(param, jnp.asarray(theta0 + delta)))
+        try:
+            Jt, inv_t, mu_t, _, par_t, dev_t = weighted_jacobian(
+                model, noise, data, trial, free, None, refiner.range_scale
+            )
+        except FloatingPointError:
+            dev_t = math.inf
+        if not (np.isfinite(dev_t) and dev_t < dev):
+            lam *= 10.0
+            if lam > 1e8:  # no descent left along the observable directions: stationary
+                ok = True
+                break
+            continue
+        gain = dev - dev_t
+        phys, J, inv_sigma, mu, param, dev = trial, Jt, inv_t, mu_t, par_t, dev_t
+        lam = max(lam / 10.0, 1e-9)
+        # a deviance change of 1e-3 (a likelihood ratio of 1.0005) is no change at all
+        if gain <= max(1e-3, 1e-9 * dev):
+            ok = True
+            break
+    s = StartSummary(
+        0,
+        fit.params,
+        phys,
+        float(dev),
+        ok,
+        "successful" if ok else "max_steps_reached",
+        "converged" if ok else f"Fisher scoring stopped after {max_iter} steps",
+        steps,
+        steps,
+    )
+    return _finish(
+        model, noise, data, s, (s,), tuple(free), refiner.range_scale, t0, "fisher_scoring"
+    )
+
+
+def _clip_box(phys: PhysicalParams) -> PhysicalParams:
+    """``phys`` with ``n``, ``m``, the gain and the offset inside :data:`BOUNDS`."""
+    b = BOUNDS
+    n = np.asarray(phys.n)
+    re = np.clip(n.real, *b.n_re)
+    im = np.clip(n.imag, *b.n_im)
+    return _with(
+        phys,
+        n=jnp.asarray(re + 1j * im, phys.n.dtype),
+        m=jnp.clip(phys.m, *b.m),
+        gain=jnp.clip(phys.gain, *b.gain),
+        range_offset=jnp.clip(phys.range_offset, *b.range_offset),
+    )
+
+
+def _index_estimates(index_fit, k_parts: int, los_world) -> tuple[IndexEstimate, ...]:
+    if index_fit is None:
+        return ()
+    ob = observability(index_fit, line_of_sight=los_world)
+    n = np.asarray(index_fit.params.n)
+    out = []
+    for k in range(k_parts):
+        i_re, i_im = ob.labels.index(f"n_re[{k}]"), ob.labels.index(f"n_im[{k}]")
+        s_re, s_im = float(ob.sigma[i_re]), float(ob.sigma[i_im])
+        det = bool(ob.determined[i_re] and ob.determined[i_im])
+        at_box = not (N_RE_BOX[0] < n[k].real < N_RE_BOX[1] and n[k].imag < N_IM_BOX[1])
+        # determined, and the 2-sigma box smaller than half the prior box
+        small = (
+            np.isfinite(s_re)
+            and np.isfinite(s_im)
+            and (
+                4 * s_re < 0.5 * (N_RE_BOX[1] - N_RE_BOX[0])
+                and 4 * s_im < 0.5 * (N_IM_BOX[1] - N_IM_BOX[0])
+            )
+        )
+        if det and small and not at_box and index_fit.success:
+            out.append(IndexEstimate(k, complex(n[k]), (s_re, s_im), True, "determined"))
+            continue
+        why = []
+        if not det:
+            names = [
+                d.name
+                for d in ob.unobservable
+                if any(lab.startswith((f"n_re[{k}]", f"n_im[{k}]")) for lab in d.physical)
+            ]
+            why.append("on an unobservable direction" + (f": {'; '.join(names)}" if names else ""))
+        if det and not small:
+            why.append(f"uncertainty +-({s_re:.2g}, {s_im:.2g}) spans the physical range")
+        if at_box:
+            why.append("at the physical bound")
+        if not index_fit.success:
+            why.append("the index fit did not converge")
+        out.append(IndexEstimate(k, complex(n[k]), None, False, "; ".join(why)))
+    return tuple(out)

@@ -1,0 +1,200 @@
+"""inversion.invert end to end on the toy facet model of tests/test_refine.py (Blinn-Phong
+facets with Fresnel Mueller matrices, 16 PSG x PSA channels; cheap to compile), over a tiny
+screening bank of a few attitudes: what the workflow must prove, not the grid search (that
+is bench/bench_inversion.py's held-out measurement).
+
+- a box observed at an attitude 6 deg off one of the bank's: the shape (against a cube), the
+  attitude and the material are recovered, the mirror image is refit and rejected by the
+  off-block channels, the fit is acceptable, and the result is ``reliable``; the posterior
+  file holds the physical samples, the JSON has no inf/NaN and no bare ``success``;
+- the same data against the cube alone: a model mismatch, ``reliable`` False, the reason
+  named and printed first in the summary;
+- material probabilities sum to 1 and favour the truth (aluminium against gold and fused
+  silica, which the incidence-dependent Fresnel matrices of the facets tell apart);
+- a target whose roll about the line of sight no channel sees (the intensity channels
+  only): the roll is named unobservable and nothing in the written JSON is inf or NaN;
+- a bad MCMC field is refused, naming the field and the value, before the model is called.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_modes import BOX, Q0, _toy
+from test_refine import ToyFacetModel
+
+import inversion
+import ppr
+from inversion import Candidate, PhysicalParams
+from inversion._grid import axis_angle_quat, quat_mul
+from ppr._config import ConfigError
+
+N_AL = complex(np.asarray(ppr.load_material("aluminium").n))
+MATERIALS = ["aluminium", "gold", "fused_silica"]
+WIDTH = 0.8 / 63  # the toy's bin width (m): np.linspace(-0.4, 0.4, 64)
+_expected = eqx.filter_jit(ToyFacetModel.expected)
+
+
+def _observe(model, q, *, m=6.0, n=N_AL, gain=5.0, offset=0.012, seed=0):
+    truth = PhysicalParams(q, [m], [n], range_offset=offset, gain=gain)
+    mu = np.asarray(_expected(model, truth, model.prepare(truth)))
+    return truth, np.random.default_rng(seed).poisson(np.maximum(mu, 0.0)).astype(float)
+
+
+def _bank_attitudes(q_true, seed=3):
+    """Five random attitudes and one 6 deg from the truth."""
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(5, 4))
+    near = quat_mul(axis_angle_quat([0.3, -0.5, 0.8], math.radians(6.0)), q_true)
+    return np.vstack([q / np.linalg.norm(q, axis=1, keepdims=True), near])
+
+
+@pytest.fixture(scope="module")
+def box_case():
+    box_mesh, cube_mesh = ppr.shapes.box(BOX), ppr.shapes.box((0.2, 0.2, 0.2))
+    cands = [
+        Candidate("box", _toy(box_mesh), symmetry=box_mesh, bin_width_m=WIDTH),
+        Candidate("cube", _toy(cube_mesh), symmetry=cube_mesh, bin_width_m=WIDTH),
+    ]
+    truth, data = _observe(cands[0].model, Q0)
+    mats = {m: complex(np.asarray(ppr.load_material(m).n)) for m in MATERIALS}
+    bank = inversion.screening_bank(cands, mats, {"rough": 6.0}, attitudes=_bank_attitudes(Q0))
+    return cands, truth, data, bank
+
+
+CONFIG = {"materials": MATERIALS, "top_k": 2, "free": ["attitude", "m", "range_offset", "gain"]}
+SHORT_CHAIN = {"sampler": {"n_walkers": 16, "n_steps": 60, "burn_in": 20, "progress": False}}
+
+
+def test_invert_recovers_box_attitude_material_and_is_reliable(box_case, tmp_path):
+    cands, truth, data, bank = box_case
+    inv = inversion.invert(data, cands, config=CONFIG, bank=bank)
+    # shape and attitude: the box, its line of sight within a degree (modulo its rotations)
+    assert inv.shape == "box" and inv.shape_probabilities["box"] > 0.99, inv.summary()
+    err = inv.compare(truth, "box")
+    assert err["los_error_deg"] < 1.0 and err["attitude_error_deg"] < 2.0, err
+    # the mirror image was refit, and the off-block channels reject it
+    assert inv.modes[0].kind == "fit" and [m.kind for m in inv.modes[1:]] == ["mirror"]
+    assert inv.modes[1].weight < 1e-6, inv.summary()
+    # material probabilities: a distribution favouring the truth
+    probs = inv.material_probabilities[0]
+    assert set(probs) == set(MATERIALS) and abs(sum(probs.values()) - 1.0) < 1e-12
+    assert inv.material == ("aluminium",) and probs["aluminium"] > 0.9, probs
+    # acceptable fit, converged solver, one mode: reliable, with no reasons
+    assert not inv.goodness_of_fit.model_mismatch and inv.converged
+    assert inv.reliable and inv.reasons == (), inv.summary()
+    assert inv.summary().startswith("RELIABLE")
+
+    # the same with a posterior: a 60-step chain has not converged, which is the one reason
+    # (the same compiled programs: only the sampler's are new)
+    inv = inversion.invert(data, cands, config={**CONFIG, "mcmc": SHORT_CHAIN}, bank=bank)
+    assert inv.converged and not inv.reliable and len(inv.reasons) == 1, inv.reasons
+    assert inv.reasons[0].startswith("posterior of mode 0") and "not converged" in inv.reasons[0]
+    # files: JSON without inf/NaN or a bare success, the posterior in physical units
+    written = inv.write(tmp_path / "out")
+    assert {"invert.json", "invert_fit.npz", "invert_posterior.nc"} <= {p.name for p in written}
+    d = json.loads((tmp_path / "out" / "invert.json").read_text())
+    assert d["reliable"] is False and d["converged"] is True and d["reasons"] == list(inv.reasons)
+    assert '"success"' not in json.dumps(d)
+    assert d["goodness_of_fit"]["model_mismatch"] is False
+    import arviz as az
+
+    idata = az.from_netcdf(tmp_path / "out" / "invert_posterior.nc")
+    post = inv.modes[0].posterior
+    np.testing.assert_allclose(
+        idata.posterior["gain"].values,
+        np.swapaxes(post.physical_chain[post.burn_in :, :, post.labels.index("gain")], 0, 1),
+        rtol=1e-12,
+    )
+
+
+def test_out_of_bank_target_is_a_model_mismatch(box_case):
+    """The box's data against the cube alone: no parameter values fit, and the result says
+    so first."""
+    cands, truth, data, bank = box_case
+    cube_bank = inversion.screening_bank(
+        cands[1:],
+        {m: complex(np.asarray(ppr.load_material(m).n)) for m in MATERIALS},
+        {"rough": 6.0},
+        attitudes=_bank_attitudes(Q0),
+    )
+    inv = inversion.invert(data, cands[1:], config=CONFIG, bank=cube_bank)
+    assert inv.goodness_of_fit.model_mismatch and inv.goodness_of_fit.p_value < 1e-6
+    assert not inv.reliable and inv.reasons[0].startswith("model mismatch"), inv.reasons
+    assert inv.summary().startswith("NOT RELIABLE: model mismatch")
+    assert "MODEL MISMATCH" in inv.summary()
+
+
+class _IntensityOnly(eqx.Module):
+    """The toy's H and V channels summed (``2 M_00``): blind to the polarization frame, so
+    the roll about the line of sight changes nothing."""
+
+    toy: ToyFacetModel
+
+    def prepare(self, phys):
+        return self.toy.prepare(phys)
+
+    def expected(self, phys, aux):
+        return jnp.sum(self.toy.expected(phys, aux)[jnp.array([0, 1, 4, 5])], 0, keepdims=True)
+
+
+def test_unobservable_roll_is_named_and_json_has_no_inf(tmp_path):
+    box_mesh = ppr.shapes.box(BOX)
+    model = _IntensityOnly(_toy(box_mesh))
+    truth = PhysicalParams(Q0, [6.0], [N_AL], range_offset=0.012, gain=5.0)
+    mu = np.asarray(eqx.filter_jit(_IntensityOnly.expected)(model, truth, model.prepare(truth)))
+    data = np.random.default_rng(1).poisson(np.maximum(mu, 0.0)).astype(float)
+    cand = Candidate("box", model, symmetry=box_mesh, bin_width_m=WIDTH)
+    mats = {m: complex(np.asarray(ppr.load_material(m).n)) for m in MATERIALS}
+    bank = inversion.screening_bank([cand], mats, {"rough": 6.0}, attitudes=_bank_attitudes(Q0))
+    inv = inversion.invert(data, [cand], config=CONFIG, bank=bank)
+    assert any("roll about the line of sight" in n for n in inv.observability.names)
+    # a roll the data do not see: the observable-subspace sigmas are finite except for a
+    # parameter unobservable on its own, which the JSON writes as null next to its name
+    inv.write(tmp_path / "roll")
+    text = (tmp_path / "roll" / "invert.json").read_text()
+    d = json.loads(text)  # strict JSON: Infinity/NaN would not parse with allow_nan=False
+    json.dumps(d, allow_nan=False)
+    ob = d["observability"]
+    nulls = [lab for lab, s in zip(ob["labels"], ob["sigma"], strict=True) if s is None]
+    assert nulls == ob["unobservable_on_own"]
+    assert "Infinity" not in text and "NaN" not in text
+
+
+class _Untouchable(eqx.Module):
+    """A forward model that must not be called (validation happens first)."""
+
+    def prepare(self, phys):  # pragma: no cover - reaching it is the failure
+        raise AssertionError("the model was called before the config was validated")
+
+    def expected(self, phys, aux):  # pragma: no cover
+        raise AssertionError("the model was called before the config was validated")
+
+
+@pytest.mark.parametrize(
+    "config, words",
+    [
+        (
+            {"mcmc": {"sampler": {"n_walkers": 2}}},
+            ["mcmc.sampler.n_walkers = 2", "greater than or equal to 4"],
+        ),
+        ({"mcmc": {"sampler": {"n_steps": 100, "burn_in": 200}}}, ["burn_in (200)", "n_steps"]),
+        ({"mcmc": {"priors": {"m": {"kind": "uniform", "low": 5.0}}}}, ["mcmc.priors.m"]),
+        ({"top_k": 0}, ["top_k = 0"]),
+        ({"materials": ["aluminium", "unobtainium"]}, ["materials[1] = 'unobtainium'"]),
+        ({"symmetry": "dihedral"}, ["symmetry = 'dihedral'"]),
+    ],
+)
+def test_config_is_validated_before_any_computation(config, words):
+    data = np.ones((16, 64))
+    with pytest.raises(ConfigError) as err:
+        inversion.invert(data, {"box": _Untouchable()}, config=config)
+    msg = str(err.value)
+    assert len(msg.splitlines()) == 1
+    for w in words:
+        assert w in msg, msg
