@@ -152,7 +152,7 @@ def run_invert(cfg, cfg_path: Path, out, overwrite: bool = False, progress: bool
                     raise c.ConfigError(f"{where}: no 'data' array (it has {', '.join(z.files)})")
                 data = np.asarray(z["data"], np.float64)
         except (OSError, ValueError, EOFError) as err:
-            if isinstance(err, ConfigError):
+            if isinstance(err, c.ConfigError):
                 raise
             raise c.ConfigError(f"{where}: not a NumPy .npz file of arrays") from None
     c.maybe_x64("float64")  # inversion runs in float64 (the MCMC needs it)
