@@ -217,7 +217,7 @@ def help_text() -> str:
         fields_text(f"Config fields (configs/{DEFAULT_CONFIG})", _schema()),
         paragraph(
             "channels (PSG/PSA preset; transmitted; analyzed): full (H,V,D,L; H,V,D,L), stokes "
-            "(H,L; H,V,D,L), copol (H; H,V), circular (L; L,R). mcmc = \"default\" is the "
+            '(H,L; H,V,D,L), copol (H; H,V), circular (L; L,R). mcmc = "default" is the '
             "shipped configs/inversion/default.toml ([priors.*] and [sampler]); mcmc_walkers, "
             "mcmc_steps and mcmc_burn_in override its sampler, mcmc_set any of its fields."
         ),
