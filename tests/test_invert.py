@@ -31,8 +31,9 @@ from test_refine import ToyFacetModel
 import inversion
 import ppr
 from inversion import Candidate, PhysicalParams
-from inversion._grid import axis_angle_quat, quat_mul
-from ppr._config import ConfigError
+from ppr.config import ConfigError
+from ppr.geometry import quat_from_axis_angle as axis_angle_quat
+from ppr.geometry import quat_multiply_host as quat_mul
 
 N_AL = complex(np.asarray(ppr.load_material("aluminium").n))
 MATERIALS = ["aluminium", "gold", "fused_silica"]
