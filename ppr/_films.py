@@ -63,7 +63,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._fresnel import _cdiv, complex_sqrt_re, fresnel_amplitudes_re, fresnel_mueller_params
-from ._safe import tiny
+from ._safe import safe_atan2, tiny
 from ._types import Array
 
 __all__ = [
@@ -205,13 +205,12 @@ def _eps(n_re, n_im):
     return (n_re * n_re - n_im * n_im, 2.0 * n_re * n_im)
 
 
-def _interface(e_a, w_a, e_b, w_b):
-    """``(r_s, r_p)`` of the interface from medium ``a`` into medium ``b``."""
-    rs = _div(_sub(w_a, w_b), _add(w_a, w_b))
-    pa = _mul(e_b, w_a)
-    pb = _mul(e_a, w_b)
-    rp = _div(_sub(pa, pb), _add(pa, pb))
-    return rs, rp
+def _r(eta_a, eta_b):
+    """Interface reflection from medium ``a`` into ``b`` for both polarizations at once
+    (leading axis: s, p), from the tilted admittances ``eta = (w, w / n^2)``:
+    ``r = (eta_a - eta_b) / (eta_a + eta_b)`` (for p this is
+    ``(n_b^2 w_a - n_a^2 w_b) / (n_b^2 w_a + n_a^2 w_b)``)."""
+    return _div(_sub(eta_a, eta_b), _add(eta_a, eta_b))
 
 
 def _phase(kt, w):
@@ -221,8 +220,14 @@ def _phase(kt, w):
     return (mag * jnp.cos(arg), mag * jnp.sin(arg))
 
 
+def _sp(a):
+    """A polarization-independent ``(re, im)`` broadcast against the (s, p) axis."""
+    return (a[0][None], a[1][None])
+
+
 def _media(n_re, n_im, films: Films, cos_t):
-    """``(eps, w)`` of ambient, films and substrate, broadcast to one shape."""
+    """``(eta, w, kt, cos)``: per medium (ambient, films, substrate) the admittances
+    ``eta`` (``(2, ...)``: s, p) and ``w`` (``(...)``), per film ``k0 t``."""
     shape = jnp.broadcast_shapes(
         jnp.shape(n_re), jnp.shape(cos_t), *(jnp.shape(a) for a in jax.tree.leaves(films))
     )
@@ -231,49 +236,46 @@ def _media(n_re, n_im, films: Films, cos_t):
     c = b(cos_t)
     c2 = c * c
     zero = jnp.zeros(shape, dt)
-    eps = [(jnp.ones(shape, dt), zero)]
     ws = [(c, zero)]
-    for fr, fi in zip(films.n_re, films.n_im, strict=True):
-        eps.append(_eps(b(fr), b(fi)))
-        ws.append(_w(b(fr), b(fi), c2))
-    eps.append(_eps(b(n_re), b(n_im)))
-    ws.append(_w(b(n_re), b(n_im), c2))
+    etas = [(jnp.stack([c, c]), jnp.stack([zero, zero]))]
+    for fr, fi in [*zip(films.n_re, films.n_im, strict=True), (n_re, n_im)]:
+        nr, ni = b(fr), b(fi)
+        w = _w(nr, ni, c2)
+        wp = _div(w, _eps(nr, ni))
+        ws.append(w)
+        etas.append((jnp.stack([w[0], wp[0]]), jnp.stack([w[1], wp[1]])))
     kt = [b(k) for k in films.kt]
-    return eps, ws, kt, c
+    return etas, ws, kt, c
 
 
-def _airy_up(eps, ws, kt, top: int):
-    """Reflection ``(R_s, R_p)`` seen from medium ``top`` looking down (media ``top+1``..),
-    by the Airy recursion from the substrate (module docstring)."""
+def _airy_up(etas, ws, kt, top: int):
+    """Reflection ``R`` (``(2, ...)``: s, p) seen from medium ``top`` looking down (media
+    ``top+1``..), by the Airy recursion from the substrate (module docstring)."""
     last = len(ws) - 1
-    Rs, Rp = _interface(eps[last - 1], ws[last - 1], eps[last], ws[last])
+    R = _r(etas[last - 1], etas[last])
     for j in range(last - 1, top, -1):  # film medium j (1-based), above it medium j - 1
-        z = _phase(kt[j - 1], ws[j])
-        rs, rp = _interface(eps[j - 1], ws[j - 1], eps[j], ws[j])
-        zs, zp = _mul(Rs, z), _mul(Rp, z)
-        Rs = _div(_add(rs, zs), _one_plus(_mul(rs, zs)))
-        Rp = _div(_add(rp, zp), _one_plus(_mul(rp, zp)))
-    return Rs, Rp
+        z = _sp(_phase(kt[j - 1], ws[j]))
+        r = _r(etas[j - 1], etas[j])
+        zR = _mul(R, z)
+        R = _div(_add(r, zR), _one_plus(_mul(r, zR)))
+    return R
 
 
-def _star_down(eps, ws, kt, bottom: int):
-    """Top part from the ambient down to medium ``bottom``: per polarization ``(r, r', P)``
-    (reflection from above, from below, and ``t t'``), by adding one layer and interface at
-    a time (Redheffer star product)."""
-    out = []
-    for pol in (0, 1):
-        r = _interface(eps[0], ws[0], eps[1], ws[1])[pol]
-        rb, P = (-r[0], -r[1]), _one_minus(_mul(r, r))
-        for j in range(1, bottom):
-            z = _phase(kt[j - 1], ws[j])
-            ri = _interface(eps[j], ws[j], eps[j + 1], ws[j + 1])[pol]
-            Pi = _one_minus(_mul(ri, ri))
-            D = _one_minus(_mul(_mul(rb, ri), z))
-            r = _add(r, _div(_mul(_mul(P, ri), z), D))
-            rb = _sub(_div(_mul(_mul(Pi, rb), z), D), ri)
-            P = _div(_mul(_mul(P, Pi), z), _mul(D, D))
-        out.append((r, rb, P))
-    return out
+def _star_down(etas, ws, kt, bottom: int):
+    """Top part from the ambient down to medium ``bottom``: ``(r, r', P)`` (reflection from
+    above, from below, and ``t t'``; each ``(2, ...)``: s, p), by adding one layer and
+    interface at a time (Redheffer star product)."""
+    r = _r(etas[0], etas[1])
+    rb, P = (-r[0], -r[1]), _one_minus(_mul(r, r))
+    for j in range(1, bottom):
+        z = _sp(_phase(kt[j - 1], ws[j]))
+        ri = _r(etas[j], etas[j + 1])
+        Pi = _one_minus(_mul(ri, ri))
+        D = _one_minus(_mul(_mul(rb, ri), z))
+        r = _add(r, _div(_mul(_mul(P, ri), z), D))
+        rb = _sub(_div(_mul(_mul(Pi, rb), z), D), ri)
+        P = _div(_mul(_mul(P, Pi), z), _mul(D, D))
+    return r, rb, P
 
 
 # --------------------------------------------------------------------------------------------
@@ -283,9 +285,9 @@ def _star_down(eps, ws, kt, bottom: int):
 def stack_amplitudes(n_re, n_im, films: Films, cos_t):
     """Coherent stack reflection ``(rs_re, rs_im, rp_re, rp_im)`` at facet cosine ``cos_t``
     (Airy recursion; every layer coherent whatever ``films.mode``)."""
-    eps, ws, kt, _ = _media(n_re, n_im, films, cos_t)
-    (rs_re, rs_im), (rp_re, rp_im) = _airy_up(eps, ws, kt, 0)
-    return rs_re, rs_im, rp_re, rp_im
+    etas, ws, kt, _ = _media(n_re, n_im, films, cos_t)
+    R = _airy_up(etas, ws, kt, 0)
+    return R[0][0], R[1][0], R[0][1], R[1][1]
 
 
 def phase_spread(kt, n_re, n_im, m, cos_t):
@@ -318,23 +320,34 @@ def lobe_chi(q, gu, m, cos_t):
     a = s2 - c * c
     p1 = (jnp.ones_like(c), -2.0 * lam * a * var)  # 1 - 2 i lam a var
     p2 = (jnp.ones_like(c), 2.0 * lam * c * c * var)  # 1 + 2 i lam c^2 var
-    inv_sqrt = lambda p: _div((1.0, 0.0), complex_sqrt_re(p[0], p[1]))  # noqa: E731
+    one, zero = jnp.ones_like(c), jnp.zeros_like(c)
+    inv_sqrt = lambda p: _div((one, zero), complex_sqrt_re(p[0], p[1]))  # noqa: E731
     b = 2.0 * lam * c
-    e = _div((-(b * b) * s2 * var * 0.5, jnp.zeros_like(c)), p1)
+    e = _div((-(b * b) * s2 * var * 0.5, zero), p1)
     mag = jnp.exp(e[0])
     ez = (mag * jnp.cos(e[1]), mag * jnp.sin(e[1]))
     return _mul(ez, _mul(inv_sqrt(p1), inv_sqrt(p2)))
 
 
-def _series(chis, w, chi_tail, q_max):
-    """``sum_{q=1}^{Q} chi(q) w^(q-1) + chi(Q+1) w^Q / (1 - w)``."""
-    acc = chis[0]
-    wq = w
-    for q in range(2, q_max + 1):
-        acc = _add(acc, _mul(chis[q - 1], wq))
-        wq = _mul(wq, w)
-    tail = _div(_mul(chi_tail, wq), _one_minus(w))
-    return _add(acc, tail)
+def _series(chi, w, q_max):
+    """``sum_{q=1}^{Q} chi(q) w^(q-1) + chi(Q+1) w^Q / (1 - w)`` with ``chi`` given on a
+    trailing axis ``q = 1..Q+1`` and the powers of ``w`` in polar form, vectorized over ``q``
+    (one set of operations instead of ``Q``: the unrolled sum made the lobe mode's program
+    several times larger)."""
+    dt = w[0].dtype
+    k = jnp.arange(q_max + 1, dtype=dt)  # powers 0..Q
+    a2 = _abs2(w)
+    ok = a2 > tiny(dt)
+    log_mag = 0.5 * jnp.log(jnp.where(ok, a2, 1.0))
+    arg = safe_atan2(w[1], w[0])
+    ex = lambda x: x[..., None]  # noqa: E731
+    mag = jnp.where(ex(ok), jnp.exp(k * ex(log_mag)), 0.0)
+    mag = jnp.where(k == 0, 1.0, mag)
+    pw = (mag * jnp.cos(k * ex(arg)), mag * jnp.sin(k * ex(arg)))
+    terms = _mul(chi, pw)
+    head = (jnp.sum(terms[0][..., :q_max], -1), jnp.sum(terms[1][..., :q_max], -1))
+    tail = _div((terms[0][..., q_max], terms[1][..., q_max]), _one_minus(w))
+    return _add(head, tail)
 
 
 def facet_gram(n_re, n_im, cos_t, films: Films | None, *, white: bool = False):
@@ -352,16 +365,17 @@ def facet_gram(n_re, n_im, cos_t, films: Films | None, *, white: bool = False):
         rs, rp = (rs_re, rs_im), (rp_re, rp_im)
         sp = _mulc(rs, rp)
         return _abs2(rs), _abs2(rp), sp[0], sp[1]
-    eps, ws, kt, c = _media(n_re, n_im, films, cos_t)
+    etas, ws, kt, c = _media(n_re, n_im, films, cos_t)
     J = films.thick + 1  # medium index of the thick layer
-    top = _star_down(eps, ws, kt, J)
-    RB = _airy_up(eps, ws, kt, J)
+    r_top, rb_top, P_top = _star_down(etas, ws, kt, J)
+    RB = _airy_up(etas, ws, kt, J)
     z = _phase(kt[J - 1], ws[J])
-    rT = (top[0][0], top[1][0])
-    A = tuple(_mul(top[i][2], RB[i]) for i in (0, 1))
-    B = tuple(_mul(top[i][1], RB[i]) for i in (0, 1))
-    # stored once: XLA CPU otherwise fuses the stack into each of the many consumers below
-    # (and theirs: the double bounce's chains), re-computing it per output
+    A2 = _mul(P_top, RB)
+    B2 = _mul(rb_top, RB)
+    # per polarization (s, p) as (re, im) pairs
+    pol = lambda x: tuple((x[0][i], x[1][i]) for i in (0, 1))  # noqa: E731
+    rT, A, B = pol(r_top), pol(A2), pol(B2)
+    # stored once: XLA CPU otherwise fuses the stack into each of the consumers below
     z, rT, A, B = _store_tree((z, rT, A, B))
     z2 = _abs2(z)
     lobe = films.mode == "lobe"
@@ -373,8 +387,9 @@ def facet_gram(n_re, n_im, cos_t, films: Films | None, *, white: bool = False):
         g = jnp.where(aw > tiny(aw.dtype), kt[J - 1] * wJ[0] / aw_s, 0.0)
         mm = jnp.broadcast_to(films.m, c.shape)
         Q = LOBE_TERMS
-        chis = [lobe_chi(float(q), g, mm, c) for q in range(1, Q + 2)]
-        S = _store_tree([_series(chis[:Q], _mul(B[i], z), chis[Q], Q) for i in (0, 1)])
+        q = jnp.arange(1, Q + 2, dtype=c.dtype)
+        chi = lobe_chi(q, g[..., None], mm[..., None], c[..., None])  # (..., Q + 1)
+        S = _store_tree([_series(chi, _mul(B[i], z), Q) for i in (0, 1)])
 
     def pair(x, y):
         # C_0 and, for the lobe, the q != 0 terms (module docstring)
@@ -453,53 +468,38 @@ def stack_transmission(n_re, n_im, films: Films, cos_t):
     the electric-field amplitudes), by the forward star product. The power transmittance
     into a non-absorbing substrate is ``Re(w_sub) / cos t |t|^2`` for both polarizations.
     For tests and the energy balance (docs/physics/thin_films.md)."""
-    eps, ws, kt, _ = _media(n_re, n_im, films, cos_t)
-    dt = ws[0][0].dtype
-    n_c = [(jnp.ones_like(ws[0][0]), jnp.zeros_like(ws[0][0]))]
-    for fr, fi in zip(films.n_re, films.n_im, strict=True):
-        n_c.append(
-            (
-                jnp.broadcast_to(jnp.asarray(fr, dt), n_c[0][0].shape),
-                jnp.broadcast_to(jnp.asarray(fi, dt), n_c[0][0].shape),
-            )
-        )
-    n_c.append(
-        (
-            jnp.broadcast_to(jnp.asarray(n_re, dt), n_c[0][0].shape),
-            jnp.broadcast_to(jnp.asarray(n_im, dt), n_c[0][0].shape),
-        )
-    )
+    etas, ws, kt, _ = _media(n_re, n_im, films, cos_t)
 
-    def iface(j, pol):
-        r = _interface(eps[j], ws[j], eps[j + 1], ws[j + 1])[pol]
-        if pol == 0:
-            t = _div(_scale(2.0, ws[j]), _add(ws[j], ws[j + 1]))
-            tb = _div(_scale(2.0, ws[j + 1]), _add(ws[j], ws[j + 1]))
-        else:
-            nn = _mul(n_c[j], n_c[j + 1])
-            den = _add(_mul(eps[j + 1], ws[j]), _mul(eps[j], ws[j + 1]))
-            t = _div(_scale(2.0, _mul(nn, ws[j])), den)
-            tb = _div(_scale(2.0, _mul(nn, ws[j + 1])), den)
-        return r, t, tb
+    def iface(j):
+        # r and t (down), t' (up) from the admittances; for p they are the magnetic-field
+        # ratios (the electric one is t_p n_a / n_b, a product that telescopes to 1 / n_sub)
+        den = _add(etas[j], etas[j + 1])
+        return (
+            _div(_sub(etas[j], etas[j + 1]), den),
+            _div(_scale(2.0, etas[j]), den),
+            _div(_scale(2.0, etas[j + 1]), den),
+        )
 
-    out_r, out_t = [], []
     last = len(ws) - 1
-    for pol in (0, 1):
-        r, t, tb = iface(0, pol)
-        rb = (-r[0], -r[1])
-        for j in range(1, last):
-            h = _phase(0.5 * kt[j - 1], ws[j])  # exp(i k0 t w): one pass through layer j
-            z = _mul(h, h)
-            ri, ti, tbi = iface(j, pol)
-            D = _one_minus(_mul(_mul(rb, ri), z))
-            r_new = _add(r, _div(_mul(_mul(_mul(t, tb), ri), z), D))
-            rb = _sub(_div(_mul(_mul(_mul(ti, tbi), rb), z), D), ri)
-            t = _div(_mul(_mul(t, ti), h), D)
-            tb = _div(_mul(_mul(tbi, tb), h), D)
-            r = r_new
-        out_r.append(r)
-        out_t.append(t)
-    return out_r[0], out_r[1], out_t[0], out_t[1]
+    r, t, tb = iface(0)
+    rb = (-r[0], -r[1])
+    for j in range(1, last):
+        h = _sp(_phase(0.5 * kt[j - 1], ws[j]))  # exp(i k0 t w): one pass through layer j
+        z = _mul(h, h)
+        ri, ti, tbi = iface(j)
+        D = _one_minus(_mul(_mul(rb, ri), z))
+        r_new = _add(r, _div(_mul(_mul(_mul(t, tb), ri), z), D))
+        rb = _sub(_div(_mul(_mul(_mul(ti, tbi), rb), z), D), ri)
+        t = _div(_mul(_mul(t, ti), h), D)
+        tb = _div(_mul(_mul(tbi, tb), h), D)
+        r = r_new
+    dt = ws[0][0].dtype
+    sub = (
+        jnp.broadcast_to(jnp.asarray(n_re, dt), t[0].shape[1:]),
+        jnp.broadcast_to(jnp.asarray(n_im, dt), t[0].shape[1:]),
+    )
+    tp = _div((t[0][1], t[1][1]), sub)
+    return (r[0][0], r[1][0]), (r[0][1], r[1][1]), (t[0][0], t[1][0]), tp
 
 
 # --------------------------------------------------------------------------------------------
