@@ -278,15 +278,12 @@ def _aligned_films(mats: list[Material]):
     mode = thick_modes.pop() if thick_modes else "coherent"
     dt = jnp.result_type(*(jnp.real(mat.n).dtype for mat in mats))
     cdt = jnp.result_type(dt, jnp.complex64)
-    T = max((mat.thick_layer for mat in mats if mat.films), default=-1)
+    T, shifts = _film_shifts(mats)
     layers_of = []
-    for mat in mats:
+    for mat, shift in zip(mats, shifts, strict=True):
         layers = [(jnp.asarray(n, cdt), jnp.asarray(t, dt)) for n, t in mat.films]
         vac = (jnp.asarray(1.0, cdt), jnp.asarray(0.0, dt))
-        if T >= 0:
-            shift = T - mat.thick_layer if (mat.films and mat.thick_layer >= 0) else T + 1
-            layers = [vac] * shift + layers
-        layers_of.append(layers)
+        layers_of.append([vac] * shift + layers)
     L = max(len(x) for x in layers_of)
     films = []
     for j in range(L):
@@ -298,3 +295,28 @@ def _aligned_films(mats: list[Material]):
         films.append((jnp.stack(ns), jnp.stack(ts)))
     lam = jnp.full((len(mats),) + jnp.shape(mats[0].m), lams[0], dt)
     return tuple(films), lam, mode, (T if mode != "coherent" else -1)
+
+
+def _film_shifts(mats: list[Material]) -> tuple[int, list[int]]:
+    """The aligned thick-layer index ``T`` (-1: none) and the vacuum layers each part gets on
+    top (:func:`_aligned_films`)."""
+    T = max((mat.thick_layer for mat in mats if mat.films), default=-1)
+    if T < 0:
+        return T, [0] * len(mats)
+    return T, [
+        T - mat.thick_layer if (mat.films and mat.thick_layer >= 0) else T + 1 for mat in mats
+    ]
+
+
+def film_fit_layers(materials: Sequence[Material]) -> list[int | None]:
+    """Per part, the index in :func:`stack_materials`' aligned film stack of the part's
+    *fitted* layer (its thick layer if it has one, else its outermost layer; None for a bare
+    part): the layer whose thickness the inversion's ``thickness`` parameter sets."""
+    mats = list(materials)
+    if not any(mat.films for mat in mats):
+        return [None] * len(mats)
+    _, shifts = _film_shifts(mats)
+    return [
+        None if not mat.films else shift + max(mat.thick_layer, 0)
+        for mat, shift in zip(mats, shifts, strict=True)
+    ]
