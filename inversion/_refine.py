@@ -1763,8 +1763,9 @@ class SimulatorModel:
         the model, ``film_slots`` (the coated slots, in order: ``PhysicalParams.
         thickness_slots``) and ``film_thickness`` ``(K,)`` (each slot's fitted layer: the thick
         layer of a stack that has one, else its outermost; 0 for bare slots)."""
-        import ppr
         from ppr._material import film_fit_layers
+
+        import ppr
 
         mats = list(materials)
         fit = film_fit_layers(mats)

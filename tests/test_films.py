@@ -12,11 +12,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from ppr._films import Films, facet_components, facet_gram, facet_params, stack_amplitudes
+from ppr._fresnel import fresnel_amplitudes_re
 
 import ppr
 from ppr import _films
-from ppr._films import Films, facet_components, facet_gram, facet_params, stack_amplitudes
-from ppr._fresnel import fresnel_amplitudes_re
 
 LAM = 532e-9
 ANGLES = np.radians(np.array([0.0, 10.0, 30.0, 45.0, 60.0, 75.0, 85.0, 89.0]))
@@ -539,11 +539,12 @@ def test_thickness_is_fitted_with_its_cramer_rao_bound():
     # reflectance rises monotonically from the quarter wave at 65 nm to the half wave at
     # 129 nm), the Cramer-Rao bound of the thickness equals 1 / sqrt(Fisher) from central
     # differences of the expected counts, and the sampler's log posterior peaks at the truth
+    from ppr._pulse import glossy_fresnel_mueller
+
     from inversion._mcmc import PriorConfig, make_log_prob
     from inversion._noise import MeasurementModel
     from inversion._params import Parametrisation
     from inversion._refine import PoissonNoise, SimulatorModel, cramer_rao, refine
-    from ppr._pulse import glossy_fresnel_mueller
 
     mat = ppr.Material(4.1366 + 0.0338j, 30.0, films=((2.0559, 120e-9),), wavelength=LAM)
     scene = ppr.Scene(

@@ -62,9 +62,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._fresnel import _cdiv, complex_sqrt_re, fresnel_amplitudes_re, fresnel_mueller_params
 from .._safe import safe_atan2, tiny
 from .._types import Array
+from ._fresnel import _cdiv, complex_sqrt_re, fresnel_amplitudes_re, fresnel_mueller_params
 
 __all__ = [
     "FILM_MODES",
