@@ -1763,9 +1763,8 @@ class SimulatorModel:
         the model, ``film_slots`` (the coated slots, in order: ``PhysicalParams.
         thickness_slots``) and ``film_thickness`` ``(K,)`` (each slot's fitted layer: the thick
         layer of a stack that has one, else its outermost; 0 for bare slots)."""
-        from ppr._material import film_fit_layers
-
         import ppr
+        from ppr.materials import film_fit_layers
 
         mats = list(materials)
         fit = film_fit_layers(mats)

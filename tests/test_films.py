@@ -12,11 +12,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from ppr._films import Films, facet_components, facet_gram, facet_params, stack_amplitudes
-from ppr._fresnel import fresnel_amplitudes_re
 
 import ppr
-from ppr import _films
+from ppr.optics import _films
+from ppr.optics._films import Films, facet_components, facet_gram, facet_params, stack_amplitudes
+from ppr.optics._fresnel import fresnel_amplitudes_re
 
 LAM = 532e-9
 ANGLES = np.radians(np.array([0.0, 10.0, 30.0, 45.0, 60.0, 75.0, 85.0, 89.0]))
@@ -347,7 +347,7 @@ def test_thick_film_components_and_vacuum_slot():
         )
     # the double bounce's Jones chains (ppr._double._path_jones) on random two-facet paths:
     # the four component chains of the vacuum-slot stack sum to the coherent chain's coherency
-    from ppr._double import _coherency_sums, _path_jones
+    from ppr.brdf.double import _coherency_sums, _path_jones
 
     rng = np.random.default_rng(3)
 
@@ -539,12 +539,11 @@ def test_thickness_is_fitted_with_its_cramer_rao_bound():
     # reflectance rises monotonically from the quarter wave at 65 nm to the half wave at
     # 129 nm), the Cramer-Rao bound of the thickness equals 1 / sqrt(Fisher) from central
     # differences of the expected counts, and the sampler's log posterior peaks at the truth
-    from ppr._pulse import glossy_fresnel_mueller
-
     from inversion._mcmc import PriorConfig, make_log_prob
     from inversion._noise import MeasurementModel
     from inversion._params import Parametrisation
     from inversion._refine import PoissonNoise, SimulatorModel, cramer_rao, refine
+    from ppr.pulse import glossy_fresnel_mueller
 
     mat = ppr.Material(4.1366 + 0.0338j, 30.0, films=((2.0559, 120e-9),), wavelength=LAM)
     scene = ppr.Scene(

@@ -268,7 +268,7 @@ def _single_flat(
 ) -> Array:
     """Single-bounce term (plus ``add_m00`` on M00) as ``(16, ...)`` (row-major entries on a
     leading axis); ``m0`` the material's own (unbroadcast) exponent; ``films`` the facets'
-    film stack (:class:`ppr._films.Films`, broadcast like ``n_re``) or None."""
+    film stack (:class:`ppr.optics._films.Films`, broadcast like ``n_re``) or None."""
     scal, ki_s, ko_s, h = _single_scalar3(ki, ko, nr, m, m0)
     # R(b) F R(a) of the facet; the ideal white reflector (perfect conductor,
     # diag(r_s, r_p) = diag(-1, 1)) has Fresnel parameters (a, b, c, d) = (1, 0, -1, 0)

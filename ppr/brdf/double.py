@@ -360,9 +360,9 @@ def _path_jones(k, kp, d1, e, n_re, n_im, white, thr, probe=None, films=None):
     and ``(1, 1)`` at facet 2, so that ``J = a J_s + b J_p`` (``a = r_s1 r_s2``,
     ``b = r_p1 r_p2``) wherever the chain is coplanar (``C_12`` diagonal: exact backscatter).
 
-    ``films`` (:class:`ppr._films.Films`, broadcast like ``n_re``): coated facets. A thick
+    ``films`` (:class:`ppr.optics._films.Films`, broadcast like ``n_re``): coated facets. A thick
     (lobe- or phase-averaged) facet is partially depolarizing: it is the incoherent sum of two
-    Jones components (:func:`ppr._films.facet_components`), and the chain returns the four
+    Jones components (:func:`ppr.optics._films.facet_components`), and the chain returns the four
     component pairs of the two facets concatenated along the last (node) axis, so that the
     caller's coherency sum over that axis (weights tiled four times) has the exact second
     moments of independent averaged facets.

@@ -182,7 +182,7 @@ def node_products(
 ) -> Array:
     """``g_q(t_j)`` for ``q`` in (``|a|^2``, ``|b|^2``, ``Re a b*``, ``Im a b*``): ``(..., 4,
     k)``. ``white``: the ideal white facet (``r_s = -1``, ``r_p = 1``: ``a = b = 1``).
-    ``films`` (:class:`ppr._films.Films` broadcast like ``n_re``): coated facets, whose
+    ``films`` (:class:`ppr.optics._films.Films` broadcast like ``n_re``): coated facets, whose
     products are those of the facets' second moments (independent facets:
     ``<|a|^2> = G_ss(t) G_ss(pi/2 - t)``, ``<a b*> = G_sp(t) G_sp(pi/2 - t)``), exact for the
     coherent and the averaged thick-film facets alike."""

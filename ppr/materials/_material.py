@@ -80,14 +80,14 @@ class Material(eqx.Module):
     - `films`: thin-film stack on every facet, ``((n_1, t_1), (n_2, t_2), ...)`` from the
       outermost layer (facing vacuum) inward to the substrate ``n``: complex indices
       (``n'' >= 0``) and thicknesses in metres (``>= 0``; a zero-thickness layer equals no
-      layer). The facet's Jones reflection is the stack's (:mod:`ppr._films`,
+      layer). The facet's Jones reflection is the stack's (:mod:`ppr.optics._films`,
       ``docs/physics/thin_films.md``) in every BRDF term. ``()`` (default): a bare interface,
       the unchanged program.
     - `wavelength`: metres; required with ``films`` (the layers' phase thickness). Renders
       and BRDF calls check it against their own wavelength.
     - `film_mode`: treatment of a thick layer (fringes in facet angle narrower than the
       microfacet lobe): ``"auto"`` (default: coherent unless a layer is thick by
-      :data:`ppr._films.THICK_SPREAD`, then ``"lobe"``), ``"coherent"``, ``"incoherent"``
+      :data:`ppr.optics._films.THICK_SPREAD`, then ``"lobe"``), ``"coherent"``, ``"incoherent"``
       (phase-averaged thick layer) or ``"lobe"`` (averaged over the lobe). Static; resolved
       at construction (``"auto"`` needs concrete films, ``m`` and ``wavelength``).
     - `thick_layer`: index of the thick layer (static; default: chosen with the mode).

@@ -2,7 +2,7 @@ r"""Thin-film stacks on microfacets: the facet reflection of a coated surface.
 
 A coated facet is a planar stack: ambient (index 1), films ``1..L`` (outermost first, complex
 index ``n_j``, thickness ``t_j``), substrate (index ``n``). Its reflection in the facet's s/p
-frames is ``diag(r_s, r_p)`` as for a bare interface (:mod:`ppr._fresnel`), with the same
+frames is ``diag(r_s, r_p)`` as for a bare interface (:mod:`ppr.optics._fresnel`), with the same
 conventions (time ``exp(-i w t)``, ``Im n >= 0``, Hecht/Born-Wolf signs: a perfect conductor
 is ``diag(-1, +1)``). Derivation, conventions and the thick-film criterion:
 ``docs/physics/thin_films.md``.
@@ -194,7 +194,7 @@ def films_of(material, dt, batch=None) -> Films | None:
 
 
 def _w(n_re, n_im, c2):
-    """``w = sqrt(n^2 - 1 + cos^2)`` (same arithmetic as :func:`ppr._fresnel`: ``n = 1``
+    """``w = sqrt(n^2 - 1 + cos^2)`` (same arithmetic as :func:`ppr.optics._fresnel`: ``n = 1``
     gives ``w = cos`` exactly)."""
     w2_re = (n_re - 1.0) * (n_re + 1.0) - n_im * n_im + c2
     w2_im = 2.0 * n_re * n_im
@@ -418,7 +418,7 @@ def _store_tree(tree):
 
 
 def facet_params(n_re, n_im, cos_t, films: Films | None, *, white: bool = False):
-    """Mueller parameters ``(a, b, c, d)`` of the facet (:func:`ppr._fresnel.fresnel_mueller_params`
+    """Mueller parameters ``(a, b, c, d)`` of the facet (:func:`ppr.optics._fresnel.fresnel_mueller_params`
     for a bare facet: the same program)."""
     if white:
         one = jnp.ones_like(cos_t)
