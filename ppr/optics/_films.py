@@ -418,8 +418,8 @@ def _store_tree(tree):
 
 
 def facet_params(n_re, n_im, cos_t, films: Films | None, *, white: bool = False):
-    """Mueller parameters ``(a, b, c, d)`` of the facet (:func:`ppr.optics._fresnel.fresnel_mueller_params`
-    for a bare facet: the same program)."""
+    """Mueller parameters ``(a, b, c, d)`` of the facet
+    (:func:`ppr.optics._fresnel.fresnel_mueller_params` for a bare facet: the same program)."""
     if white:
         one = jnp.ones_like(cos_t)
         return one, jnp.zeros_like(cos_t), -one, jnp.zeros_like(cos_t)
