@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 
 import ppr
+from ppr.brdf import _brdf as _brdf_mod
+from ppr.materials import _library as _library_mod
 from ppr.optics import _films
 from ppr.optics._films import Films, facet_components, facet_gram, facet_params, stack_amplitudes
 from ppr.optics._fresnel import fresnel_amplitudes_re
@@ -216,14 +218,14 @@ def test_bare_materials_take_the_existing_program(monkeypatch):
     for name in ("facet_gram", "facet_params", "facet_components", "facet_amplitudes"):
         monkeypatch.setattr(_films, name, boom)
     monkeypatch.setattr(_films, "stack_amplitudes", boom)
-    monkeypatch.setattr(ppr._brdf, "facet_params", boom)
+    monkeypatch.setattr(_brdf_mod, "facet_params", boom)
     mat = ppr.Material(0.94 + 6.42j, 30.0)
     assert mat.films == () and mat.wavelength is None
     assert len(jax.tree.leaves(mat)) == 3  # n, m, corr_length: the pytree of before
     k = jnp.asarray([[0.3, 0.0, math.sqrt(1 - 0.09)]])
     kp = jnp.asarray([[-0.2, 0.1, math.sqrt(1 - 0.05)]])
     z = jnp.asarray([[0.0, 0.0, 1.0]])
-    core = ppr._brdf._brdf_core.__wrapped__
+    core = _brdf_mod._brdf_core.__wrapped__
     for names, mono, ko in [
         (("single", "multiple", "double:quadrature"), False, kp),
         (("single", "multiple", "double"), True, k),
@@ -345,7 +347,7 @@ def test_thick_film_components_and_vacuum_slot():
         np.testing.assert_allclose(
             np.array(facet_params(nr, ni, c, f)), np.array(facet_params(nr, ni, c, coh)), atol=1e-15
         )
-    # the double bounce's Jones chains (ppr._double._path_jones) on random two-facet paths:
+    # the double bounce's Jones chains (ppr.brdf.double._path_jones) on random two-facet paths:
     # the four component chains of the vacuum-slot stack sum to the coherent chain's coherency
     from ppr.brdf.double import _coherency_sums, _path_jones
 
@@ -492,7 +494,7 @@ def test_library_coated_materials_and_modes():
             assert complex(mat.n) == complex(ppr.load_material(sub, wl).n)
             assert float(mat.wavelength) == pytest.approx(wl)
         for name in ("mli_kapton_aluminium", "osr_silica_silver", "solar_cell_si_ar"):
-            for _, idx, layer in ppr._library.film_entries(name, wl):
+            for _, idx, layer in _library_mod.film_entries(name, wl):
                 assert len(idx.source) > 10 and len(layer.source) > 10
     # AR coating: a quarter wave near 600 nm lowers the normal-incidence reflectance of
     # silicon at 532 nm from ~37 % to a few per cent
