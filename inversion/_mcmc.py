@@ -166,6 +166,8 @@ class PriorConfig(StrictModel):
     # counts per (m^2 sr^-1) for SimulatorModel (PhysicalParams.gain): the single-photon
     # regime of ranging to small debris (~1-100) up to laboratory scales (~1e12), with margin
     gain: Prior1D = Prior1D(kind="loguniform", low=GAIN_RANGE[0], high=GAIN_RANGE[1])
+    # film thickness (metres) of the coated slots (PhysicalParams.thickness_slots)
+    thickness: Prior1D = Prior1D(kind="loguniform", low=1e-9, high=1e-3)
 
 
 class SamplerConfig(StrictModel):
@@ -242,6 +244,10 @@ def _log_prior_and_jacobian(param: Parametrisation, theta, priors: PriorConfig):
         lp = lp + priors.range_offset.logpdf(phys.range_offset)
     if "gain" in parts:
         lp = lp + priors.gain.logpdf(phys.gain) + parts["gain"][0]
+    if "thickness" in parts and param.reference.thickness_slots:
+        t = phys.thickness[jnp.asarray(param.reference.thickness_slots, jnp.int32)]
+        # theta = log t: log |dt / dtheta| = theta
+        lp = lp + jnp.sum(priors.thickness.logpdf(t)) + jnp.sum(parts["thickness"])
     return lp
 
 
@@ -339,6 +345,9 @@ def _check_prior_support(param: Parametrisation, theta0: np.ndarray, priors: Pri
         chk("range_offset", priors.range_offset, phys.range_offset)
     if "gain" in free:
         chk("gain", priors.gain, phys.gain)
+    if "thickness" in free and param.reference.thickness_slots:
+        slots = list(param.reference.thickness_slots)
+        chk("thickness", priors.thickness, np.asarray(phys.thickness)[slots])
     if problems:
         raise ValueError(
             "prior has no support at the starting point (the refined optimum): "

@@ -15,7 +15,12 @@ group              theta entries                   physical value
 ``corr_length``    ``log d``                       ``d = exp(.)`` (> 0)
 ``range_offset``   ``r / range_scale``             ``r`` (metres)
 ``gain``           ``log g``                       ``g = exp(.)`` (> 0)
+``thickness``      ``log t`` per coated slot       ``t = exp(.)`` (metres, > 0)
 =================  ==============================  ======================================
+
+``thickness`` is the thickness of one film layer per coated material slot (the slots listed in
+``PhysicalParams.thickness_slots``; :class:`~inversion.SimulatorModel` names them and the
+layer: the thick layer of a stack that has one, else its outermost).
 
 Quaternions are scalar-first ``(w, x, y, z)``, Hamilton product, active rotation body ->
 sensor frame (``v_sensor = q v_body q*``). The attitude perturbation is applied on the left,
@@ -48,7 +53,7 @@ __all__ = [
     "lift_start",
 ]
 
-GROUPS = ("attitude", "m", "n", "corr_length", "range_offset", "gain")
+GROUPS = ("attitude", "m", "n", "corr_length", "range_offset", "gain", "thickness")
 # Default range of the gain (counts per m^2 sr^-1, PhysicalParams.gain) for priors and bounds.
 # At the target, a pulse of energy E over a beam of area A_beam gives the fluence E / A_beam;
 # the receiver of area A_rx at range R sees the solid angle A_rx / R^2; the detector counts
@@ -70,6 +75,8 @@ M_FLOOR = 1e-9
 # would run to -inf and the solver never meet its step tolerance.
 U_N_IMAG_MIN = -20.72326583694641  # softplus^-1(1e-9) = log(expm1(1e-9))
 LOG_M_MIN = -20.72326583694641  # log(1e-9)
+# film thicknesses below this (metres, a hundredth of an atomic layer) map to it in theta
+THICKNESS_FLOOR = 1e-12
 
 
 def _softplus(u):
@@ -92,6 +99,8 @@ class PhysicalParams(eqx.Module):
     - `n`: complex refractive index per material slot ``(K,)``, ``n'' >= 0``.
     - `corr_length`: surface correlation length per material slot ``(K,)``, metres.
     - `range_offset`: one-way range offset, metres (shifts the profile to larger range).
+    - `thickness`: thickness (metres, >= 0) of the fitted film layer per material slot
+      ``(K,)``; only the slots in `thickness_slots` (static) have one (the others hold 0).
     - `gain`: overall gain, > 0: expected counts per unit of the forward model's profile. For
       :class:`~inversion.SimulatorModel` (``counts = gain x J + background`` with ``J`` the
       bin-integrated Mueller radiant intensity per unit irradiance of :func:`ppr.render`, in
@@ -107,8 +116,20 @@ class PhysicalParams(eqx.Module):
     corr_length: Float[Array, " K"]
     range_offset: Float[Array, ""]
     gain: Float[Array, ""]
+    thickness: Float[Array, " K"]
+    thickness_slots: tuple[int, ...] = eqx.field(static=True, default=())
 
-    def __init__(self, quaternion, m, n, corr_length=5e-6, range_offset=0.0, gain=1.0):
+    def __init__(
+        self,
+        quaternion,
+        m,
+        n,
+        corr_length=5e-6,
+        range_offset=0.0,
+        gain=1.0,
+        thickness=0.0,
+        thickness_slots=(),
+    ):
         dt = jnp.result_type(float)
         q = jnp.asarray(quaternion)
         if not jnp.issubdtype(q.dtype, jnp.floating):
@@ -124,6 +145,8 @@ class PhysicalParams(eqx.Module):
         self.corr_length = corr
         self.range_offset = jnp.asarray(range_offset, dt)
         self.gain = jnp.asarray(gain, dt)
+        self.thickness = jnp.broadcast_to(jnp.asarray(thickness, dt), m.shape)
+        self.thickness_slots = tuple(int(i) for i in thickness_slots)
 
     def __check_init__(self):
         concrete = not any(
@@ -134,8 +157,18 @@ class PhysicalParams(eqx.Module):
             raise ValueError(
                 f"PhysicalParams.quaternion must have shape (4,), got {self.quaternion.shape}"
             )
-        if not concrete:
+        k = int(self.m.shape[0])
+        bad = [i for i in self.thickness_slots if not 0 <= i < k]
+        if bad or len(set(self.thickness_slots)) != len(self.thickness_slots):
+            raise ValueError(
+                f"PhysicalParams.thickness_slots must be distinct material slots in [0, {k}), "
+                f"got {self.thickness_slots}"
+            )
+        if not concrete or isinstance(self.thickness, jax.core.Tracer):
             return
+        t = np.asarray(self.thickness)
+        if not np.all(np.isfinite(t)) or np.any(t < 0):
+            raise ValueError(f"PhysicalParams.thickness must be finite and >= 0 metres, got {t!r}")
         q = np.asarray(self.quaternion)
         if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-12:
             raise ValueError(f"PhysicalParams.quaternion must be finite and non-zero, got {q!r}")
@@ -203,7 +236,15 @@ class Parametrisation(eqx.Module):
 
     def _sizes(self) -> dict[str, int]:
         k = self.reference.n_materials
-        return {"attitude": 3, "m": k, "n": 2 * k, "corr_length": k, "range_offset": 1, "gain": 1}
+        return {
+            "attitude": 3,
+            "m": k,
+            "n": 2 * k,
+            "corr_length": k,
+            "range_offset": 1,
+            "gain": 1,
+            "thickness": len(self.reference.thickness_slots),
+        }
 
     @property
     def size(self) -> int:
@@ -228,6 +269,8 @@ class Parametrisation(eqx.Module):
                 out += ["range_offset [m]"]
             elif g == "gain":
                 out += ["gain"]
+            elif g == "thickness":
+                out += [f"thickness[{i}] [m]" for i in self.reference.thickness_slots]
         return out
 
     @property
@@ -249,6 +292,8 @@ class Parametrisation(eqx.Module):
                 out += ["range_offset/range_scale"]
             elif g == "gain":
                 out += ["log_gain"]
+            elif g == "thickness":
+                out += [f"log_thickness[{i}]" for i in self.reference.thickness_slots]
         return out
 
     def _split(self, theta: Array) -> dict[str, Array]:
@@ -286,7 +331,10 @@ class Parametrisation(eqx.Module):
             else ref.range_offset
         )
         gain = jnp.exp(parts["gain"][0]) if "gain" in parts else ref.gain
-        return PhysicalParams(q, m, n, corr, off, gain)
+        thick = ref.thickness.astype(theta.dtype)
+        if "thickness" in parts and ref.thickness_slots:
+            thick = thick.at[jnp.asarray(ref.thickness_slots)].set(jnp.exp(parts["thickness"]))
+        return PhysicalParams(q, m, n, corr, off, gain, thick, ref.thickness_slots)
 
     def from_physical(self, phys: PhysicalParams) -> Float[Array, " P"]:
         """Unconstrained vector of physical parameters (``m = 0`` and ``n'' = 0`` are mapped to
@@ -310,6 +358,9 @@ class Parametrisation(eqx.Module):
                 pieces.append(jnp.reshape(phys.range_offset / self.range_scale, (1,)))
             elif g == "gain":
                 pieces.append(jnp.reshape(jnp.log(phys.gain), (1,)))
+            elif g == "thickness":
+                t = phys.thickness[jnp.asarray(ref.thickness_slots, jnp.int32)]
+                pieces.append(jnp.log(jnp.maximum(t, THICKNESS_FLOOR)))
         return jnp.concatenate([jnp.asarray(p, dt) for p in pieces])
 
     def physical_vector(self, theta: Float[Array, " P"]) -> Float[Array, " P"]:
@@ -332,6 +383,9 @@ class Parametrisation(eqx.Module):
                 pieces.append(jnp.reshape(phys.range_offset, (1,)))
             elif g == "gain":
                 pieces.append(jnp.reshape(phys.gain, (1,)))
+            elif g == "thickness":
+                slots = jnp.asarray(self.reference.thickness_slots, jnp.int32)
+                pieces.append(phys.thickness[slots])
         return jnp.concatenate(pieces)
 
     def recentred(self, phys: PhysicalParams) -> Parametrisation:
@@ -353,6 +407,8 @@ def lift_start(phys: PhysicalParams, floor: float = 1e-6) -> PhysicalParams:
         phys.corr_length,
         phys.range_offset,
         phys.gain,
+        phys.thickness,
+        phys.thickness_slots,
     )
 
 

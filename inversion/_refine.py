@@ -1035,6 +1035,8 @@ def _refit_from(
         p.corr_length,
         p.range_offset + jnp.asarray(range_shift, p.range_offset.dtype),
         p.gain,
+        p.thickness,
+        p.thickness_slots,
     )
     out = refine(
         model,
@@ -1291,8 +1293,8 @@ class PhysicalBounds:
     gold 0.54, silver 0.054 at 532 nm, docs/physics.md#materials), ``n''`` in [0, 15], ``m`` in
     [0, 1e6], correlation length in [1e-8, 1e-2] m, range offset in [-1, 1] m, gain in
     :data:`~inversion._params.GAIN_RANGE` = [1e-6, 1e18] counts per (m^2 sr^-1) (wide: any
-    real measurement is inside); the attitude rotation vector is bounded by
-    ``max_rotation_deg`` about the start.
+    real measurement is inside), film thickness in [1e-9, 1e-3] m; the attitude rotation
+    vector is bounded by ``max_rotation_deg`` about the start.
     """
 
     n_re: tuple[float, float] = (0.05, 5.0)
@@ -1301,16 +1303,17 @@ class PhysicalBounds:
     corr_length: tuple[float, float] = (1e-8, 1e-2)
     range_offset: tuple[float, float] = (-1.0, 1.0)
     gain: tuple[float, float] = GAIN_RANGE
+    thickness: tuple[float, float] = (1e-9, 1e-3)
     max_rotation_deg: float = 180.0
 
     def __post_init__(self):
-        for f in ("n_re", "n_im", "m", "corr_length", "range_offset", "gain"):
+        for f in ("n_re", "n_im", "m", "corr_length", "range_offset", "gain", "thickness"):
             lo, hi = getattr(self, f)
             if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
                 raise ValueError(
                     f"PhysicalBounds.{f} must be finite with low < high, got {(lo, hi)}"
                 )
-        for f in ("n_re", "corr_length", "gain"):
+        for f in ("n_re", "corr_length", "gain", "thickness"):
             if getattr(self, f)[0] <= 0:
                 raise ValueError(
                     f"PhysicalBounds.{f} lower bound must be > 0, got {getattr(self, f)}"
@@ -1330,7 +1333,15 @@ class _BoxMap(eqx.Module):
 
     def _sizes(self):
         k = self.reference.n_materials
-        return {"attitude": 3, "m": k, "n": 2 * k, "corr_length": k, "range_offset": 1, "gain": 1}
+        return {
+            "attitude": 3,
+            "m": k,
+            "n": 2 * k,
+            "corr_length": k,
+            "range_offset": 1,
+            "gain": 1,
+            "thickness": len(self.reference.thickness_slots),
+        }
 
     def ordered(self):
         from ._params import GROUPS
@@ -1362,7 +1373,10 @@ class _BoxMap(eqx.Module):
             else ref.range_offset
         )
         gain = jnp.exp(parts["gain"][0]) if "gain" in parts else ref.gain
-        return PhysicalParams(q, m, n, d, off, gain)
+        thick = ref.thickness.astype(z.dtype)
+        if "thickness" in parts and ref.thickness_slots:
+            thick = thick.at[jnp.asarray(ref.thickness_slots)].set(jnp.exp(parts["thickness"]))
+        return PhysicalParams(q, m, n, d, off, gain, thick, ref.thickness_slots)
 
     def from_physical(self, phys):
         from ppr.geometry import quat_conjugate, quat_multiply, rotvec_from_quat
@@ -1383,6 +1397,9 @@ class _BoxMap(eqx.Module):
                 out.append(jnp.reshape(phys.range_offset / self.range_scale, (1,)))
             elif g == "gain":
                 out.append(jnp.reshape(jnp.log(phys.gain), (1,)))
+            elif g == "thickness":
+                t = phys.thickness[jnp.asarray(self.reference.thickness_slots, jnp.int32)]
+                out.append(jnp.log(jnp.maximum(t, 1e-12)))
         return jnp.concatenate([jnp.asarray(o, phys.m.dtype) for o in out])
 
     def bounds(self, b: PhysicalBounds):
@@ -1408,6 +1425,10 @@ class _BoxMap(eqx.Module):
             elif g == "gain":
                 lo.append(np.log(b.gain[0]))
                 hi.append(np.log(b.gain[1]))
+            elif g == "thickness":
+                n_t = len(self.reference.thickness_slots)
+                lo += [np.log(b.thickness[0])] * n_t
+                hi += [np.log(b.thickness[1])] * n_t
         return np.asarray(lo), np.asarray(hi)
 
 
@@ -1541,6 +1562,8 @@ def _at_bounds(box: _BoxMap, phys: PhysicalParams, bounds: PhysicalBounds) -> li
             labels += [f"n_re[{i}]" for i in range(k)] + [f"n_im[{i}]" for i in range(k)]
         elif g == "corr_length":
             labels += [f"corr_length[{i}]" for i in range(k)]
+        elif g == "thickness":
+            labels += [f"thickness[{i}]" for i in phys.thickness_slots]
         else:
             labels.append(g)
     z = np.asarray(box.from_physical(phys))
@@ -1567,6 +1590,13 @@ class SimulatorKernel(eqx.Module):
     window: int = eqx.field(static=True)
     brdf: Any = eqx.field(static=True)
     terms: Any = eqx.field(static=True)
+    # the scene's film stacks, stacked per slot (ppr.stack_materials), or None; film_fit marks
+    # per layer the slots whose layer thickness is PhysicalParams.thickness
+    films: Any = None
+    film_wavelength: Any = None
+    film_fit: Any = None
+    film_mode: str = eqx.field(static=True, default="coherent")
+    thick_layer: int = eqx.field(static=True, default=-1)
 
     def prepare(self, phys):  # pragma: no cover - the host part lives in SimulatorModel
         raise TypeError("SimulatorKernel has no visibility caster; use SimulatorModel")
@@ -1580,6 +1610,21 @@ class SimulatorKernel(eqx.Module):
         dt = self.arrays.tri.dtype
         pose = ppr.Pose(phys.unit_quaternion().astype(dt), self.position)
         mats = ppr.Material(phys.n, phys.m.astype(dt), phys.corr_length.astype(dt))
+        if self.films is not None:
+            t = phys.thickness.astype(dt)
+            films = tuple(
+                (n, jnp.where(fit, t, tj))
+                for (n, tj), fit in zip(self.films, self.film_fit, strict=True)
+            )
+            mats = ppr.Material(
+                phys.n,
+                phys.m.astype(dt),
+                phys.corr_length.astype(dt),
+                films=films,
+                wavelength=self.film_wavelength,
+                film_mode=self.film_mode,
+                thick_layer=self.thick_layer,
+            )
         arrays = self.arrays
         if isinstance(vis, ppr.FaceSubset):
             # only the facets lit and visible at the round's pose (SimulatorModel(prune=True))
@@ -1710,7 +1755,45 @@ class SimulatorModel:
             # monostatic: the double term's backscatter table, not its quadrature, in the
             # compiled residual and gradient programs
             terms=ppr.sensor_terms(brdf, terms, sensor),
+            **self._film_template(scene.materials, dt),
         )
+
+    def _film_template(self, materials, dt) -> dict:
+        """The scene's film stacks for :class:`SimulatorKernel` (slots = mesh parts) and, on
+        the model, ``film_slots`` (the coated slots, in order: ``PhysicalParams.
+        thickness_slots``) and ``film_thickness`` ``(K,)`` (each slot's fitted layer: the thick
+        layer of a stack that has one, else its outermost; 0 for bare slots)."""
+        import ppr
+        from ppr.materials import film_fit_layers
+
+        mats = list(materials)
+        fit = film_fit_layers(mats)
+        self.film_slots = tuple(i for i, j in enumerate(fit) if j is not None)
+        self.film_thickness = np.zeros(len(mats))
+        if not self.film_slots:
+            return {}
+        st = ppr.stack_materials(mats)
+        cdt = jnp.result_type(dt, jnp.complex64)
+        films = tuple((jnp.asarray(n, cdt), jnp.asarray(t, dt)) for n, t in st.films)
+        mask = np.zeros((len(films), len(mats)), bool)
+        for i, j in enumerate(fit):
+            if j is not None:
+                mask[j, i] = True
+                self.film_thickness[i] = float(np.asarray(st.films[j][1])[i])
+        return dict(
+            films=films,
+            film_wavelength=jnp.asarray(st.wavelength, dt),
+            film_fit=tuple(jnp.asarray(row) for row in mask),
+            film_mode=st.film_mode,
+            thick_layer=st.thick_layer,
+        )
+
+    def physical_params(self, quaternion, m, n, **kw) -> PhysicalParams:
+        """:class:`PhysicalParams` for this model's scene: ``thickness`` and
+        ``thickness_slots`` default to the scene's coated slots and their fitted layers."""
+        kw.setdefault("thickness", self.film_thickness)
+        kw.setdefault("thickness_slots", self.film_slots)
+        return PhysicalParams(quaternion, m, n, **kw)
 
     @property
     def n_channels(self) -> int:

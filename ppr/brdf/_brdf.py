@@ -87,6 +87,7 @@ import numpy as np
 from .._safe import float_dtype, tiny
 from .._types import Array, Float
 from ..materials._material import Material
+from ..optics._films import facet_params, films_of
 from ..optics._frames import (
     _default_frame3,
     _neg3,
@@ -263,14 +264,17 @@ def _single_scalar3(ki, ko, nr, m, m0=None):
 
 
 def _single_flat(
-    ki, ko, nr, m, n_re, n_im, x_in, x_out, white: bool, add_m00=None, m0=None
+    ki, ko, nr, m, n_re, n_im, x_in, x_out, white: bool, add_m00=None, m0=None, films=None
 ) -> Array:
     """Single-bounce term (plus ``add_m00`` on M00) as ``(16, ...)`` (row-major entries on a
-    leading axis); ``m0`` the material's own (unbroadcast) exponent."""
+    leading axis); ``m0`` the material's own (unbroadcast) exponent; ``films`` the facets'
+    film stack (:class:`ppr.optics._films.Films`, broadcast like ``n_re``) or None."""
     scal, ki_s, ko_s, h = _single_scalar3(ki, ko, nr, m, m0)
     # R(b) F R(a) of the facet; the ideal white reflector (perfect conductor,
     # diag(r_s, r_p) = diag(-1, 1)) has Fresnel parameters (a, b, c, d) = (1, 0, -1, 0)
-    params = facet_rotated_params(n_re, n_im, ki_s, ko_s, h, x_in, x_out, white=white)
+    params = facet_rotated_params(
+        n_re, n_im, ki_s, ko_s, h, x_in, x_out, white=white, films=films
+    )
     return rotated_mueller_flat(params, scal, add_m00)
 
 
@@ -322,7 +326,16 @@ def fresnel_average(material: Material, dtype=None) -> Array:
     wt = jnp.asarray(w, dt)  # 0.5 (interval) * 2 (definition) = 1
     n_re = jnp.real(material.n).astype(dt)[..., None]
     n_im = jnp.imag(material.n).astype(dt)[..., None]
-    a, _, _, _ = fresnel_mueller_params(n_re, n_im, mu)
+    films = films_of(material, dt)
+    if films is None:
+        a, _, _, _ = fresnel_mueller_params(n_re, n_im, mu)
+        return jnp.sum(a * mu * wt, axis=-1)
+    shape = jnp.broadcast_shapes(
+        jnp.shape(material.n), *(jnp.shape(x) for x in jax.tree.leaves(films))
+    )
+    films = jax.tree.map(lambda a: jnp.broadcast_to(a, shape)[..., None], films)
+    n_re, n_im = (jnp.broadcast_to(a[..., 0], shape)[..., None] for a in (n_re, n_im))
+    a, _, _, _ = facet_params(n_re, n_im, mu, films)
     return jnp.sum(a * mu * wt, axis=-1)
 
 
@@ -381,6 +394,14 @@ def _mono_core(k_in, normal, material, frame_in, frame_out, wavelength, names) -
         scal = jnp.where(valid, jnp.exp(log_s) / (4.0 * mean_cosine_n(m)), 0.0)
         if material.white:
             a0, c0 = 1.0, -1.0
+        elif material.films:
+            one = jnp.ones((), dt)
+            a0, _, c0, _ = facet_params(
+                jnp.real(material.n).astype(dt),
+                jnp.imag(material.n).astype(dt),
+                one,
+                films_of(material, dt),
+            )
         else:
             one = jnp.ones((), dt)
             a0, _, c0, _ = fresnel_mueller_params(
@@ -449,6 +470,7 @@ def single_bounce_term(
         _split(frame_out),
         material.white,
         m0=material.m.astype(dt),
+        films=films_of(material, dt, batch),
     )
     return _unflatten(flat)
 
@@ -675,7 +697,21 @@ def _validate_material(material: Material, errors: list | None = None) -> Materi
             "imaginary part must be >= 0 (absorbing medium, exp(i(kz - wt)) convention)",
             errors,
         )
-    return eqx.tree_at(lambda mt: (mt.m, mt.n), material, (m, n))
+    out = eqx.tree_at(lambda mt: (mt.m, mt.n), material, (m, n))
+    if not material.films:
+        return out
+    films = []
+    for i, (fn, ft) in enumerate(material.films):
+        name = f"material.films[{i}]"
+        fn = _check(name, fn, ~jnp.isfinite(fn), "index must be finite", errors)
+        fn = _check(name, fn, jnp.imag(fn) < 0, "index must have n'' >= 0", errors)
+        fn = _check(name, fn, jnp.real(fn) <= 0, "index must have n' > 0", errors)
+        ft = _check(name, ft, ~(ft >= 0), "thickness must be finite and >= 0 metres", errors)
+        ft = _check(name, ft, ~jnp.isfinite(ft), "thickness must be finite", errors)
+        films.append((fn, ft))
+    lam = material.wavelength
+    lam = _check("material.wavelength", lam, ~(lam > 0), "must be > 0 metres", errors)
+    return eqx.tree_at(lambda mt: (mt.films, mt.wavelength), out, (tuple(films), lam))
 
 
 # ---------------------------------------------------------------------------------------
@@ -752,12 +788,15 @@ def mueller_brdf(
             f"k_in, k_out, normal, frames: batch shapes do not broadcast: {shapes}"
         ) from err
     try:
-        batch = jnp.broadcast_shapes(batch, jnp.shape(material.m), jnp.shape(material.n))
+        batch = jnp.broadcast_shapes(
+            batch, *(jnp.shape(a) for a in jax.tree.leaves(material) if jnp.ndim(a) > 0)
+        )
     except ValueError as err:
         raise ValueError(
-            f"material: field shapes m {jnp.shape(material.m)}, n {jnp.shape(material.n)} do "
-            f"not broadcast with the directions' batch shape {batch}"
+            f"material: field shapes m {jnp.shape(material.m)}, n {jnp.shape(material.n)} "
+            f"(and film layers) do not broadcast with the directions' batch shape {batch}"
         ) from err
+    _check_film_wavelength(material, wavelength)
     inputs = (k_in, k_out, normal, frame_in, frame_out, material)
     static = dict(names=names, dt=np.dtype(dt).name, batch=tuple(batch))
     if all(_is_concrete(x) for x in jax.tree_util.tree_leaves((inputs, wavelength))):
@@ -788,6 +827,23 @@ def mueller_brdf(
         k_in, k_out, normal, material, frame_in, frame_out, wavelength, names=names, mono=mono
     )
     return _attach_errors(out, errors) if traced_checks else out
+
+
+def _check_film_wavelength(material: Material, wavelength) -> None:
+    """A coated material's layers were given at ``material.wavelength``; a concrete BRDF
+    wavelength must match it (within 1e-6 relative)."""
+    if not material.films or not (
+        _is_concrete(wavelength) and _is_concrete(material.wavelength)
+    ):
+        return
+    lam = np.asarray(material.wavelength, np.float64)
+    w = np.asarray(wavelength, np.float64)
+    if np.any(np.abs(lam - w) > 1e-6 * np.abs(w)):
+        raise ValueError(
+            f"material.wavelength = {lam.ravel()[:4]} m (its film stack) differs from the "
+            f"BRDF's wavelength = {w.ravel()[:4]} m; build the material at the wavelength "
+            "it is rendered at (ppr.load_material(name, wavelength))"
+        )
 
 
 def _same_direction(k_in, k_out) -> bool:
@@ -883,11 +939,19 @@ def _prepare(k_in, k_out, normal, frame_in, frame_out, material, *, names, dt, b
         frame_out = _validate_frame(
             "frame_out", jnp.broadcast_to(frame_out.astype(dt), batch + (3,)), k_out, errors
         )
+    cdt = jnp.result_type(dt, jnp.complex64)
     material = eqx.tree_at(
-        lambda mt: (mt.m, mt.n),
-        material,
-        (material.m.astype(dt), material.n.astype(jnp.result_type(dt, jnp.complex64))),
+        lambda mt: (mt.m, mt.n), material, (material.m.astype(dt), material.n.astype(cdt))
     )
+    if material.films:
+        material = eqx.tree_at(
+            lambda mt: (mt.films, mt.wavelength),
+            material,
+            (
+                tuple((n.astype(cdt), t.astype(dt)) for n, t in material.films),
+                material.wavelength.astype(dt),
+            ),
+        )
     return k_in, k_out, normal, frame_in, frame_out, material
 
 
@@ -922,17 +986,8 @@ def _prepare_jit(k_in, k_out, normal, frame_in, frame_out, material, *, names, d
 
     *vecs, material = out
     vecs = [None if v is None else flat(v, (3,)) for v in vecs]
-    fields = ("m", "n", "corr_length")
-    material = eqx.tree_at(
-        lambda mt: tuple(getattr(mt, f) for f in fields),
-        material,
-        tuple(
-            getattr(material, f)
-            if jnp.ndim(getattr(material, f)) == 0
-            else flat(getattr(material, f), ())
-            for f in fields
-        ),
-    )
+    # every material leaf (m, n, corr_length, film layers, wavelength) with batch axes
+    material = jax.tree.map(lambda a: a if jnp.ndim(a) == 0 else flat(a, ()), material)
     return (*vecs, material), bad
 
 
@@ -970,7 +1025,18 @@ def _brdf_core(
     f_ms = _multiple_m00(ki, ko, nr, material, m) if "multiple" in names else None
     if "single" in names:
         flat = _single_flat(
-            ki, ko, nr, m, n_re, n_im, fi, fo, material.white, f_ms, material.m.astype(dt)
+            ki,
+            ko,
+            nr,
+            m,
+            n_re,
+            n_im,
+            fi,
+            fo,
+            material.white,
+            f_ms,
+            material.m.astype(dt),
+            films_of(material, dt, batch),
         )
     elif f_ms is not None:
         flat = jnp.zeros((16,) + batch, dt).at[0].set(f_ms)

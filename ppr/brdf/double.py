@@ -213,6 +213,14 @@ INNER_ORDER: int = 16
 
 _LN2 = math.log(2.0)
 
+DOUBLE_THICK_MODE: str = "incoherent"
+"""Treatment of a thick film layer at the facets of the double bounce's quadrature: the
+phase-averaged (incoherent) facet whatever the material's ``film_mode``. The double term
+matters for rough surfaces (``m`` below ~30), where a thick layer's fringes average out over
+the lobe except within a few degrees of normal facet incidence, and its paths meet facets
+tilted ~45 deg; the lobe series at every node of the quadrature cost ~10x the bare term
+(measured difference to the lobe treatment: bench/results/films.md)."""
+
 
 # --------------------------------------------------------------------------------------------
 # small structure-of-arrays vector helpers (tuples of 3 arrays: XLA fuses them well)
@@ -343,7 +351,7 @@ def _fresnel(n_re, n_im, cos_t, white: bool):
     return fresnel_amplitudes_re(n_re, n_im, cos_t)
 
 
-def _path_jones(k, kp, d1, e, n_re, n_im, white, thr, probe=None):
+def _path_jones(k, kp, d1, e, n_re, n_im, white, thr, probe=None, films=None):
     """Jones chain of the path k -> facet 1 -> d1 -> facet 2 -> k' in frames x_in = x_out = e
     (SoA tuples). Returns the J entries as (re, im) pairs for 11, 12, 21, 22.
 
@@ -351,13 +359,42 @@ def _path_jones(k, kp, d1, e, n_re, n_im, white, thr, probe=None):
     ``"p"`` replaces the Fresnel amplitudes by ``(r_s, r_p) = (1, 0)`` or ``(0, 1)`` at facet 1
     and ``(1, 1)`` at facet 2, so that ``J = a J_s + b J_p`` (``a = r_s1 r_s2``,
     ``b = r_p1 r_p2``) wherever the chain is coplanar (``C_12`` diagonal: exact backscatter).
+
+    ``films`` (:class:`ppr.optics._films.Films`, broadcast like ``n_re``): coated facets. A thick
+    (lobe- or phase-averaged) facet is partially depolarizing: it is the incoherent sum of two
+    Jones components (:func:`ppr.optics._films.facet_components`), and the chain returns the four
+    component pairs of the two facets concatenated along the last (node) axis, so that the
+    caller's coherency sum over that axis (weights tiled four times) has the exact second
+    moments of independent averaged facets.
     """
     # cos t1 = |k + d1| / 2, cos t2 = |k' - d1| / 2 (both mirror geometries)
     a1 = tuple(x + y for x, y in zip(k, d1, strict=True))
     a2 = tuple(x - y for x, y in zip(kp, d1, strict=True))
     c1 = jnp.clip(0.5 * safe_sqrt(_sdot(a1, a1)), 0.0, 1.0)
     c2 = jnp.clip(0.5 * safe_sqrt(_sdot(a2, a2)), 0.0, 1.0)
-    if probe is None:
+    combos = None
+    if probe is None and films is not None:
+        from ..optics._films import Films, facet_amplitudes, facet_components  # noqa: PLC0415
+
+        fx = jax.tree.map(lambda a: a[..., None], films)
+        if not films.coherent and films.mode != DOUBLE_THICK_MODE:
+            fx = Films(
+                fx.n_re, fx.n_im, fx.kt, fx.m, mode=DOUBLE_THICK_MODE, thick=films.thick
+            )
+        cc = jnp.stack([c1, c2], -1)
+        if films.coherent:
+            both = facet_amplitudes(n_re[..., None], n_im[..., None], cc, fx)
+            rs1r, rs1i, rp1r, rp1i = (r[..., 0] for r in both)
+            rs2r, rs2i, rp2r, rp2i = (r[..., 1] for r in both)
+        else:
+            comp = facet_components(n_re[..., None], n_im[..., None], cc, fx)
+            # comp[c] = (x, y) amplitudes of component c at both facets (last axis 2)
+            amp = [
+                tuple((x[0][..., f], x[1][..., f], y[0][..., f], y[1][..., f]) for x, y in comp)
+                for f in (0, 1)
+            ]
+            combos = [(amp[0][i], amp[1][j]) for i in (0, 1) for j in (0, 1)]
+    elif probe is None:
         # both facets in one Fresnel evaluation (half its traced program: compile time)
         both = _fresnel(n_re[..., None], n_im[..., None], jnp.stack([c1, c2], -1), white)
         rs1r, rs1i, rp1r, rp1i = (r[..., 0] for r in both)
@@ -393,35 +430,42 @@ def _path_jones(k, kp, d1, e, n_re, n_im, white, thr, probe=None):
     b11, b12 = _sdot(e, s2), _sdot(e, p_out2)
     b21, b22 = _sdot(y_out, s2), _sdot(y_out, p_out2)
 
-    # X = diag(rs1, rp1) P_in1 (complex rows)
-    x11 = (rs1r * a11, rs1i * a11)
-    x12 = (rs1r * a12, rs1i * a12)
-    x21 = (rp1r * a21, rp1i * a21)
-    x22 = (rp1r * a22, rp1i * a22)
-
     def lin(p, q, u, w):  # p*u + q*w for real p, q and complex u, w
         return (p * u[0] + q * w[0], p * u[1] + q * w[1])
-
-    # Y = C_12 X
-    y11 = lin(c11, c12, x11, x21)
-    y12 = lin(c11, c12, x12, x22)
-    y21 = lin(c21, c22, x11, x21)
-    y22 = lin(c21, c22, x12, x22)
 
     def cmul(r, u):  # (r_re + i r_im) * u
         return (r[0] * u[0] - r[1] * u[1], r[0] * u[1] + r[1] * u[0])
 
-    # Z = diag(rs2, rp2) Y
-    z11 = cmul((rs2r, rs2i), y11)
-    z12 = cmul((rs2r, rs2i), y12)
-    z21 = cmul((rp2r, rp2i), y21)
-    z22 = cmul((rp2r, rp2i), y22)
-    # J = P_out2 Z
-    j11 = lin(b11, b12, z11, z21)
-    j12 = lin(b11, b12, z12, z22)
-    j21 = lin(b21, b22, z11, z21)
-    j22 = lin(b21, b22, z12, z22)
-    return (j11, j12, j21, j22)
+    def chain(rs1r, rs1i, rp1r, rp1i, rs2r, rs2i, rp2r, rp2i):
+        # X = diag(rs1, rp1) P_in1 (complex rows)
+        x11 = (rs1r * a11, rs1i * a11)
+        x12 = (rs1r * a12, rs1i * a12)
+        x21 = (rp1r * a21, rp1i * a21)
+        x22 = (rp1r * a22, rp1i * a22)
+        # Y = C_12 X
+        y11 = lin(c11, c12, x11, x21)
+        y12 = lin(c11, c12, x12, x22)
+        y21 = lin(c21, c22, x11, x21)
+        y22 = lin(c21, c22, x12, x22)
+        # Z = diag(rs2, rp2) Y
+        z11 = cmul((rs2r, rs2i), y11)
+        z12 = cmul((rs2r, rs2i), y12)
+        z21 = cmul((rp2r, rp2i), y21)
+        z22 = cmul((rp2r, rp2i), y22)
+        # J = P_out2 Z
+        j11 = lin(b11, b12, z11, z21)
+        j12 = lin(b11, b12, z12, z22)
+        j21 = lin(b21, b22, z11, z21)
+        j22 = lin(b21, b22, z12, z22)
+        return (j11, j12, j21, j22)
+
+    if combos is None:
+        return chain(rs1r, rs1i, rp1r, rp1i, rs2r, rs2i, rp2r, rp2i)
+    parts = [chain(*f1, *f2) for f1, f2 in combos]
+    cat = lambda *xs: jnp.concatenate(xs, axis=-1)  # noqa: E731
+    return tuple(
+        tuple(cat(*(p[a][ri] for p in parts)) for ri in (0, 1)) for a in range(4)
+    )
 
 
 def _common_frame(k, kp, normal, dt):
@@ -669,7 +713,9 @@ def _rho(p_a, p_d, f):
     return jnp.where(ok, jnp.clip((num / s) / jnp.where(ok, den / s, 1.0), 0.0, 1.0), 1.0)
 
 
-def _accumulate(k, kp, normal, e, m, n_re, n_im, *, order, inner_order, white, coef=None):
+def _accumulate(
+    k, kp, normal, e, m, n_re, n_im, *, order, inner_order, white, coef=None, films=None
+):
     """Balance-weighted sum of the h1- and h2-parametrized halves (module docstring).
 
     Both halves are one traced computation on inputs stacked along a new leading axis of 2
@@ -692,6 +738,7 @@ def _accumulate(k, kp, normal, e, m, n_re, n_im, *, order, inner_order, white, c
         order=order,
         coef=two(coef),
         white=white,
+        films=None if films is None else jax.tree.map(two, films),
     )
     return _coherency_sums(w, J, axes=(0, -1))
 
@@ -722,7 +769,9 @@ def _coherency_sums(w, J, axes):
     return jnp.stack(out + cross_re + cross_im, axis=-1)
 
 
-def _half_paths(k, kp, normal, e, m, n_re, n_im, *, reverse, order, coef, white, probe=None):
+def _half_paths(
+    k, kp, normal, e, m, n_re, n_im, *, reverse, order, coef, white, probe=None, films=None
+):
     """Nodes of one half of the quadrature: weights ``w`` (..., N), Jones entries ``J`` (4
     (re, im) pairs of (..., N)) and ``cos t`` at the path's first facet in its
     parametrization (..., N). ``sum w vec(J) vec(J)^†`` is eq. (D) without its prefactor
@@ -820,17 +869,23 @@ def _half_paths(k, kp, normal, e, m, n_re, n_im, *, reverse, order, coef, white,
     w = jnp.where(
         valid, wq * bal * rho * c1 * ((mq + 1.0) / (2.0 * math.pi)) * p2 / (4.0 * inner), 0.0
     )
+    fq = None if films is None else jax.tree.map(ex, films)
     if isinstance(reverse, bool):
         if reverse:  # parametrized by the second facet: the forward path is k' -> ... -> k
-            J = _path_jones(kpq, kq, _sneg(d1), eq, ex(n_re), ex(n_im), white, thr, probe)
+            J = _path_jones(
+                kpq, kq, _sneg(d1), eq, ex(n_re), ex(n_im), white, thr, probe, films=fq
+            )
         else:
-            J = _path_jones(kq, kpq, d1, eq, ex(n_re), ex(n_im), white, thr, probe)
+            J = _path_jones(kq, kpq, d1, eq, ex(n_re), ex(n_im), white, thr, probe, films=fq)
     else:  # per element (both halves in one batch, :func:`_accumulate`)
         rq = ex(reverse)
         first = tuple(jnp.where(rq, b, a) for a, b in zip(kq, kpq, strict=True))
         second = tuple(jnp.where(rq, a, b) for a, b in zip(kq, kpq, strict=True))
         d = tuple(jnp.where(rq, -x, x) for x in d1)
-        J = _path_jones(first, second, d, eq, ex(n_re), ex(n_im), white, thr, probe)
+        J = _path_jones(first, second, d, eq, ex(n_re), ex(n_im), white, thr, probe, films=fq)
+    reps = J[0][0].shape[-1] // w.shape[-1]
+    if reps > 1:  # thick-film facets: four Jones component pairs per node (_path_jones)
+        w = jnp.concatenate([w] * reps, axis=-1)
     return w, J, c1
 
 
@@ -846,7 +901,9 @@ def _broadcast_inputs(k_in, k_out, normal, material, frame_in, frame_out):
     return (*arrs, m, n_re, n_im, dt, batch)
 
 
-def _mueller_e_frames(k, kp, normal, e, m, n_re, n_im, gamma, *, order, inner_order, white):
+def _mueller_e_frames(
+    k, kp, normal, e, m, n_re, n_im, gamma, *, order, inner_order, white, films=None
+):
     """(..., 16) row-major Mueller matrix of the double term in the common frames e."""
     dt = k.dtype
     coef = _mcp_interpolant(m, inner_order)
@@ -862,6 +919,7 @@ def _mueller_e_frames(k, kp, normal, e, m, n_re, n_im, gamma, *, order, inner_or
         inner_order=inner_order,
         white=white,
         coef=coef,
+        films=films,
     )
     g_inc, g_x = (jnp.asarray(g, dt) for g in _linear_maps())
     m_inc = h16 @ g_inc.T
@@ -931,8 +989,21 @@ def double_bounce_term(
     else:
         gamma = jnp.zeros(batch, dt)
     white = bool(getattr(material, "white", False))
+    from ..optics._films import films_of  # noqa: PLC0415
+
     M16 = _mueller_e_frames(
-        k, kp, nrm, e, m, n_re, n_im, gamma, order=order, inner_order=inner_order, white=white
+        k,
+        kp,
+        nrm,
+        e,
+        m,
+        n_re,
+        n_im,
+        gamma,
+        order=order,
+        inner_order=inner_order,
+        white=white,
+        films=films_of(material, dt, batch),
     )
     return jnp.where(v3[..., None], _to_user_frames(M16, k, kp, e, f_in, f_out), 0.0)
 

@@ -177,9 +177,15 @@ def angle_basis(t: Array, k: int) -> Array:
     return jnp.where(jnp.any(at, axis=-1, keepdims=True), at.astype(dt), lam)
 
 
-def node_products(n_re: Array, n_im: Array, k: int, *, white: bool = False) -> Array:
+def node_products(
+    n_re: Array, n_im: Array, k: int, *, white: bool = False, films=None
+) -> Array:
     """``g_q(t_j)`` for ``q`` in (``|a|^2``, ``|b|^2``, ``Re a b*``, ``Im a b*``): ``(..., 4,
-    k)``. ``white``: the ideal white facet (``r_s = -1``, ``r_p = 1``: ``a = b = 1``)."""
+    k)``. ``white``: the ideal white facet (``r_s = -1``, ``r_p = 1``: ``a = b = 1``).
+    ``films`` (:class:`ppr.optics._films.Films` broadcast like ``n_re``): coated facets, whose
+    products are those of the facets' second moments (independent facets:
+    ``<|a|^2> = G_ss(t) G_ss(pi/2 - t)``, ``<a b*> = G_sp(t) G_sp(pi/2 - t)``), exact for the
+    coherent and the averaged thick-film facets alike."""
     dt = n_re.dtype
     if white:
         g = np.zeros((4, k))
@@ -188,6 +194,18 @@ def node_products(n_re: Array, n_im: Array, k: int, *, white: bool = False) -> A
     _, t, _ = lobatto(k)
     c = jnp.asarray(np.cos(t), dt)
     ex = lambda a: a[..., None]  # noqa: E731
+    if films is not None:
+        from ..optics._films import facet_gram  # noqa: PLC0415
+
+        leaves = jax.tree.leaves(films)
+        shape = jnp.broadcast_shapes(n_re.shape, *(jnp.shape(a) for a in leaves))
+        fx = jax.tree.map(lambda a: ex(jnp.broadcast_to(a, shape)), films)
+        nb = [ex(jnp.broadcast_to(a, shape)) for a in (n_re, n_im)]
+        gss, gpp, gr, gi = facet_gram(nb[0], nb[1], c, fx)
+        rev = lambda a: a[..., ::-1]  # noqa: E731
+        sp_re = gr * rev(gr) - gi * rev(gi)
+        sp_im = gr * rev(gi) + gi * rev(gr)
+        return jnp.stack([gss * rev(gss), gpp * rev(gpp), sp_re, sp_im], axis=-2)
     rs_r, rs_i, rp_r, rp_i = fresnel_amplitudes_re(ex(n_re), ex(n_im), c)
     # the complementary angle pi/2 - t_j is the node k-1-j (symmetric nodes)
     rev = lambda a: a[..., ::-1]  # noqa: E731
@@ -475,7 +493,15 @@ def backscatter_local(k3, n3, material, m, dt, batch, scale) -> tuple[Array, Arr
     white = bool(getattr(material, "white", False))
     n_re0 = jnp.real(jnp.asarray(material.n)).astype(dt)
     n_im0 = jnp.imag(jnp.asarray(material.n)).astype(dt)
-    g = node_products(n_re0, n_im0, tab.k, white=white)  # (..., 4, k), material's own shape
+    from ..optics._films import films_of  # noqa: PLC0415
+
+    films = films_of(material, dt)
+    if films is not None:
+        leaves = jax.tree.leaves(films)
+        fshape = jnp.broadcast_shapes(n_re0.shape, *(jnp.shape(a) for a in leaves))
+        n_re0, n_im0 = (jnp.broadcast_to(a, fshape) for a in (n_re0, n_im0))
+    # (..., 4, k), material's own shape
+    g = node_products(n_re0, n_im0, tab.k, white=white, films=films)
     V = jnp.asarray(tab.V, dt)  # (r, 4, 16)
     if g.ndim == 2 and jnp.ndim(material.m) == 0 and math.prod(batch) >= ONE_MATERIAL_MIN_BATCH:
         # one material for the whole batch: fold it into the (k r, 16) map and interpolate

@@ -4,10 +4,11 @@ library (``configs/materials.toml``: :func:`load_material`, :func:`material_name
 :func:`finish_names`, :func:`load_library`)."""
 
 from ._library import finish_names, load_library, load_material, material_names
-from ._material import Material, stack_materials
+from ._material import Material, film_fit_layers, stack_materials
 
 __all__ = [
     "Material",
+    "film_fit_layers",
     "finish_names",
     "load_library",
     "load_material",

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 from pathlib import Path
+from typing import Literal
 
 import jax.numpy as jnp
 import pydantic
@@ -17,7 +18,14 @@ from .._config import ConfigError, StrictModel, read_toml, validate_data
 from ..optics.conventions import DEFAULT_WAVELENGTH_M
 from ._material import Material
 
-__all__ = ["DEFAULT_LIBRARY", "MaterialLibrary", "load_library", "load_material", "material_names"]
+__all__ = [
+    "DEFAULT_LIBRARY",
+    "MaterialLibrary",
+    "film_entries",
+    "load_library",
+    "load_material",
+    "material_names",
+]
 
 _REPO_LIBRARY = Path(__file__).resolve().parents[2] / "configs" / "materials.toml"
 # a wheel install carries a copy (pyproject: force-include) inside the package
@@ -42,19 +50,46 @@ class IndexEntry(StrictModel):
     approximate: bool = False
 
 
+class FilmEntry(StrictModel):
+    """One layer of a coated material: a bare library material (its index at the same
+    wavelength) and a thickness."""
+
+    material: str
+    thickness_m: float = pydantic.Field(ge=0.0, le=1e-2)
+    source: str = pydantic.Field(min_length=3)
+
+
 class MaterialEntry(StrictModel):
     description: str = ""
     default_finish: str
-    index: list[IndexEntry] = pydantic.Field(min_length=1)
+    index: list[IndexEntry] | None = pydantic.Field(default=None, min_length=1)
+    substrate: str | None = None
+    films: list[FilmEntry] = []
+    film_mode: Literal["auto", "coherent", "incoherent", "lobe"] = "auto"
 
     @pydantic.field_validator("index")
     @classmethod
-    def _unique_wavelengths(cls, v: list[IndexEntry]) -> list[IndexEntry]:
+    def _unique_wavelengths(cls, v: list[IndexEntry] | None) -> list[IndexEntry] | None:
+        if v is None:
+            return v
         wl = sorted(e.wavelength_nm for e in v)
         for a, b in zip(wl, wl[1:], strict=False):
             if b - a <= _WAVELENGTH_TOL_NM:
                 raise ValueError(f"duplicate wavelength {b} nm")
         return v
+
+    @pydantic.model_validator(mode="after")
+    def _bare_or_coated(self) -> MaterialEntry:
+        if (self.index is None) == (self.substrate is None):
+            raise ValueError(
+                "give exactly one of index (a bare material) and substrate (a coated one, "
+                "with films)"
+            )
+        if self.substrate is not None and not self.films:
+            raise ValueError("a coated material (substrate = ...) needs at least one film")
+        if self.index is not None and self.films:
+            raise ValueError("films need substrate = <bare material>, not index entries")
+        return self
 
 
 class MaterialLibrary(StrictModel):
@@ -69,6 +104,16 @@ class MaterialLibrary(StrictModel):
                     f"materials.{name}.default_finish = {mat.default_finish!r} is not one of the "
                     f"finishes {sorted(self.finishes)}"
                 )
+            refs = [("substrate", mat.substrate)] if mat.substrate else []
+            refs += [(f"films[{i}].material", f.material) for i, f in enumerate(mat.films)]
+            for field, ref in refs:
+                other = self.materials.get(ref)
+                if other is None or other.index is None:
+                    bare = sorted(k for k, v in self.materials.items() if v.index is not None)
+                    raise ValueError(
+                        f"materials.{name}.{field} = {ref!r} is not a bare library material "
+                        f"(one of {bare})"
+                    )
         return self
 
 
@@ -106,6 +151,8 @@ def _material_entry(lib: MaterialLibrary, name: str) -> MaterialEntry:
 
 
 def _index_at(entry: MaterialEntry, name: str, wavelength: float | int) -> IndexEntry:
+    """Index entry of a *bare* material at a wavelength (coated ones: resolve the substrate
+    first, :func:`_substrate_entry`)."""
     try:
         wl_nm = float(wavelength) * 1e9
     except (TypeError, ValueError):
@@ -148,7 +195,7 @@ def load_material(
     """
     lib = load_library(path)
     entry = _material_entry(lib, name)
-    idx = _index_at(entry, name, wavelength)
+    idx = _index_at(_substrate_entry(lib, entry), name, wavelength)
     fin_name = entry.default_finish if finish is None else finish
     if fin_name not in lib.finishes:
         avail = ", ".join(sorted(lib.finishes))
@@ -158,17 +205,48 @@ def load_material(
     if not jnp.issubdtype(fdt, jnp.floating):
         raise ValueError(f"dtype must be a real float dtype, got {dtype!r}")
     cdt = jnp.result_type(fdt, jnp.complex64)
+    films = ()
+    if entry.films:
+        films = tuple(
+            (
+                jnp.asarray(complex(e.n, e.k), cdt),
+                jnp.asarray(f.thickness_m, fdt),
+            )
+            for f in entry.films
+            for e in [_index_at(lib.materials[f.material], f.material, wavelength)]
+        )
     return Material(
         n=jnp.asarray(complex(idx.n, idx.k), cdt),
         m=jnp.asarray(fin.m, fdt),
         corr_length=jnp.asarray(fin.corr_length, fdt),
         name=f"{name}/{fin_name}@{idx.wavelength_nm:g}nm",
+        films=films,
+        wavelength=jnp.asarray(float(wavelength), fdt) if films else None,
+        film_mode=entry.film_mode,
     )
+
+
+def _substrate_entry(lib: MaterialLibrary, entry: MaterialEntry) -> MaterialEntry:
+    return entry if entry.substrate is None else lib.materials[entry.substrate]
 
 
 def index_entry(
     name: str, wavelength: float | int = DEFAULT_WAVELENGTH_M, path: str | Path | None = None
 ) -> IndexEntry:
-    """The raw library entry (index, source, approximate flag) of a material at a wavelength."""
+    """The raw library entry (index, source, approximate flag) of a material at a wavelength
+    (a coated material's: its substrate's)."""
     lib = load_library(path)
-    return _index_at(_material_entry(lib, name), name, wavelength)
+    return _index_at(_substrate_entry(lib, _material_entry(lib, name)), name, wavelength)
+
+
+def film_entries(
+    name: str, wavelength: float | int = 532e-9, path: str | Path | None = None
+) -> list[tuple[str, IndexEntry, FilmEntry]]:
+    """A coated material's layers (outermost first): ``(film material, its index entry at
+    the wavelength, the layer entry with thickness and source)``; ``[]`` for a bare one."""
+    lib = load_library(path)
+    entry = _material_entry(lib, name)
+    return [
+        (f.material, _index_at(lib.materials[f.material], f.material, wavelength), f)
+        for f in entry.films
+    ]

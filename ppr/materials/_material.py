@@ -32,6 +32,32 @@ def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
+def _as_films(films) -> tuple:
+    """``((n_1, t_1), ...)`` with complex indices and float thicknesses (arrays)."""
+    if films is None:
+        return ()
+    try:
+        layers = tuple(films)
+    except TypeError:
+        raise ValueError(
+            f"Material.films must be a sequence of (n, thickness) pairs, got {films!r}"
+        ) from None
+    out = []
+    for i, layer in enumerate(layers):
+        try:
+            n, t = layer
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"Material.films[{i}] must be a pair (n, thickness_m), got {layer!r}"
+            ) from None
+        out.append((_as_complex(n), _as_float(t)))
+    return tuple(out)
+
+
+def _as_opt_float(x):
+    return None if x is None else _as_float(x)
+
+
 class Material(eqx.Module):
     """Optical constants and finish of one surface.
 
@@ -51,6 +77,21 @@ class Material(eqx.Module):
       When ``white`` is set, ``n`` is ignored by the BRDF. Build one with
       :meth:`Material.ideal_white`.
 
+    - `films`: thin-film stack on every facet, ``((n_1, t_1), (n_2, t_2), ...)`` from the
+      outermost layer (facing vacuum) inward to the substrate ``n``: complex indices
+      (``n'' >= 0``) and thicknesses in metres (``>= 0``; a zero-thickness layer equals no
+      layer). The facet's Jones reflection is the stack's (:mod:`ppr.optics._films`,
+      ``docs/physics/thin_films.md``) in every BRDF term. ``()`` (default): a bare interface,
+      the unchanged program.
+    - `wavelength`: metres; required with ``films`` (the layers' phase thickness). Renders
+      and BRDF calls check it against their own wavelength.
+    - `film_mode`: treatment of a thick layer (fringes in facet angle narrower than the
+      microfacet lobe): ``"auto"`` (default: coherent unless a layer is thick by
+      :data:`ppr.optics._films.THICK_SPREAD`, then ``"lobe"``), ``"coherent"``, ``"incoherent"``
+      (phase-averaged thick layer) or ``"lobe"`` (averaged over the lobe). Static; resolved
+      at construction (``"auto"`` needs concrete films, ``m`` and ``wavelength``).
+    - `thick_layer`: index of the thick layer (static; default: chosen with the mode).
+
     Batched materials (leading axes on every field) are allowed; kernels ``vmap`` over them.
     Concrete (non-traced) values are validated at construction with a ``ValueError`` that names
     the field; traced values are checked inside kernels with ``eqx.error_if``.
@@ -61,6 +102,24 @@ class Material(eqx.Module):
     corr_length: Array = eqx.field(converter=_as_float, default=5e-6)
     name: str = eqx.field(static=True, default="")
     white: bool = eqx.field(static=True, default=False)
+    films: tuple = eqx.field(converter=_as_films, default=())
+    wavelength: Array | None = eqx.field(converter=_as_opt_float, default=None)
+    film_mode: str = eqx.field(static=True, default="auto")
+    thick_layer: int | None = eqx.field(static=True, default=None)
+
+    def __post_init__(self):
+        from ..optics._films import resolve_film_mode  # noqa: PLC0415
+
+        self.films = _as_films(self.films)
+        mode, thick = resolve_film_mode(
+            self.films,
+            None if self.wavelength is None else _as_float(self.wavelength),
+            _as_float(self.m),
+            self.film_mode,
+            self.thick_layer,
+        )
+        self.film_mode = mode
+        self.thick_layer = thick
 
     def __check_init__(self):
         for field in ("n", "m", "corr_length"):
@@ -70,6 +129,38 @@ class Material(eqx.Module):
             a = np.asarray(v)
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"Material.{field} must be finite, got {a!r}")
+        if self.films:
+            if self.white:
+                raise ValueError(
+                    "Material: an ideal white reflector (white=True) has no film stack; "
+                    f"got films with {len(self.films)} layers"
+                )
+            if self.wavelength is None:
+                raise ValueError(
+                    "Material.wavelength (metres) is required with films (the layers' phase "
+                    "thickness), got None"
+                )
+            if _is_concrete(self.wavelength):
+                lam = np.asarray(self.wavelength)
+                if not np.all(np.isfinite(lam)) or np.any(lam <= 0) or np.any(lam > 1e-3):
+                    raise ValueError(
+                        f"Material.wavelength must be in metres (e.g. 532e-9), got {lam!r}"
+                    )
+            for i, (n, t) in enumerate(self.films):
+                if _is_concrete(n):
+                    a = np.asarray(n)
+                    if not np.all(np.isfinite(a)) or np.any(a.real <= 0) or np.any(a.imag < 0):
+                        raise ValueError(
+                            f"Material.films[{i}] index must be finite with n' > 0 and "
+                            f"n'' >= 0, got {a!r}"
+                        )
+                if _is_concrete(t):
+                    a = np.asarray(t)
+                    if not np.all(np.isfinite(a)) or np.any(a < 0):
+                        raise ValueError(
+                            f"Material.films[{i}] thickness must be finite and >= 0 metres, "
+                            f"got {a!r}"
+                        )
         if _is_concrete(self.n) and np.any(np.imag(np.asarray(self.n)) < 0):
             raise ValueError(
                 f"Material.n must have a non-negative imaginary part (absorbing medium, "
@@ -104,6 +195,11 @@ class Material(eqx.Module):
     def dtype(self):
         """Real float dtype the material computes in."""
         return jnp.finfo(self.n.dtype).dtype
+
+    @property
+    def coated(self) -> bool:
+        """The material has a film stack."""
+        return bool(self.films)
 
 
 def stack_materials(materials: Sequence[Material], *, multiple: int = 1) -> Material:
@@ -140,4 +236,87 @@ def stack_materials(materials: Sequence[Material], *, multiple: int = 1) -> Mate
         a = jnp.stack([jnp.asarray(getattr(mat, field)) for mat in mats])
         return a.astype(a.dtype)
 
-    return Material(st("n"), st("m"), st("corr_length"), name="stacked", white=white[0])
+    if not any(mat.films for mat in mats):
+        return Material(st("n"), st("m"), st("corr_length"), name="stacked", white=white[0])
+    films, lam, mode, thick = _aligned_films(mats)
+    return Material(
+        st("n"),
+        st("m"),
+        st("corr_length"),
+        name="stacked",
+        white=white[0],
+        films=films,
+        wavelength=lam,
+        film_mode=mode,
+        thick_layer=thick,
+    )
+
+
+def _aligned_films(mats: list[Material]):
+    """The parts' film stacks padded to one layer count with the thick layers (if any) at
+    one index, stacked: ``(films, wavelength, mode, thick_layer)``. Padding layers have zero
+    thickness, vacuum on top (``r = 0``: exact) or the part's substrate index at the bottom
+    (``r = 0``: exact); a part without a thick layer in a thick batch gets a vacuum layer at
+    the thick index, where the thick-layer treatment reduces to the coherent stack exactly
+    (no multiple reflections in a layer with ``r = 0`` above it). Bare parts become
+    zero-thickness stacks (their reflection to rounding)."""
+    coated = [i for i, mat in enumerate(mats) if mat.films]
+    lams = [float(np.asarray(mats[i].wavelength).reshape(-1)[0]) for i in coated]
+    for i, lam in zip(coated, lams, strict=True):
+        if abs(lam - lams[0]) > 1e-6 * lams[0]:
+            raise ValueError(
+                f"stack_materials: coated parts {coated[0]} and {i} have different "
+                f"wavelengths ({lams[0]!r} and {lam!r} m); render one wavelength at a time"
+            )
+    thick_modes = {mats[i].film_mode for i in coated if mats[i].thick_layer >= 0}
+    if len(thick_modes) > 1:
+        raise ValueError(
+            "stack_materials: parts treat their thick film layers differently "
+            f"({sorted(thick_modes)} by part: "
+            f"{[(i, mats[i].film_mode) for i in coated]}); give them one film_mode"
+        )
+    mode = thick_modes.pop() if thick_modes else "coherent"
+    dt = jnp.result_type(*(jnp.real(mat.n).dtype for mat in mats))
+    cdt = jnp.result_type(dt, jnp.complex64)
+    T, shifts = _film_shifts(mats)
+    layers_of = []
+    for mat, shift in zip(mats, shifts, strict=True):
+        layers = [(jnp.asarray(n, cdt), jnp.asarray(t, dt)) for n, t in mat.films]
+        vac = (jnp.asarray(1.0, cdt), jnp.asarray(0.0, dt))
+        layers_of.append([vac] * shift + layers)
+    L = max(len(x) for x in layers_of)
+    films = []
+    for j in range(L):
+        ns, ts = [], []
+        for mat, layers in zip(mats, layers_of, strict=True):
+            n, t = layers[j] if j < len(layers) else (jnp.asarray(mat.n, cdt), jnp.zeros((), dt))
+            ns.append(jnp.broadcast_to(n, jnp.shape(mat.m)).astype(cdt))
+            ts.append(jnp.broadcast_to(t, jnp.shape(mat.m)).astype(dt))
+        films.append((jnp.stack(ns), jnp.stack(ts)))
+    lam = jnp.full((len(mats),) + jnp.shape(mats[0].m), lams[0], dt)
+    return tuple(films), lam, mode, (T if mode != "coherent" else -1)
+
+
+def _film_shifts(mats: list[Material]) -> tuple[int, list[int]]:
+    """The aligned thick-layer index ``T`` (-1: none) and the vacuum layers each part gets on
+    top (:func:`_aligned_films`)."""
+    T = max((mat.thick_layer for mat in mats if mat.films), default=-1)
+    if T < 0:
+        return T, [0] * len(mats)
+    return T, [
+        T - mat.thick_layer if (mat.films and mat.thick_layer >= 0) else T + 1 for mat in mats
+    ]
+
+
+def film_fit_layers(materials: Sequence[Material]) -> list[int | None]:
+    """Per part, the index in :func:`stack_materials`' aligned film stack of the part's
+    *fitted* layer (its thick layer if it has one, else its outermost layer; None for a bare
+    part): the layer whose thickness the inversion's ``thickness`` parameter sets."""
+    mats = list(materials)
+    if not any(mat.films for mat in mats):
+        return [None] * len(mats)
+    _, shifts = _film_shifts(mats)
+    return [
+        None if not mat.films else shift + max(mat.thick_layer, 0)
+        for mat, shift in zip(mats, shifts, strict=True)
+    ]

@@ -333,16 +333,24 @@ def facet_jones_in_beam_frames(
     return jax_complex(re, im)
 
 
-def facet_rotated_params(n_re, n_im, k_in, k_out, h, x_in, x_out, *, white: bool = False):
+def facet_rotated_params(
+    n_re, n_im, k_in, k_out, h, x_in, x_out, *, white: bool = False, films=None
+):
     """``(a, b, c, d, Ca, Sa, Cb, Sb)``: the facet's Fresnel Mueller parameters
     (:func:`ppr.optics._fresnel.fresnel_mueller_params`; the ideal white reflector ``(1, 0, -1, 0)``
-    if ``white``) and ``cos 2a, sin 2a, cos 2b, sin 2b`` of the rotations ``x_in -> s`` about
-    ``-k_in`` and ``s -> x_out`` about ``+k_out``. Arguments as in
-    :func:`facet_mueller_in_beam_frames`; vectors ``(..., 3)`` or SoA tuples."""
+    if ``white``; the film stack's, :func:`ppr.optics._films.facet_params`, for ``films``, a
+    :class:`ppr.optics._films.Films` broadcastable with ``n_re``) and ``cos 2a, sin 2a, cos 2b,
+    sin 2b`` of the rotations ``x_in -> s`` about ``-k_in`` and ``s -> x_out`` about
+    ``+k_out``. Arguments as in :func:`facet_mueller_in_beam_frames`; vectors ``(..., 3)`` or
+    SoA tuples."""
     n_re, n_im, k_in, k_out, x_in, x_out, cos_t = _prep3(n_re, n_im, k_in, k_out, h, x_in, x_out)
     if white:
         one = jnp.ones_like(cos_t)
         a, b, c, d = one, jnp.zeros_like(cos_t), -one, jnp.zeros_like(cos_t)
+    elif films is not None:
+        from ._films import facet_params  # noqa: PLC0415
+
+        a, b, c, d = facet_params(n_re, n_im, cos_t, films)
     else:
         a, b, c, d = fresnel_mueller_params(n_re, n_im, cos_t)
     s, _, p_out = _facet_frames3(k_in, k_out)

@@ -1314,7 +1314,7 @@ def _visibility_gaussian(m, c):
     return jnp.clip(jnp.where(den_ok, p, jnp.where(ok, 0.0, 1.0)), 0.0, 1.0).astype(dt)
 
 
-def _specular_factor(k_in, k_out, normal, m, n_re, n_im, x_in, x_out, white):
+def _specular_factor(k_in, k_out, normal, m, n_re, n_im, x_in, x_out, white, films=None):
     """``F_M(k_in -> k_out) P(k|k') / (4 (k.n)(k'.n))`` as ``(16, P)``: the single-bounce term
     without its lobe ``D(h)`` (as :func:`ppr.brdf._brdf._single_scalar3`, shadowing from
     :func:`_visibility_gaussian`)."""
@@ -1334,7 +1334,7 @@ def _specular_factor(k_in, k_out, normal, m, n_re, n_im, x_in, x_out, white):
     g = (1.0 - f) * vi * vo + f * jnp.exp(log_min)
     scal = jnp.where(valid, 0.25 * g, 0.0)
     params = facet_rotated_params(
-        n_re, n_im, ki_s, ko_s, h, _split(x_in), _split(x_out), white=white
+        n_re, n_im, ki_s, ko_s, h, _split(x_in), _split(x_out), white=white, films=films
     )
     return rotated_mueller_flat(params, scal)
 
@@ -1431,6 +1431,8 @@ def macro_profile(
         mij = jax.tree_util.tree_map(lambda a, b: cat(rep(a), rep(b)), mi, mj)
         g_args = (cat(ub_in_s, -ks), cat(ks, ub_out_s), cat(ni_s, nj_s), mij)
         g_frames = (cat(fr_tx, xk_g), cat(xk_g, fr_rx))
+        from ..optics._films import films_of  # noqa: PLC0415
+
         spec = _to44(
             _specular_factor(
                 *g_args[:3],
@@ -1439,6 +1441,7 @@ def macro_profile(
                 jnp.imag(mij.n).astype(dt),
                 *g_frames,
                 white,
+                films_of(mij, dt),
             )
         )
         if pairs.mixed:

@@ -242,8 +242,22 @@ def glossy_fresnel_mueller(
     m = material.m
     lobe = (m + 2.0) / (2.0 * jnp.pi) * safe_pow(jnp.clip(cos_h, 0.0, 1.0), m) / jnp.pi
     n = material.n
-    mm = facet_mueller_in_beam_frames(jnp.real(n), jnp.imag(n), k_in, k_out, h, frame_in, frame_out)
-    return mm * lobe[..., None, None]
+    if not material.films:
+        mm = facet_mueller_in_beam_frames(
+            jnp.real(n), jnp.imag(n), k_in, k_out, h, frame_in, frame_out
+        )
+        return mm * lobe[..., None, None]
+    from ..optics._films import films_of  # noqa: PLC0415
+    from ..optics._frames import facet_rotated_params, rotated_mueller_flat  # noqa: PLC0415
+
+    batch = jnp.shape(lobe)
+    dt = lobe.dtype
+    films = films_of(material, dt, batch)
+    n_re, n_im = (jnp.broadcast_to(a.astype(dt), batch) for a in (jnp.real(n), jnp.imag(n)))
+    flat = rotated_mueller_flat(
+        facet_rotated_params(n_re, n_im, k_in, k_out, h, frame_in, frame_out, films=films), lobe
+    )
+    return jnp.moveaxis(flat, 0, -1).reshape(batch + (4, 4))
 
 
 def _default_brdf():

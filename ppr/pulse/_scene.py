@@ -311,6 +311,15 @@ class Scene(eqx.Module):
                 raise ValueError(
                     f"Scene.materials[{i}] must be a ppr.Material, got {type(m).__name__}"
                 )
+            lam = m.wavelength
+            if m.films and not isinstance(lam, jax.core.Tracer):
+                lam_s = float(np.asarray(self.sensor.wavelength))
+                if np.any(np.abs(np.asarray(lam, np.float64) - lam_s) > 1e-6 * lam_s):
+                    raise ValueError(
+                        f"Scene.materials[{i}] (part {self.mesh.parts[i]!r}, "
+                        f"{m.name or 'coated'}): its film stack is given at wavelength "
+                        f"{np.asarray(lam).ravel()[0]!r} m, the sensor's is {lam_s!r} m"
+                    )
         r = math.isqrt(int(self.vis_samples))
         if r * r != self.vis_samples or r < 1:
             raise ValueError(
@@ -436,11 +445,19 @@ class MeshFileConfig(StrictModel):
     part_names: dict[str, str] = pydantic.Field({}, description="rename parts: file -> config")
 
 
+class InlineFilm(StrictModel):
+    n_real: float = pydantic.Field(gt=0)
+    n_imag: float = pydantic.Field(default=0.0, ge=0)
+    thickness_m: float = pydantic.Field(ge=0, le=1e-2)
+
+
 class InlineMaterial(StrictModel):
     n_real: float = pydantic.Field(gt=0)
     n_imag: float = pydantic.Field(default=0.0, ge=0)
     m: float = pydantic.Field(ge=0, le=1e6)
     corr_length_m: float = pydantic.Field(default=5e-6, gt=0)
+    films: list[InlineFilm] = []
+    film_mode: Literal["auto", "coherent", "incoherent", "lobe"] = "auto"
 
 
 class PoseConfig(StrictModel):
@@ -493,9 +510,19 @@ class SceneConfig(StrictModel):
 
 def _material_from_config(spec, wavelength: float, where: str) -> Material:
     if isinstance(spec, InlineMaterial):
-        return Material(
-            complex(spec.n_real, spec.n_imag), spec.m, spec.corr_length_m, name="inline"
-        )
+        films = tuple((complex(f.n_real, f.n_imag), f.thickness_m) for f in spec.films)
+        try:
+            return Material(
+                complex(spec.n_real, spec.n_imag),
+                spec.m,
+                spec.corr_length_m,
+                name="inline",
+                films=films,
+                wavelength=wavelength if films else None,
+                film_mode=spec.film_mode,
+            )
+        except ValueError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
     from ..materials._library import load_material  # noqa: PLC0415
 
     name, slash, finish = spec.partition("/")
