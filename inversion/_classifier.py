@@ -16,8 +16,9 @@ observation in bins (``x(b) ~ y(b - k)``), refined to sub-bin precision by a par
 the scores at ``k - 1, k, k + 1``.
 
 Template spectra are precomputed once per weight design (:func:`prepare`) and scored in
-fixed-size chunks by one jitted function (padding rows score ``-inf``), so the template bank
-never triggers recompilation beyond its chunk shape; the top-k over all chunks are returned.
+equal chunks by one jitted function (padding rows score ``-inf``; at most 4096 rows, sized
+to the bank so that little is padding), so a bank compiles one chunk shape; the top-k over all
+chunks are returned.
 
 Weight designs (:func:`design_weights`) for a target attribute with class labels ``l``
 (shape, material, finish, or attitude = (shape, attitude index)) use per-feature between-class
@@ -151,7 +152,9 @@ def prepare(
         raise ValueError("weights must be finite, non-negative and not all zero")
     n_fft = _n_fft(b)
     t = len(bank)
-    chunk = (4096 if rank is None else 32768) if chunk is None else int(chunk)
+    if chunk is None:  # at most 4096 (32768) rows, as few chunks as that allows, little padding
+        n_chunks = -(-t // (4096 if rank is None else 32768))
+        chunk = t if n_chunks == 1 else -(-t // (64 * n_chunks)) * 64
     chunk = int(min(chunk, t))
     n_chunks = -(-t // chunk)
     wj = jnp.asarray(w)
@@ -243,20 +246,44 @@ def _obs_terms(x, w_re, w_im, *, n_fft, b, max_shift):
     return rhs, xnorm
 
 
+def _pick_max(a, b):
+    """Reducer of :func:`_lag_max`: the larger score, the lower lag on a tie (``argmax``'s
+    choice), carrying the lag and the scores of its two neighbours along."""
+    (sa, ia, la, ha), (sb, ib, lb, hb) = a, b
+    take_a = (sa > sb) | ((sa == sb) & (ia < ib))
+    return tuple(jnp.where(take_a, u, v) for u, v in ((sa, sb), (ia, ib), (la, lb), (ha, hb)))
+
+
 def _lag_max(corr, xnorm, max_shift, n_fft):
-    """corr (N, T, n_fft) -> best score, lag, sub-bin correction over |lag| <= max_shift."""
-    lags = jnp.arange(-max_shift, max_shift + 1)
-    corr = corr[..., lags % n_fft]
+    """corr (T, N, n_fft), xnorm (N, L) -> best score, lag, sub-bin correction (N, T) over
+    ``|lag| <= max_shift``.
+
+    One pass over the scores (a variadic reduce carrying the running maximum, its lag and
+    the scores at lag -1 and +1), so the (T, N, L) scores are never stored; the lag is the
+    first maximum (``argmax``) and the neighbours are clamped at the ends of the lag range,
+    as a gather at ``clip(best -+ 1)`` would give."""
+    if max_shift == 0:
+        corr = corr[..., :1]
+    else:  # lags -max_shift .. max_shift: the circular correlation's last and first entries
+        corr = jnp.concatenate([corr[..., n_fft - max_shift :], corr[..., : max_shift + 1]], -1)
     tiny = 1e-30
-    s = jnp.where(xnorm[:, None, :] > tiny, corr / jnp.maximum(xnorm[:, None, :], tiny), 0.0)
-    best = jnp.argmax(s, axis=-1)
-    sc = jnp.take_along_axis(s, best[..., None], -1)[..., 0]
-    lo = jnp.take_along_axis(s, jnp.maximum(best - 1, 0)[..., None], -1)[..., 0]
-    hi = jnp.take_along_axis(s, jnp.minimum(best + 1, 2 * max_shift)[..., None], -1)[..., 0]
+    xn = xnorm[None]
+    s = jnp.where(xn > tiny, corr / jnp.maximum(xn, tiny), 0.0)
+    prev = jnp.concatenate([s[..., :1], s[..., :-1]], -1)
+    nxt = jnp.concatenate([s[..., 1:], s[..., -1:]], -1)
+    idx_t = jax.dtypes.canonicalize_dtype(jnp.int_)
+    idx = jax.lax.broadcasted_iota(idx_t, s.shape, 2)
+    init = (
+        jnp.array(-jnp.inf, s.dtype),
+        jnp.array(jnp.iinfo(idx_t).max, idx_t),
+        jnp.array(0, s.dtype),
+        jnp.array(0, s.dtype),
+    )
+    sc, best, lo, hi = jax.lax.reduce((s, idx, prev, nxt), init, _pick_max, (2,))
     den = lo - 2 * sc + hi
     inner = (best > 0) & (best < 2 * max_shift) & (den < 0)
     frac = jnp.where(inner, 0.5 * (lo - hi) / jnp.where(inner, den, -1.0), 0.0)
-    return sc, best - max_shift, frac
+    return sc.T, (best - max_shift).T, frac.T
 
 
 @functools.partial(jax.jit, static_argnames=("n_fft", "max_shift"))
@@ -264,8 +291,9 @@ def _score_chunk(spec, valid, rhs, xnorm, *, n_fft, max_shift):
     """Exact best score, lag and sub-bin correction per (observation, template) of a chunk."""
     n = rhs.shape[-1] // 2
     z = jnp.einsum("ftk,fkm->ftm", spec, rhs)  # (F, T, 2N)
-    zc = (z[..., :n] + 1j * z[..., n:]).transpose(2, 1, 0)  # (N, T, F)
-    corr = jnp.fft.irfft(zc, n_fft, axis=-1)
+    # (T, N, F): moving F innermost keeps T and N in order (cheaper than (N, T, F))
+    zc = jax.lax.complex(z[..., :n], z[..., n:]).transpose(1, 2, 0)
+    corr = jnp.fft.irfft(zc, n_fft, axis=-1)  # (T, N, n_fft)
     sc, lag, frac = _lag_max(corr, xnorm, max_shift, n_fft)
     return jnp.where(valid[None, :], sc, -jnp.inf), lag, frac
 
