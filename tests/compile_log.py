@@ -38,6 +38,8 @@ class CompileLog:
         self.sums = {k: 0.0 for k in EVENTS.values()}
         self.programs: list[dict] = []
         self.t0, self.c0 = time.perf_counter(), time.process_time()
+        t = os.times()
+        self.k0 = t.children_user + t.children_system
 
     def install(self) -> None:
         import jax
@@ -95,6 +97,8 @@ class CompileLog:
             "worker": self.worker,
             "wall": time.perf_counter() - self.t0,
             "cpu": time.process_time() - self.c0,
+            # reaped child processes (CLI subprocesses, notebook kernels)
+            "cpu_children": os.times().children_user + os.times().children_system - self.k0,
             **self.sums,
             "programs": self.programs,
         }
