@@ -68,8 +68,15 @@ def design_weights(
     c, b = bank.n_channels, bank.n_bins
     if kind == "uniform":
         return np.ones((c, b), np.float32)
+    return _weights_from(kind, *_class_variances(bank, attribute), floor, eps_rel)
+
+
+def _class_variances(bank: TemplateBank, attribute: str) -> tuple[np.ndarray, np.ndarray]:
+    """Between-class and within-class variance (C, B) of the bank's signatures for the class
+    labels of ``attribute`` (what every design but ``uniform`` is made of)."""
     if len(bank) == 0:
         raise ValueError("design_weights: empty template bank")
+    c, b = bank.n_channels, bank.n_bins
     labels = bank.labels(attribute)
     x = bank.signatures.reshape(len(bank), -1).astype(np.float64)
     mean = x.mean(axis=0)
@@ -82,7 +89,16 @@ def design_weights(
     mu = sums / counts[:, None]
     between = (counts[:, None] * (mu - mean) ** 2).sum(0) / len(x)
     within = ((x - mu[inv]) ** 2).sum(0) / len(x)
-    between, within = between.reshape(c, b), within.reshape(c, b)
+    return between.reshape(c, b), within.reshape(c, b)
+
+
+def _weights_from(
+    kind: str, between: np.ndarray, within: np.ndarray, floor: float = 1e-3, eps_rel: float = 1e-3
+) -> np.ndarray:
+    """Design ``kind`` (not ``uniform``) from :func:`_class_variances`."""
+    if kind not in ("channel", "range", "fisher"):
+        raise ValueError(f"unknown weight design {kind!r}; use one of {WEIGHT_KINDS}")
+    c, b = between.shape
     eps = eps_rel * within.mean() + 1e-300
     if kind == "channel":
         w = np.broadcast_to((between.sum(1) / (within.sum(1) + eps * b))[:, None], (c, b))
