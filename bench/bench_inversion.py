@@ -458,6 +458,9 @@ def main(argv=None):
     ap.add_argument("--mcmc-steps", type=int, default=300)
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument("--tag", default="", help="suffix of the output files")
+    ap.add_argument(
+        "--resume", action="store_true", help="continue a stopped run with the same arguments"
+    )
     args = ap.parse_args(argv)
     if args.quick:
         args.n_in, args.n_out, args.snrs, args.grid, args.mcmc_steps = 2, 1, [100.0], 1, 100
@@ -503,10 +506,19 @@ def main(argv=None):
     run_one(dict(kind="in", snr=100.0, truth=truth, data=data, **warm), models, prep, cfg, meshes)
     t_compile = time.perf_counter() - t0
     print(f"warm-up (compilation) {t_compile:.1f} s", flush=True)
+    # records are kept after every observation: --resume continues a run that was stopped
+    partial = OUT / f".inversion_heldout{args.tag}.partial.json"
     records = []
+    if args.resume and partial.exists():
+        records = json.loads(partial.read_text())
+        print(f"resuming after {len(records)} observations", flush=True)
+    OUT.mkdir(parents=True, exist_ok=True)
     for i, o in enumerate(obs):
+        if i < len(records):
+            continue
         rec, inv = run_one(o, models, prep, cfg, meshes)
         records.append(rec)
+        partial.write_text(json.dumps(records, default=str))
         print(
             f"[{i + 1}/{len(obs)}] {o['kind']} {o['shape']}/{o['material']} snr={o['snr']:g}: "
             f"-> {inv.shape}/{inv.material[0]} reliable={inv.reliable} mismatch={rec['mismatch']} "
@@ -530,12 +542,12 @@ def main(argv=None):
         total_s=time.perf_counter() - t_all,
         load=open("/proc/loadavg").read().split()[:3],
     )
-    OUT.mkdir(parents=True, exist_ok=True)
     md = summarize(records, meta)
     (OUT / f"inversion_heldout{args.tag}.md").write_text(md)
     (OUT / f"inversion_heldout{args.tag}.json").write_text(
         json.dumps(dict(meta=meta, observations=records), indent=1, default=str)
     )
+    partial.unlink(missing_ok=True)
     print(md)
 
 

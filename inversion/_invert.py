@@ -49,7 +49,6 @@ import functools
 import json
 import logging
 import math
-import platform
 import time
 import warnings
 from collections.abc import Mapping, Sequence
@@ -135,8 +134,13 @@ def _distinct(v: list) -> list:
 class GridConfig(StrictModel):
     """Attitude grid of the screening bank built from candidate models (no ``bank=``)."""
 
-    kind: Literal["hopf", "fibonacci"] = "hopf"
-    size: int = pydantic.Field(1, ge=1, le=4096)  # Hopf nside, or Fibonacci points
+    kind: Literal["hopf", "fibonacci"] = pydantic.Field("hopf", description="grid kind")
+    size: int = pydantic.Field(
+        1,
+        ge=1,
+        le=4096,
+        description="Hopf nside (72 nside^3 attitudes, ~55/nside deg apart) or Fibonacci points",
+    )
 
 
 class InlineIndex(StrictModel):
@@ -182,13 +186,30 @@ class InvertConfig(StrictModel):
 
     free: Annotated[
         list[Group], pydantic.Field(min_length=1), pydantic.AfterValidator(_distinct)
-    ] = ["attitude", "m", "n", "range_offset", "gain"]
-    likelihood: Literal["poisson", "gaussian"] = "poisson"
-    background: float = pydantic.Field(1e-3, gt=0.0)
-    solver: Literal["lm", "dogleg", "gauss_newton"] = "lm"
-    max_steps: int = pydantic.Field(100, ge=1, le=100_000)
-    rounds: int = pydantic.Field(3, ge=1, le=50)
-    screen_tol: float = pydantic.Field(1e-3, gt=0.0, lt=1.0)
+    ] = pydantic.Field(
+        ["attitude", "m", "n", "range_offset", "gain"],
+        description="parameter groups fitted; n free adds the continuous-index fit",
+    )
+    likelihood: Literal["poisson", "gaussian"] = pydantic.Field(
+        "poisson",
+        description='"poisson": photo-counts (inversion.PoissonCounts); "gaussian": variance '
+        "mu + 1 (inversion.PoissonNoise) for scaled data",
+    )
+    background: float = pydantic.Field(
+        1e-3, gt=0.0, description="expected background counts per channel and bin (poisson)"
+    )
+    solver: Literal["lm", "dogleg", "gauss_newton"] = pydantic.Field(
+        "lm", description="least-squares solver (optimistix)"
+    )
+    max_steps: int = pydantic.Field(
+        100, ge=1, le=100_000, description="solver steps per round (one value: one program)"
+    )
+    rounds: int = pydantic.Field(
+        3, ge=1, le=50, description="visibility/weight rounds when polishing a start"
+    )
+    screen_tol: float = pydantic.Field(
+        1e-3, gt=0.0, lt=1.0, description="solver tolerance of the one screening round per start"
+    )
     materials: (
         Annotated[
             list[str | InlineIndex],
@@ -196,24 +217,67 @@ class InvertConfig(StrictModel):
             pydantic.AfterValidator(_distinct),
         ]
         | None
-    ) = None
-    finishes: dict[str, Annotated[float, pydantic.Field(ge=0.0, le=1e6)]] | None = None
-    grid: GridConfig = GridConfig()
-    top_k: int = pydantic.Field(4, ge=1, le=10_000)
-    per_shape: int = pydantic.Field(1, ge=0, le=10_000)
-    polish_factor: float = pydantic.Field(1.25, ge=1.0)
-    polish_abs: float = pydantic.Field(25.0, ge=0.0)
-    symmetry: str = "auto"
-    near_tol: float = pydantic.Field(1e-2, ge=0.0, lt=0.5)
-    mirror: bool = True
-    min_separation_deg: float = pydantic.Field(1.0, ge=0.0, le=180.0)
-    ambiguity: float = pydantic.Field(0.05, gt=0.0, lt=0.5)
-    mismatch_p: float = pydantic.Field(1e-3, gt=0.0, lt=1.0)
-    mcmc: MCMCConfig | None = None
-    mcmc_min_weight: float = pydantic.Field(0.01, ge=0.0, le=1.0)
-    max_sampled_modes: int = pydantic.Field(4, ge=1, le=MAX_MODES_SAMPLED)
-    rhat_max: float = pydantic.Field(1.1, gt=1.0)
-    progress: bool = False
+    ) = pydantic.Field(
+        None,
+        description="library materials weighed per mesh part (names, or {name, n_real, "
+        "n_imag}); unset: the bank's, or every library material at the sensor's wavelength",
+    )
+    finishes: dict[str, Annotated[float, pydantic.Field(ge=0.0, le=1e6)]] | None = pydantic.Field(
+        None,
+        description="{name = Blinn-Phong m} of the templates built from the candidate "
+        "models (unset: rough = 10, brushed = 300)",
+    )
+    grid: GridConfig = pydantic.Field(
+        GridConfig(), description="attitudes of the templates built from the candidate models"
+    )
+    top_k: int = pydantic.Field(
+        4, ge=1, le=10_000, description="distinct template attitudes refined (best first)"
+    )
+    per_shape: int = pydantic.Field(
+        1, ge=0, le=10_000, description="... plus the best of every candidate shape"
+    )
+    polish_factor: float = pydantic.Field(
+        1.25, ge=1.0, description="shapes polished: screened deviance <= factor x best + abs"
+    )
+    polish_abs: float = pydantic.Field(25.0, ge=0.0, description="(see polish_factor)")
+    symmetry: str = pydantic.Field(
+        "auto",
+        description='"auto": each candidate mesh\'s own group; a class (dihedral:n, '
+        'octahedral, cyclic:n); "none"',
+    )
+    near_tol: float = pydantic.Field(
+        1e-2,
+        ge=0.0,
+        lt=0.5,
+        description="near symmetries to this fraction of the mesh size are refit as modes "
+        "(0: exact ones only)",
+    )
+    mirror: bool = pydantic.Field(True, description="refit the mirror images as modes")
+    min_separation_deg: float = pydantic.Field(
+        1.0, ge=0.0, le=180.0, description="optima closer than this are one mode"
+    )
+    ambiguity: float = pydantic.Field(
+        0.05,
+        gt=0.0,
+        lt=0.5,
+        description="a second shape or mode above this posterior weight is unresolved",
+    )
+    mismatch_p: float = pydantic.Field(
+        1e-3, gt=0.0, lt=1.0, description="goodness-of-fit p-value of a model mismatch"
+    )
+    mcmc: MCMCConfig | None = pydantic.Field(
+        None, description="priors and sampler (inversion.MCMCConfig); unset: no sampling"
+    )
+    mcmc_min_weight: float = pydantic.Field(
+        0.01, ge=0.0, le=1.0, description="modes above this weight are sampled"
+    )
+    max_sampled_modes: int = pydantic.Field(
+        4, ge=1, le=MAX_MODES_SAMPLED, description="at most this many modes sampled"
+    )
+    rhat_max: float = pydantic.Field(
+        1.1, gt=1.0, description="largest ArviZ R-hat of a converged chain"
+    )
+    progress: bool = pydantic.Field(False, description="progress bars (after compilation)")
 
     @pydantic.field_validator("symmetry")
     @classmethod
@@ -1591,12 +1655,10 @@ def invert(
             )
         )
     reasons += mcmc_reasons
+    from ppr.outputs import provenance
+
     prov = {
-        "ppr": ppr.__version__,
-        "jax": jax.__version__,
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-        "config": cfg.model_dump(mode="json"),
+        **provenance(cfg.model_dump(mode="json")),  # versions, command line, time, config
         "noise": repr(noise),
         "candidates": [c.name for c in cands],
         "materials": {k: [v.real, v.imag] for k, v in materials.items()},

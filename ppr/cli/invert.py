@@ -50,20 +50,33 @@ def _schema():
     class InvertCommandConfig(inversion.InvertConfig):
         """``ppr invert``: classify, refine, weigh materials and modes, sample (invert)."""
 
-        scene: str
-        channels: Literal["full", "stokes", "copol", "circular"] = "copol"
-        brdf: Literal["ppr", "glossy"] = "ppr"
+        scene: str = pydantic.Field(
+            description="scene config (mesh, sensor, pulse, bins; its pose and materials are "
+            "the truth of simulated observations)"
+        )
+        channels: Literal["full", "stokes", "copol", "circular"] = pydantic.Field(
+            "copol", description="PSG/PSA preset (below)"
+        )
+        brdf: Literal["ppr", "glossy"] = pydantic.Field(
+            "ppr", description='"ppr" (ppr.mueller_brdf) or "glossy" (a cheap polarizing stand-in)'
+        )
         # priors and sampler (configs/inversion/*.toml); None: no posterior sampling
         mcmc: str | None = pydantic.Field(  # type: ignore[assignment]
             "default",
             description='priors + sampler config (configs/inversion/*.toml); "default": the '
             "shipped one; null: no posterior sampling",
         )
-        mcmc_walkers: int | None = pydantic.Field(None, ge=4)
-        mcmc_steps: int | None = pydantic.Field(None, ge=10)
-        mcmc_burn_in: int | None = pydantic.Field(None, ge=0)
-        mcmc_set: dict[str, Any] = {}
-        observation: InvertObservation = InvertObservation()
+        mcmc_walkers: int | None = pydantic.Field(None, ge=4, description="overrides the sampler's")
+        mcmc_steps: int | None = pydantic.Field(None, ge=10, description="overrides the sampler's")
+        mcmc_burn_in: int | None = pydantic.Field(None, ge=0, description="overrides the sampler's")
+        mcmc_set: dict[str, Any] = pydantic.Field(
+            {},
+            description='{"dotted.key" = value} overrides of the MCMC config, e.g. '
+            '{"priors.gain.high" = 1e9}',
+        )
+        observation: InvertObservation = pydantic.Field(
+            InvertObservation(), description="the observation to invert"
+        )
 
     return InvertCommandConfig
 
