@@ -109,6 +109,12 @@ class PprSignatures:
         self._n = jnp.stack([jnp.asarray(m.n) for m in mats])
         self._corr = jnp.stack([jnp.asarray(m.corr_length, dtype) for m in mats])
         self._m = jnp.asarray(self.finishes, dtype)
+        # coated library materials: their film stacks aligned over the materials (bare ones
+        # become zero-thickness stacks), indexed by material_id like n
+        self._films = None
+        if any(m.films for m in mats):
+            st = ppr.stack_materials(mats)
+            self._films = (st.films, jnp.asarray(st.wavelength), st.film_mode, st.thick_layer)
         self.sensor_model = ppr.Sensor.make(wavelength=wavelength)
         self.bins = ppr.RangeBins.centred(self.bin_width_m, self.n_bins)
         pulse = ppr.Pulse.gaussian(self.pulse_fwhm_s)
@@ -239,6 +245,7 @@ class PprSignatures:
             brdf=self.brdf,
             terms=self.terms,
             macro=macro,
+            films=self._films,
         )
 
 
@@ -265,6 +272,7 @@ def _batch_render(
     brdf,
     terms=None,
     macro=None,
+    films=None,
 ):
     dt = arrays.tri.dtype
 
@@ -272,6 +280,17 @@ def _batch_render(
         arr = jax.tree_util.tree_map(lambda a: a[sid], arrays)
         # one entry shared by every part (ppr.render): per-material work done once per row
         mat = ppr.Material(n_tab[mid][None], m_tab[fid][None], corr_tab[mid][None])
+        if films is not None:
+            layers, lam, mode, thick = films
+            mat = ppr.Material(
+                mat.n,
+                mat.m,
+                mat.corr_length,
+                films=tuple((fn[mid][None], ft[mid][None].astype(dt)) for fn, ft in layers),
+                wavelength=lam[mid][None].astype(dt),
+                film_mode=mode,
+                thick_layer=thick,
+            )
         pose = ppr.Pose(q.astype(dt), jnp.zeros(3, dt))
         return ppr.render(
             arr,

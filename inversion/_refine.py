@@ -1611,9 +1611,13 @@ class SimulatorKernel(eqx.Module):
         pose = ppr.Pose(phys.unit_quaternion().astype(dt), self.position)
         mats = ppr.Material(phys.n, phys.m.astype(dt), phys.corr_length.astype(dt))
         if self.films is not None:
+            # the slots phys names (thickness_slots, static) take its thickness at their
+            # fitted layer; every other layer keeps the scene's
             t = phys.thickness.astype(dt)
+            named = np.zeros(t.shape, bool)
+            named[list(phys.thickness_slots)] = True
             films = tuple(
-                (n, jnp.where(fit, t, tj))
+                (n, jnp.where(fit & named, t, tj))
                 for (n, tj), fit in zip(self.films, self.film_fit, strict=True)
             )
             mats = ppr.Material(

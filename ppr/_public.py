@@ -27,6 +27,7 @@ from .materials import Material, load_material, material_names, stack_materials
 from .optics import (
     C_LIGHT,
     DEFAULT_WAVELENGTH_M,
+    facet_mueller_params,
     fresnel_amplitudes,
     fresnel_mueller_params,
     jones_to_mueller,
@@ -79,6 +80,7 @@ __all__ = [
     "C_LIGHT",
     "DEFAULT_WAVELENGTH_M",
     "Material",
+    "facet_mueller_params",
     "fresnel_amplitudes",
     "fresnel_mueller_params",
     "jones_to_mueller",

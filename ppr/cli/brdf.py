@@ -124,12 +124,23 @@ def polarimetry(mueller: np.ndarray) -> dict[str, np.ndarray]:
 
 def material_summary(mat) -> dict:
     n = complex(np.asarray(mat.n).reshape(-1)[0])
-    return {
+    out = {
         "name": getattr(mat, "name", ""),
         "n": [n.real, n.imag],
         "m": float(np.asarray(mat.m).reshape(-1)[0]),
         "corr_length_m": float(np.asarray(mat.corr_length).reshape(-1)[0]),
     }
+    if getattr(mat, "films", ()):
+        first = lambda a: np.asarray(a).reshape(-1)[0]  # noqa: E731
+        out["films"] = [
+            {
+                "n": [complex(first(fn)).real, complex(first(fn)).imag],
+                "thickness_m": float(first(ft)),
+            }
+            for fn, ft in mat.films
+        ]
+        out["film_mode"] = mat.film_mode
+    return out
 
 
 def run(args) -> int:

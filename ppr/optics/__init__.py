@@ -1,13 +1,16 @@
 """Optics: Fresnel reflection, beam frames and Mueller/Jones rotations, polarimetric
 decompositions, and the conventions every module follows (:mod:`ppr.optics.conventions`).
 
-Public door of the subpackage: the Fresnel coefficients, the frame and rotation helpers, the
+Public door of the subpackage: the Fresnel coefficients, a facet's reflection with a thin-film
+stack (:func:`facet_mueller_params`, ``docs/physics/thin_films.md``), the frame and rotation
+helpers, the
 facet-reflection kernels in beam frames (array-of-structures and structure-of-arrays forms,
 the fast monomial and ``(..., 4, 4)`` assemblies), :mod:`polarimetry`, :data:`C_LIGHT` and
 :data:`DEFAULT_WAVELENGTH_M`.
 """
 
 from . import conventions, polarimetry
+from ._films import facet_mueller_params
 from ._frames import (
     A_STOKES,
     default_frame,
@@ -36,6 +39,7 @@ __all__ = [
     "conventions",
     "default_frame",
     "facet_jones_in_beam_frames",
+    "facet_mueller_params",
     "facet_mueller_in_beam_frames",
     "facet_mueller_rows",
     "facet_rotated_params",

@@ -74,6 +74,7 @@ __all__ = [
     "facet_amplitudes",
     "facet_components",
     "facet_gram",
+    "facet_mueller_params",
     "facet_params",
     "films_of",
     "lobe_chi",
@@ -194,7 +195,7 @@ def films_of(material, dt, batch=None) -> Films | None:
 
 
 def _w(n_re, n_im, c2):
-    """``w = sqrt(n^2 - 1 + cos^2)`` (same arithmetic as :func:`ppr.optics._fresnel`: ``n = 1``
+    """``w = sqrt(n^2 - 1 + cos^2)`` (same arithmetic as :mod:`ppr.optics._fresnel`: ``n = 1``
     gives ``w = cos`` exactly)."""
     w2_re = (n_re - 1.0) * (n_re + 1.0) - n_im * n_im + c2
     w2_im = 2.0 * n_re * n_im
@@ -418,8 +419,8 @@ def _store_tree(tree):
 
 
 def facet_params(n_re, n_im, cos_t, films: Films | None, *, white: bool = False):
-    """Mueller parameters ``(a, b, c, d)`` of the facet
-    (:func:`ppr.optics._fresnel.fresnel_mueller_params` for a bare facet: the same program)."""
+    """Mueller parameters ``(a, b, c, d)`` of the facet (:func:`ppr.optics.fresnel_mueller_params`
+    for a bare facet: the same program)."""
     if white:
         one = jnp.ones_like(cos_t)
         return one, jnp.zeros_like(cos_t), -one, jnp.zeros_like(cos_t)
@@ -570,3 +571,20 @@ def resolve_film_mode(films, wavelength, m, film_mode, thick_layer) -> tuple[str
             )
         return "lobe", thick[0]
     return film_mode, int(np.argmax(spread))
+
+
+def facet_mueller_params(material, cos_t):
+    """Mueller parameters ``(a, b, c, d)`` of one facet of ``material`` seen at facet cosine
+    ``cos_t`` (``M = [[a, b, 0, 0], [b, a, 0, 0], [0, 0, c, d], [0, 0, -d, c]]`` in the facet's
+    s/p frames): the bare Fresnel interface, the coherent stack, or the lobe- or
+    phase-averaged thick layer of ``material.film_mode``; the ideal white reflector
+    ``(1, 0, -1, 0)``. Broadcasts the material's fields against ``cos_t``."""
+    dt = jnp.result_type(jnp.finfo(jnp.asarray(material.n).dtype).dtype, cos_t)
+    c = jnp.asarray(cos_t, dt)
+    n = jnp.asarray(material.n)
+    films = films_of(material, dt)
+    shape = jnp.broadcast_shapes(n.shape, c.shape, *(jnp.shape(a) for a in jax.tree.leaves(films)))
+    b = lambda a: jnp.broadcast_to(jnp.asarray(a).astype(dt), shape)  # noqa: E731
+    if films is not None:
+        films = jax.tree.map(b, films)
+    return facet_params(b(jnp.real(n)), b(jnp.imag(n)), b(c), films, white=material.white)
