@@ -7,10 +7,6 @@ LLVM optimizing the generated kernels. The suite therefore compiles with JAX's
 passes): the double term's value+gradient program compiles in 13 s instead of 24 s (user CPU
 27 s instead of 45 s) and runs in 0.55 s instead of 0.07 s.
 
-XLA's CPU fusion emitters are off in the suite (``XLA_FLAGS``, ``tests/conftest.py``): the
-older emitters compile its programs 2-3x faster; ``tests/test_compile_level.py`` compares
-against programs compiled as a user's process compiles them (:func:`user_compiler_options`).
-
 Tests whose cost is running (Monte Carlo sums over large batches, MCMC chains, high-order
 reference quadratures) are marked ``@pytest.mark.optimized`` and run with the defaults
 (``tests/conftest.py``). XLA's HLO passes are the same either way, so values agree to
@@ -27,20 +23,11 @@ programs, and the optimized executables left behind are reused by later tests at
 from __future__ import annotations
 
 import contextlib
-import os
 
 import jax
 
 UNOPTIMIZED = {"jax_disable_most_optimizations": True}
 DEFAULT = {"jax_disable_most_optimizations": False}
-
-
-def user_compiler_options() -> dict:
-    """Per-compilation XLA options that undo the suite's process-wide XLA_FLAGS
-    (tests/conftest.py: the older CPU emitters), so that a program compiled with them and
-    :data:`DEFAULT` is what a user's process compiles."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    return {"xla_cpu_use_fusion_emitters": True} if "xla_cpu_use_fusion_emitters" in flags else {}
 
 
 def apply(settings: dict) -> None:

@@ -2,8 +2,6 @@
 
 import os
 import shutil
-import subprocess
-import sys
 import tempfile
 
 os.environ.setdefault("MPLBACKEND", "Agg")
@@ -15,28 +13,6 @@ os.environ["PPR_JAX_CACHE"] = "0"
 # Compile unoptimized (tests/compile_level.py), here and in the subprocesses and notebook
 # kernels the tests start; tests marked `optimized` run with JAX's defaults.
 os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
-
-
-def _use_xla_flag(flag: str) -> None:
-    """Append ``flag`` to XLA_FLAGS (inherited by the xdist workers, subprocesses and notebook
-    kernels) if this jaxlib knows it: XLA aborts the process on an unknown flag, so one probe
-    process per session tries it first."""
-    name = flag.lstrip("-").split("=")[0]
-    flags = os.environ.get("XLA_FLAGS", "")
-    if name in flags or os.environ.get("PPR_TEST_XLA_PROBED") == flag:
-        return
-    os.environ["PPR_TEST_XLA_PROBED"] = flag  # the workers inherit the answer
-    env = dict(os.environ, XLA_FLAGS=f"{flags} {flag}".strip(), JAX_PLATFORMS="cpu")
-    probe = [sys.executable, "-c", "import jax; jax.devices()"]
-    if subprocess.run(probe, env=env, capture_output=True).returncode == 0:
-        os.environ["XLA_FLAGS"] = env["XLA_FLAGS"]
-
-
-# XLA's CPU fusion emitters compile the suite's programs 2-3x slower than its older loop
-# emitters (the double term's value+gradient program on tests/test_grazing.py's rows, float64,
-# unoptimized: 38.6 s -> 13.1 s CPU); the suite compiles with the older ones.
-# tests/test_compile_level.py checks that both compute the same.
-_use_xla_flag("--xla_cpu_use_fusion_emitters=false")
 # PPR_TEST_JAX_CACHE=1: one persistent compilation cache per test session, in a new temporary
 # folder (hermetic: every run starts empty, as a clean checkout does, and the folder is removed
 # at the end), shared through the environment by the xdist workers, the notebook kernels and the

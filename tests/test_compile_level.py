@@ -4,7 +4,6 @@ Fresnel along both paths, visibilities, the coherent sum; per-element materials,
 frames) in float64, and the single term's gradients in float32 (where rounding differences
 are largest), each program compiled unoptimized (the suite's setting) and with JAX's defaults.
 
-The user's side also has XLA's CPU fusion emitters, which the suite turns off (XLA_FLAGS).
 The two differ by a few ulps per operation (multiply-adds contracted or not, vectorized or
 scalar math functions), amplified where an operation cancels. Measured: the double term
 3e-16 of the largest entry; float32 gradients of single + multiple 3e-6 (9e-6 on another
@@ -16,7 +15,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from compile_level import optimized, unoptimized, user_compiler_options
+from compile_level import optimized, unoptimized
 
 from ppr import Material
 from ppr.brdf._brdf import mueller_brdf
@@ -35,14 +34,12 @@ def _perp(rng, k):
 
 
 def _both(fn, *args):
-    """``fn(*args)`` compiled as the suite compiles it (unoptimized, the older CPU emitters)
-    and as a user's process does (JAX's defaults): leaves, as float64. (JAX's jit cache does
-    not key on the optimization switch, so each level jits its own wrapper.)"""
+    """``fn(*args)`` compiled unoptimized and with the defaults: leaves, as float64. (JAX's
+    jit cache does not key on the optimization switch, so each level jits its own wrapper.)"""
     out = []
-    for level, options in ((unoptimized, {}), (optimized, user_compiler_options())):
+    for level in (unoptimized, optimized):
         with level():
-            compiled = jax.jit(lambda *a: fn(*a)).lower(*args).compile(options or None)
-            leaves = jax.tree_util.tree_leaves(compiled(*args))
+            leaves = jax.tree_util.tree_leaves(jax.jit(lambda *a: fn(*a))(*args))
         out.append([np.asarray(x, np.float64) for x in leaves])
     return out
 
