@@ -48,6 +48,7 @@ from ._grid import (
     los_half_turn,
     mesh_has_mirror,
     mirror_attitude,
+    random_quaternions,
     symmetry_group,
 )
 
@@ -142,6 +143,7 @@ __all__ = [
     "spec_from_dict",
     "store_differences",
     "AttitudeGrid",
+    "random_quaternions",
     "covering_radius",
     "fibonacci_grid",
     "hopf_grid",

@@ -4,6 +4,7 @@ Each name comes through the public door of its subpackage (``ppr.optics``, ``ppr
 ``ppr.brdf``, ``ppr.geometry``, ``ppr.pulse``, ``ppr.image``; docs/DESIGN.md)."""
 
 from . import brdf, config, geometry, image, materials, microfacet, optics, pulse
+from ._labelled import image_dataset, profile_dataset
 from ._resources import shipped_config, shipped_configs_dir
 from .brdf import BACKSCATTER_PSI_MAX, mueller_brdf
 from .geometry import (
@@ -121,6 +122,8 @@ __all__ = [
     "load_sensor",
     "VisibilityCaster",
     "Profile",
+    "image_dataset",
+    "profile_dataset",
     "double_bounce",
     "MacroGeometry",
     "MacroOptions",

@@ -47,7 +47,7 @@ test -s brdf/brdf.npz && test -s brdf/brdf.json && test -s brdf/brdf.png
 step "ppr simulate (shipped configs/scenes/cubesat3u_panels.toml, H and V, single bounce)"
 "$ppr" simulate -q --out sim --states H,V --terms single --multibounce off \
     --set visibility.samples_per_face=1
-test -s sim/simulate.npz && test -s sim/simulate.json && test -s sim/simulate.png
+test -s sim/simulate.npz && test -s sim/simulate.nc && test -s sim/simulate.json && test -s sim/simulate.png
 
 step "the README's Python example"
 awk '/<!-- check_wheel:python:start -->/{on=1; next} /<!-- check_wheel:python:end -->/{on=0}

@@ -3,15 +3,26 @@
 
 The notebooks are generated, not hand-edited, so they stay reviewable as plain Python here.
 Each notebook's first code cell reads ``PPR_SMALL`` (``PPR_SMALL=1``: small grids, short
-chains; the test suite runs them that way, ``tests/test_notebooks.py``). Outputs are not
-stored. Regenerate with ``.venv/bin/python scripts/make_notebooks.py`` (needs ruff, from the
-test extra: the written notebooks are fixed and formatted with it).
+chains; the test suite runs them that way, ``tests/test_notebooks.py``).
+
+    .venv/bin/python scripts/make_notebooks.py                 # write the sources, no outputs
+    .venv/bin/python scripts/make_notebooks.py --execute       # write, then run each in full
+                                                               # settings and store its outputs
+    .venv/bin/python scripts/make_notebooks.py --execute 01 05 # only the notebooks named
+
+Needs ruff (test extra: the written notebooks are fixed and formatted with it); ``--execute``
+runs each notebook top to bottom with nbclient on this interpreter's kernel, with JAX's
+default compilation and ``PPR_SMALL`` unset, and stores the outputs (figures included) in the
+``.ipynb``, so a reader on GitHub sees them; each notebook's run time is printed.
 """
 
 from __future__ import annotations
 
+import argparse
+import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import nbformat
@@ -306,10 +317,9 @@ noisy observations **off the attitude grid**, and measures shape / material / fi
 and attitude error for each weight design, against SNR. The command-line version writes the
 same numbers to disk: `ppr database build`, `ppr classify`, `ppr report`.""",
     SETUP,
-    """from inversion._database import bank_in_memory, make_signature_fn, spec_from_dict
-from inversion._classifier import WEIGHT_KINDS, classify, design_weights, prepare, attitude_error_deg
-from inversion._grid import random_quaternions
-from inversion._noise import NoiseModel, observe
+    """from inversion import (WEIGHT_KINDS, NoiseModel, attitude_error_deg, bank_in_memory, classify,
+                       design_weights, make_signature_fn, observe, prepare, random_quaternions,
+                       spec_from_dict)
 
 spec = spec_from_dict({
     "name": "notebook",
@@ -608,7 +618,35 @@ NOTEBOOKS = {
 }
 
 
+def execute(path: Path, timeout: float = 3600.0) -> float:
+    """Run the notebook at ``path`` in full settings and store its outputs; seconds taken."""
+    import nbclient
+
+    env_keep = {k: os.environ.get(k) for k in ("PPR_SMALL", "JAX_DISABLE_MOST_OPTIMIZATIONS")}
+    os.environ.pop("PPR_SMALL", None)
+    os.environ.pop("JAX_DISABLE_MOST_OPTIMIZATIONS", None)
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    try:
+        book = nbformat.read(path, as_version=4)
+        t0 = time.perf_counter()
+        nbclient.NotebookClient(
+            book, timeout=timeout, kernel_name="python3",
+            resources={"metadata": {"path": str(path.parent)}},
+        ).execute()
+        nbformat.write(book, path)
+        return time.perf_counter() - t0
+    finally:
+        for k, v in env_keep.items():
+            if v is not None:
+                os.environ[k] = v
+
+
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--execute", nargs="*", metavar="PREFIX", default=None,
+                    help="run the notebooks (all, or those whose names start with a PREFIX) "
+                    "in full settings and store their outputs")
+    args = ap.parse_args()
     OUT.mkdir(exist_ok=True)
     paths = []
     for name, cells in NOTEBOOKS.items():
@@ -622,6 +660,11 @@ def main() -> None:
     subprocess.run([*ruff, "check", *paths], check=True)
     for p in paths:
         print("wrote", p)
+    if args.execute is not None:
+        for p in map(Path, paths):
+            if args.execute and not any(p.name.startswith(x) for x in args.execute):
+                continue
+            print(f"executed {p.name} in {execute(p):.0f} s (outputs stored)", flush=True)
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import ppr
 from ppr import cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -191,6 +192,18 @@ def test_image_end_to_end_example_satellite(tmp_path):
         assert z["mueller"].shape == (24, 24, 4, 4)
         assert set(z["part_names"]) == {"bus", "panels", "mast", "dish", "blanket"}
         assert (z["part"] >= 0).sum() > 20
+        # the labelled copy: the same numbers, named dimensions, units, provenance
+        import xarray as xr
+
+        with xr.open_dataset(out / "image.nc", engine="h5netcdf") as ds:
+            np.testing.assert_array_equal(ds["mueller"].values, z["mueller"])
+            assert ds["mueller"].dims == ("y", "x", "stokes_out", "stokes_in")
+            assert ds["mueller"].attrs["units"] == "1/sr"
+            assert ds["retardance"].attrs["units"] == "rad"
+            np.testing.assert_array_equal(ds["x"].values, z["u"])
+            np.testing.assert_array_equal(ds["y"].values, z["v"])
+            assert json.loads(ds.attrs["part_names"]) == list(z["part_names"])
+            assert json.loads(ds.attrs["provenance"])["ppr"]
     # no temporary folders left behind
     assert not [p for p in out.iterdir() if p.name.startswith(".ppr-tmp")]
 
@@ -221,6 +234,18 @@ def test_simulate_end_to_end(tmp_path):
         assert np.all(np.isfinite(data)) and data[:, 0].sum() > 0
     summary = json.loads((out / "simulate.json").read_text())
     assert summary["kind"] == "stokes" and summary["labels"] == ["H", "V"]
+    # the labelled copy (xarray): same numbers, dimensions named, units, time = 2 r / c
+    import xarray as xr
+
+    with xr.open_dataset(out / "simulate.nc", engine="h5netcdf") as ds:
+        np.testing.assert_array_equal(ds["data"].values, data)
+        assert ds["data"].dims == ("state", "stokes_out", "range")
+        assert list(ds["state"].values) == ["H", "V"]
+        assert ds["data"].attrs["units"] == "m^2/sr" and ds["range"].attrs["units"] == "m"
+        np.testing.assert_allclose(
+            ds["time_s"].values, 2.0 * ds["range"].values / ppr.C_LIGHT, rtol=1e-15
+        )
+        assert json.loads(ds.attrs["provenance"])["config"] is not None
 
 
 def test_demo_runs_and_writes_summary(tmp_path):

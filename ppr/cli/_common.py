@@ -235,11 +235,16 @@ def jsonable(obj: Any) -> Any:
 COMMAND_LINE: list[str] | None = None
 
 
+def provenance(config: Any = None) -> dict:
+    """The provenance record of a command's outputs (:func:`ppr.outputs.provenance` with the
+    resolved ``config`` as JSON values and the command line)."""
+    return _outputs.provenance(config=jsonable(config), command_line=COMMAND_LINE)
+
+
 def write_json(path: Path, data: dict, config: Any = None) -> None:
     """Write a command's JSON summary with its provenance (:func:`ppr._outputs.provenance`:
     versions, the command line, the time, the resolved ``config``)."""
-    prov = _outputs.provenance(config=jsonable(config), command_line=COMMAND_LINE)
-    record = {**data, "provenance": prov}
+    record = {**data, "provenance": provenance(config)}
     path.write_text(json.dumps(jsonable(record), indent=2, allow_nan=False) + "\n")
 
 

@@ -14,7 +14,7 @@ from ._help import describe, fields_text
 
 NAME = "image"
 DEFAULT_CONFIG = "cli/image.toml"
-OUTPUTS = ["image.npz", "image.png", "image_mueller.png", "image.json"]
+OUTPUTS = ["image.npz", "image.nc", "image.png", "image_mueller.png", "image.json"]
 SET_EXAMPLE = "render.n_pixels=256"
 EXAMPLES = [
     "ppr image --out out/image",
@@ -125,7 +125,8 @@ def help_text() -> str:
         "elements. Geometry: exactly one of scene, mesh, [shape].",
         fields_text(f"Config fields (configs/{DEFAULT_CONFIG})", ImageConfig),
         outputs="image.npz (mueller (H, W, 4, 4) in 1/sr, NaN off the object; cos_in, normal, "
-        "part, lit, quantities; u, v in metres), image.png, image_mueller.png, image.json.",
+        "part, lit, quantities; u, v in metres), image.nc (the same as a labelled xarray dataset "
+        "with units), image.png, image_mueller.png, image.json.",
         examples=EXAMPLES,
     )
 
@@ -250,10 +251,14 @@ def run_image(cfg: ImageConfig, cfg_path: Path, progress: bool = False, inputs=N
 
 
 def write_image_outputs(img, cfg, cfg_path, out: c.Outputs, prefix: str = "image", seconds=None):
-    """``image.npz``, the two PNGs and ``image.json`` (per-part means of the quantities)."""
+    """``image.npz``, ``image.nc``, the two PNGs and ``image.json`` (per-part means of the
+    quantities)."""
     from ..image import _image
 
     np.savez_compressed(out.path(f"{prefix}.npz"), **img.arrays())
+    img.to_xarray(provenance=c.provenance(cfg)).to_netcdf(
+        out.path(f"{prefix}.nc"), engine="h5netcdf"
+    )
     what = cfg.scene or cfg.mesh or (cfg.shape or {}).get("name", "shape")
     title = f"{what}: monostatic Mueller image" if img.monostatic else f"{what}: Mueller image"
     _image.plot_mueller_image(img, out.path(f"{prefix}.png"), title=title)

@@ -12,7 +12,7 @@ from ._help import describe, fields_text
 
 NAME = "simulate"
 DEFAULT_CONFIG = "scenes/cubesat3u_panels.toml"
-OUTPUTS = ["simulate.npz", "simulate.json", "simulate.png"]
+OUTPUTS = ["simulate.npz", "simulate.nc", "simulate.json", "simulate.png"]
 SET_EXAMPLE = "pose.quaternion=[1,0,0,0]"
 EXAMPLES = [
     "ppr simulate --out out/sim",
@@ -36,7 +36,8 @@ def help_text() -> str:
             _scene.SensorConfig,
         ),
         outputs="simulate.npz (data in m^2/sr per bin, range_m one-way, time_s round trip, "
-        "edges_m, visibility per face), simulate.json (energies, mean range, rms depth), "
+        "edges_m, visibility per face), simulate.nc (the same as a labelled xarray dataset with "
+        "units: xarray.open_dataset), simulate.json (energies, mean range, rms depth), "
         "simulate.png.",
         examples=EXAMPLES,
     )
@@ -141,6 +142,9 @@ def run(args) -> int:
             "labels": np.array([str(x) for x in prof.labels]),
         }
         np.savez_compressed(out.path("simulate.npz"), **arrays)
+        config = _scene_config(cfg_path, args)
+        prov = c.provenance(config)
+        prof.to_xarray(provenance=prov).to_netcdf(out.path("simulate.nc"), engine="h5netcdf")
         width = float(np.diff(arrays["edges_m"]).mean())
         energy = data.sum(-1)
         r = arrays["range_m"]
@@ -176,7 +180,7 @@ def run(args) -> int:
             else None,
             "seconds": seconds,
         }
-        c.write_json(out.path("simulate.json"), summary, config=_scene_config(cfg_path, args))
+        c.write_json(out.path("simulate.json"), summary, config=config)
         plot_profiles(
             out.path("simulate.png"), data, r, prof.kind, list(prof.labels), str(cfg_path)
         )

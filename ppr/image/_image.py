@@ -132,6 +132,12 @@ class MuellerImage:
         out.update(self.quantities)
         return out
 
+    def to_xarray(self, provenance: dict | None = None):
+        """The image as a labelled ``xarray.Dataset`` (:func:`ppr.image_dataset`)."""
+        from .._labelled import image_dataset  # noqa: PLC0415
+
+        return image_dataset(self, provenance=provenance)
+
 
 _POLARIMETRY_JIT: dict = {}
 

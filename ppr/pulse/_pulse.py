@@ -850,6 +850,12 @@ class Profile(eqx.Module):
         """Time integral of the return (sum over bins)."""
         return jnp.sum(self.data, axis=-1)
 
+    def to_xarray(self, provenance: dict | None = None):
+        """The profile as a labelled ``xarray.Dataset`` (:func:`ppr.profile_dataset`)."""
+        from .._labelled import profile_dataset  # noqa: PLC0415
+
+        return profile_dataset(self, provenance=provenance)
+
 
 def _check_concrete(x, what):
     if isinstance(x, jax.core.Tracer):
