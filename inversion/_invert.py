@@ -75,7 +75,14 @@ from ._classifier import (
 from ._database import TemplateBank
 from ._gof import GoodnessOfFit, fit_goodness_of_fit
 from ._grid import AttitudeGrid, as_symmetry, symmetry_group
-from ._mcmc import ChainTooShortWarning, MCMCConfig, MCMCResult, PriorConfig, sample_posterior
+from ._mcmc import (
+    ChainTooShortWarning,
+    MCMCConfig,
+    MCMCResult,
+    PriorConfig,
+    _ReflectanceShear,
+    sample_posterior,
+)
 from ._noise import Observation
 from ._observability import Observability, line_of_sight_of, observability, observable_inverse
 from ._params import GROUPS, PhysicalParams, lift_start
@@ -1756,14 +1763,41 @@ def _sensor_geometry(model, los_world) -> tuple[bool, np.ndarray]:
     return mono, w / nrm
 
 
+def _shear_matrix(sh: _ReflectanceShear | None, theta: np.ndarray) -> np.ndarray:
+    """``d theta / d theta'`` of the reflectance shear at ``theta`` (identity without one):
+    ``log_gain = log_gain' - s(n)``, so the gain row holds ``-ds/d theta_n``."""
+    a = np.eye(theta.size)
+    if sh is None:
+        return a
+    for i in (*sh.i_nre, *sh.i_nim):
+        h = 1e-6 * max(1.0, abs(theta[i]))
+        up, dn = theta.copy(), theta.copy()
+        up[i] += h
+        dn[i] -= h
+        a[sh.i_gain, i] = -(float(sh.shift(up)) - float(sh.shift(dn))) / (2 * h)
+    return a
+
+
 def _index_fit(refiner: _Refiner, fit: RefineResult, free, cfg: InvertConfig, max_iter: int = 12):
     """Fisher scoring with the index free, from a fit with the index fixed: damped steps
     ``-(F + lambda diag F)^+ J^T r`` (Pearson residuals ``r``, ``F = J^T J`` inverted in
     its observable subspace, so no step along a direction the data do not fix; ``lambda``
-    raised tenfold after a step that does not lower the deviance, lowered after one that
-    does, as Levenberg-Marquardt), every trial kept inside the physical box. Uses the
-    refiner's Jacobian program only (no second solver to compile). Returns a RefineResult
-    (method ``fisher_scoring``)."""
+    raised tenfold after a step that does not lower the deviance; after one that does,
+    lowered threefold when the gain exceeds 3/4 of the quadratic model's prediction and
+    doubled when it is below 1/4, the trust-region rule of Levenberg-Marquardt), every
+    trial kept inside the physical box. Uses the
+    refiner's Jacobian program only (no second solver to compile).
+
+    The steps are taken in the sampler's sheared coordinates (:class:`_ReflectanceShear`:
+    the log gain shifted by the log normal-incidence reflectance of the index), where the
+    curved ridge along which the gain absorbs the reflectance is nearly straight, so a
+    Gauss-Newton step follows it instead of zig-zagging across it.
+
+    Stationary (converged) when the undamped step's predicted decrease of the deviance,
+    ``g^T F^+ g`` with the score ``g = J^T r``, or the last accepted step's actual decrease
+    is below ``max(1e-3, 1e-9 D)`` (a likelihood ratio of 1.0005: no change at all), or when
+    no damping up to ``lambda = 1e8`` lowers the deviance; at most ``max_iter`` trial steps.
+    Returns a RefineResult (method ``fisher_scoring``)."""
     model, noise, data = refiner.model, refiner.noise, refiner.data_j
     t0 = time.perf_counter()
     phys = _clip_box(fit.params)
@@ -1774,22 +1808,42 @@ def _index_fit(refiner: _Refiner, fit: RefineResult, free, cfg: InvertConfig, ma
         )
     except FloatingPointError:
         return None
+    # the shear where the start is metallic (n'' > 1 in every part): there the gain absorbs
+    # the reflectance along a curved ridge; from a dielectric start (n'' on its floor) the
+    # sheared steps overshoot to the box's edge
+    metal = bool(np.all(np.imag(np.asarray(phys.n)) > 1.0))
+    sh = _ReflectanceShear(param) if metal and _ReflectanceShear.applies(param) else None
     data_np = np.asarray(data, np.float64)
     steps, ok, lam = 0, False, 1e-3
-    while steps < max_iter:
-        steps += 1
-        r = ((data_np - mu - bg) * inv_sigma).ravel()
-        F = J.T @ J
-        C, _ = observable_inverse(F + lam * np.diag(np.diag(F)))
-        delta = -C @ (J.T @ r)
+    while True:
         theta0 = np.asarray(_from_physical(param, phys), np.float64)
-        trial = _clip_box(_to_physical(param, jnp.asarray(theta0 + delta)))
-        try:
-            Jt, inv_t, mu_t, _, par_t, dev_t = weighted_jacobian(
-                model, noise, data, trial, free, None, refiner.range_scale
-            )
-        except FloatingPointError:
-            dev_t = math.inf
+        A = _shear_matrix(sh, theta0)
+        Js = J @ A  # Jacobian in the sheared coordinates
+        r = ((data_np - mu - bg) * inv_sigma).ravel()
+        g = Js.T @ r
+        F = Js.T @ Js
+        C0, _ = observable_inverse(F)
+        # a deviance change of 1e-3 (a likelihood ratio of 1.0005) is no change at all
+        tol = max(1e-3, 1e-9 * dev)
+        if float(g @ C0 @ g) <= tol:  # the undamped step would gain nothing: stationary
+            ok = True
+            break
+        if steps >= max_iter:
+            break
+        steps += 1
+        C, _ = observable_inverse(F + lam * np.diag(np.diag(F)))
+        delta = -C @ g
+        with np.errstate(over="ignore", invalid="ignore"):
+            theta_t = theta0 + delta if sh is None else sh.inverse(sh.forward(theta0) + delta)
+        dev_t = math.inf
+        if np.all(np.isfinite(theta_t)):  # a step so long that the index overflows: rejected
+            trial = _clip_box(_to_physical(param, jnp.asarray(theta_t)))
+            try:
+                Jt, inv_t, mu_t, _, par_t, dev_t = weighted_jacobian(
+                    model, noise, data, trial, free, None, refiner.range_scale
+                )
+            except FloatingPointError:
+                dev_t = math.inf
         if not (np.isfinite(dev_t) and dev_t < dev):
             lam *= 10.0
             if lam > 1e8:  # no descent left along the observable directions: stationary
@@ -1797,10 +1851,16 @@ def _index_fit(refiner: _Refiner, fit: RefineResult, free, cfg: InvertConfig, ma
                 break
             continue
         gain = dev - dev_t
+        # the quadratic model's decrease for this step: 2 g^T C g - g^T C F C g
+        pred = float(-2.0 * (g @ delta) - delta @ F @ delta)
+        rho = gain / pred if pred > 0 else 1.0
         phys, J, inv_sigma, mu, param, dev = trial, Jt, inv_t, mu_t, par_t, dev_t
-        lam = max(lam / 10.0, 1e-9)
-        # a deviance change of 1e-3 (a likelihood ratio of 1.0005) is no change at all
-        if gain <= max(1e-3, 1e-9 * dev):
+        # trust-region rule: relax the damping only where the model predicted the gain
+        if rho > 0.75:
+            lam = max(lam / 3.0, 1e-9)
+        elif rho < 0.25:
+            lam *= 2.0
+        if gain <= tol:
             ok = True
             break
     s = StartSummary(
@@ -1810,7 +1870,7 @@ def _index_fit(refiner: _Refiner, fit: RefineResult, free, cfg: InvertConfig, ma
         float(dev),
         ok,
         "successful" if ok else "max_steps_reached",
-        "converged" if ok else f"Fisher scoring stopped after {max_iter} steps",
+        "converged" if ok else f"Fisher scoring still descending after {max_iter} steps",
         steps,
         steps,
     )
