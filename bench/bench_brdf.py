@@ -133,7 +133,7 @@ def np_fresnel_params(n_re, n_im, c):
             rs_im * rp_re - rs_re * rp_im)
 
 
-def np_deficit(table, m, mu, dt):
+def np_log_deficit(table, m, mu, dt):
     x = np.log1p(m)
     v = np.log(mu + albedo.MU0) + albedo.ALPHA * mu
     sx = np.clip((x - table.x_lo) / table.dx, 0, table.nx - 1)
@@ -149,11 +149,11 @@ def np_deficit(table, m, mu, dt):
                 0.5 * (t3 - t2))
 
     wx, wv = w(t), w(s)
-    D = table.D_pad.astype(dt)
+    L = table.L_pad.astype(dt)
     out = 0.0
     for a in range(4):
         for b in range(4):
-            out = out + wx[a] * wv[b] * D[i + a, j + b]
+            out = out + wx[a] * wv[b] * L[i + a, j + b]
     return out
 
 
@@ -205,14 +205,15 @@ def np_brdf(ki, ko, m, n_re, n_im, multiple, dt):
     M *= scal[:, None, None]
     if multiple:
         table = albedo.load_table(explicit_terms())
-        d_avg = float(albedo.deficit_avg(table, float(m)))
+        la = float(albedo.log_deficit_avg(table, float(m)))
+        d_avg = math.exp(la)
         xg, wg = np.polynomial.legendre.leggauss(32)
         mu = 0.5 * (xg + 1)
         f_avg = float(np.sum(np_fresnel_params(n_re, n_im, mu)[0] * mu * wg))
         f_add = f_avg**2 * (1 - d_avg) / (1 - f_avg * d_avg)
-        di = np.maximum(np_deficit(table, m, ci, dt), 0)
-        do = np.maximum(np_deficit(table, m, co, dt), 0)
-        M[:, 0, 0] += dt(f_add / (math.pi * d_avg)) * di * do
+        li = np_log_deficit(table, m, ci, dt)
+        lo = np_log_deficit(table, m, co, dt)
+        M[:, 0, 0] += dt(f_add / math.pi) * np.exp(li + lo - dt(la))
     return M
 
 

@@ -38,10 +38,11 @@ probability (the coherent backscatter cone is outside, as in the albedo tables).
 Numerics (float64 NumPy except the lobe integral):
 
 * ``<h.(-u)>+`` (facets facing away from ``u``, ``u.n = c``) from its definition,
-  ``(m + 1)/pi int_e^{pi/2} cos^m t sin t [sqrt(sin^2 t - c^2) - c cos t acos(c cot t / sqrt(1 - c^2))] dt``
-  (``e = asin c``), by mpmath tanh-sinh at 30 digits on subintervals that follow the lobe,
-  tabulated per ``m`` on nodes log-spaced in ``c`` and interpolated by a cubic spline of
-  ``log <h.(-u)>+ - (m+2)/2 log(1 - c^2)`` (a smooth function); ``Q(c)`` and ``P(c)`` follow
+  ``(m + 1)/pi int_e^{pi/2} cos^m t sin t [sqrt(sin^2 t - c^2) - c cos t acos(x)] dt`` with
+  ``x = c cot t / sqrt(1 - c^2)`` (``e = asin c``), by mpmath tanh-sinh at 30 digits on
+  subintervals that follow the lobe, tabulated per ``m`` on nodes log-spaced in ``c`` and
+  interpolated by a cubic spline of ``log <h.(-u)>+ - (m+2)/2 log(1 - c^2)`` (a smooth
+  function); ``Q(c)`` and ``P(c)`` follow
   without cancellation. The spline error is measured against direct mpmath values at the
   cell midpoints and reported.
 * Facet normals in ``(y, phi)`` with ``cos^(m+1) t = exp(-y^2)`` (``p d omega = 2 y e^{-y^2} dy
@@ -58,8 +59,12 @@ Numerics (float64 NumPy except the lobe integral):
 ``--check`` repeats the computation with every rule doubled (``DY``, ``DPHI`` halved, twice the
 lobe and ``U`` nodes) and reports the relative change of ``D``.
 
+``D_avg = 2 int_0^1 D mu dmu`` per ``m``: Gauss-Legendre (8 nodes) on 24 panels log-spaced in
+``mu`` from ``1e-3 / sqrt(m + 2)`` to 1.
+
 The output ``tests/data/deficit_reference.npz`` holds ``m``, ``theta_deg``, ``D`` (single +
-double), ``D_single`` and ``rel_change`` (the doubled-rule change, when ``--check``).
+double), ``D_single``, ``D_avg`` and ``rel_change``, ``rel_change_avg`` (the doubled-rule
+changes, when ``--check``).
 """
 
 from __future__ import annotations
@@ -84,9 +89,33 @@ N_LOBE = 160  # lobe-integral nodes in c
 NZ = 120  # uniform U nodes per sign of z and half of the elevation range
 
 # (m, incidence in degrees) of the stored reference
-M_GRID = (0.0, 1.0, 10.0, 100.0, 300.0, 1000.0, 3000.0, 1e4, 1e5, 1e6)
-THETA_GRID = (0.0, 30.0, 45.0, 60.0, 62.0, 65.0, 70.0, 72.5, 75.0, 77.5, 80.0, 82.0, 84.0, 85.0,
-              86.0, 87.0, 88.0, 88.5, 89.0, 89.5, 89.8, 89.9, 89.95, 89.98)
+M_GRID = (0.0, 1.0, 10.0, 100.0, 1000.0, 1e4, 1e5)
+THETA_GRID = (
+    0.0,
+    30.0,
+    45.0,
+    60.0,
+    62.0,
+    65.0,
+    70.0,
+    72.5,
+    75.0,
+    77.5,
+    80.0,
+    82.0,
+    84.0,
+    85.0,
+    86.0,
+    87.0,
+    88.0,
+    88.5,
+    89.0,
+    89.5,
+    89.8,
+    89.9,
+    89.95,
+    89.98,
+)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -126,7 +155,7 @@ class Lobe:
     """``P(c)``, ``Q(c) = 1 - P(c)`` and ``log Q`` of Ashikhmin's visibility for one ``m``, from
     a spline of the smooth part of ``log <h.(-u)>+`` (module docstring)."""
 
-    def __init__(self, m: float, n_nodes: int = N_LOBE):
+    def __init__(self, m: float, n_nodes: int = N_LOBE, check: bool = True):
         self.m = float(m)
         self.M = self.m + 2.0
         self.hn = (self.m + 1.0) / (self.m + 2.0)
@@ -135,6 +164,9 @@ class Lobe:
         c = self._c_of(xi)
         h = np.array([self._h_direct(ci) for ci in c])
         self.spline = CubicSpline(xi, h)
+        self.spline_err = float("nan")
+        if not check:
+            return
         # interpolation error at the cell midpoints (every 4th cell)
         xm = 0.5 * (xi[:-1] + xi[1:])[::4]
         hm = np.array([self._h_direct(ci) for ci in self._c_of(xm)])
@@ -150,7 +182,7 @@ class Lobe:
         cc = min(float(c), 1.0 - 1e-12)
         with mp.workdps(30):
             v = nm_direct(self.m, cc)
-            return float(mp.log(v) - self.M / 2 * mp.log1p(-mp.mpf(cc) ** 2))
+            return float(mp.log(v) - self.M / 2 * mp.log1p(-(mp.mpf(cc) ** 2)))
 
     def log_nm(self, c):
         c = np.clip(np.asarray(c, float), 0.0, 1.0)
@@ -300,20 +332,22 @@ def u_value(lobe: Lobe, z: float, dy: float = DY, dphi: float = DPHI) -> float:
 
 
 class SecondBounce:
-    """Cubic splines of ``log U(z)`` in the elevation ``e = asin |z|``: per sign of ``z``, one on
-    ``[0, pi/4]`` in ``d = e`` and one on ``[pi/4, pi/2]`` in ``d = pi/2 - e`` (``U`` varies on the
-    lobe's scale ``a = 1/sqrt(m + 2)`` near the horizon and near the vertical, where Ashikhmin's
-    ``f`` follows the azimuth of a nearly vertical ``w``). Nodes in ``d``: ``n`` uniform on
-    ``[0, 30 a]`` (``log U`` is close to quadratic in ``e / a`` there), a third as many
-    log-spaced beyond, and a few log-spaced below ``0.1 a``; the spline variable is ``log d`` near
-the vertical (``U ~ d^k`` for ``z > 0``), where ``d >= 1e-6 a`` (exactly vertical
-    ``w`` is the ``f = 1`` convention, a jump of ``U``: the limit is used). Where no facet faces
-    ``w`` within the rule (``U`` undefined: steep ``z > 0``, whose weight ``Q(z)`` underflows) the
-    nearest defined value is used. ``spline_err``: max error of ``log U`` (the relative error of
-    ``U``) at interval midpoints where ``U > 1e-12`` and, for ``z > 0``, the weight ``Q(z)`` of a
-    blocked ray exceeds 1e-9."""
+    """Cubic splines of ``log U(z)`` in the elevation ``e = asin |z|``: per sign of ``z``, one
+    on ``[0, pi/4]`` in ``d = e`` and one on ``[pi/4, pi/2]`` in ``d = pi/2 - e`` (``U`` varies on
+    the lobe's scale ``a = 1/sqrt(m + 2)`` near the horizon and near the vertical, where
+    Ashikhmin's ``f`` follows the azimuth of a nearly vertical ``w``). Nodes in ``d``: ``n``
+    uniform on ``[0, 30 a]`` (``log U`` is close to quadratic in ``e / a`` there), a third as
+    many log-spaced beyond, and a few log-spaced below ``0.1 a``; the spline variable is
+    ``log d`` near the vertical (``U ~ d^k`` for ``z > 0``), where ``d >= 1e-6 a`` (exactly
+    vertical ``w`` is the ``f = 1`` convention, a jump of ``U``: the limit is used). Where no
+    facet faces ``w`` within the rule (``U`` undefined: steep ``z > 0``, whose weight ``Q(z)``
+    underflows) the nearest defined value is used. ``spline_err``: max error of ``log U`` (the
+    relative error of ``U``) at interval midpoints where ``U > 1e-12`` and, for ``z > 0``, the
+    weight ``Q(z)`` of a blocked ray exceeds 1e-9."""
 
-    def __init__(self, lobe: Lobe, nz: int = NZ, dy: float = DY, dphi: float = DPHI):
+    def __init__(
+        self, lobe: Lobe, nz: int = NZ, dy: float = DY, dphi: float = DPHI, check: bool = True
+    ):
         a = 1.0 / np.sqrt(lobe.m + 2.0)
         self.d_min = 1e-6 * a
         top = 0.25 * np.pi
@@ -336,6 +370,8 @@ the vertical (``U ~ d^k`` for ``z > 0``), where ``d >= 1e-6 a`` (exactly vertica
                 lu = self._log_u(lobe, sign * np.sin(self._e_of(dh, half)), dy, dphi)
                 sp = CubicSpline(x, lu)
                 self.splines[sign, half] = sp
+                if not check:
+                    continue
                 xm = 0.5 * (x[:-1] + x[1:])[::5]
                 zm = sign * np.sin(self._e_of(self._d_of(xm, half), half))
                 lum = self._log_u(lobe, zm, dy, dphi)
@@ -344,7 +380,7 @@ the vertical (``U ~ d^k`` for ``z > 0``), where ``d >= 1e-6 a`` (exactly vertica
                     keep &= lobe.log_q_p(np.abs(zm))[1] > 1e-9
                 if keep.any():
                     errs.append(np.max(np.abs(sp(xm) - lum)[keep]))
-        self.spline_err = float(max(errs))
+        self.spline_err = float(max(errs)) if errs else float("nan")
 
     @staticmethod
     def _x_of(d, half):
@@ -418,7 +454,9 @@ def deficit(lobe: Lobe, second: SecondBounce | None, mu: float, dy=DY, dphi=DPHI
         up = dz > 0
         _, qd, _ = lobe.log_q_p(np.clip(dz, 0.0, 1.0))
         f = _azimuth_f(dx, dyy, s, 0.0)
-        b_up = (1.0 - f) * qd + np.where(dz < c, f * np.maximum(qd - qk, 0.0) / max(pk, 1e-300), 0.0)
+        b_up = (1.0 - f) * qd + np.where(
+            dz < c, f * np.maximum(qd - qk, 0.0) / max(pk, 1e-300), 0.0
+        )
         b1 = np.where(up, b_up, 1.0)
         tot_s += float(np.sum(wt * b1))
         if second is not None:
@@ -427,12 +465,35 @@ def deficit(lobe: Lobe, second: SecondBounce | None, mu: float, dy=DY, dphi=DPHI
     return tot, tot_s, norm
 
 
-def reference(m_list, theta_list, *, scale: int = 1, log=print):
-    """``D`` and ``D_single`` on the grid; ``scale = 2`` doubles every rule."""
+def deficit_avg(lobe: Lobe, second: SecondBounce, dy=DY, dphi=DPHI, n_panels=24, n_gl=8):
+    """``D_avg = 2 int_0^1 D(mu) mu dmu``: Gauss-Legendre on panels log-spaced from
+    ``1e-3 / sqrt(m + 2)`` to 1 (plus ``[0, 1e-3 / sqrt(m + 2)]``)."""
+    a = 1e-3 / np.sqrt(lobe.m + 2.0)
+    edges = np.concatenate([[0.0], np.geomspace(a, 1.0, n_panels)])
+    x, w = np.polynomial.legendre.leggauss(n_gl)
+    lo, hi = edges[:-1, None], edges[1:, None]
+    mu = (lo + 0.5 * (hi - lo) * (x + 1.0)).ravel()
+    wt = (0.5 * (hi - lo) * w).ravel()
+    D = np.array([deficit(lobe, second, u, dy, dphi)[0] for u in mu])
+    return 2.0 * float(np.sum(D * mu * wt))
+
+
+def reference(m_list, theta_list, *, scale: int = 1, log=print, cache: str = ""):
+    """``D``, ``D_single`` on the grid and ``D_avg`` per m; ``scale = 2`` doubles every rule.
+    ``cache``: an ``.npz`` of finished rows (an interrupted run resumes)."""
     D = np.zeros((len(m_list), len(theta_list)))
     Ds = np.zeros_like(D)
-    info = []
+    Davg = np.zeros(len(m_list))
+    info = [""] * len(m_list)
+    done = np.zeros(len(m_list), bool)
+    if cache and os.path.exists(cache):
+        with np.load(cache) as z:
+            if np.array_equal(z["m"], m_list) and np.array_equal(z["theta"], theta_list):
+                D, Ds, Davg, done = z["D"], z["Ds"], z["Davg"], z["done"]
+                info = list(z["info"])
     for i, m in enumerate(m_list):
+        if done[i]:
+            continue
         t0 = time.perf_counter()
         lobe = Lobe(m, N_LOBE * scale)
         t1 = time.perf_counter()
@@ -443,15 +504,28 @@ def reference(m_list, theta_list, *, scale: int = 1, log=print):
             mu = float(np.cos(np.deg2rad(th)))
             D[i, j], Ds[i, j], nrm = deficit(lobe, second, mu, DY / scale, DPHI / scale)
             norms.append(nrm)
+        Davg[i] = deficit_avg(lobe, second, DY / scale, DPHI / scale, 24 * scale)
         t3 = time.perf_counter()
         msg = (
             f"m={m:g}: lobe spline err {lobe.spline_err:.1e} ({t1 - t0:.0f} s), U spline err "
             f"{second.spline_err:.1e} ({t2 - t1:.0f} s), max |norm - 1| "
             f"{np.max(np.abs(np.array(norms) - 1)):.1e} ({t3 - t2:.0f} s)"
         )
-        log(msg, flush=True)
-        info.append(msg)
-    return D, Ds, info
+        log(msg + f", D_avg {Davg[i]:.6e}", flush=True)
+        info[i] = msg
+        done[i] = True
+        if cache:
+            np.savez(
+                cache,
+                m=m_list,
+                theta=theta_list,
+                D=D,
+                Ds=Ds,
+                Davg=Davg,
+                done=done,
+                info=np.array(info),
+            )
+    return D, Ds, Davg, info
 
 
 def main(argv=None):
@@ -460,28 +534,37 @@ def main(argv=None):
     ap.add_argument("--m", type=float, nargs="*", default=None)
     ap.add_argument("--theta", type=float, nargs="*", default=None)
     ap.add_argument("--out", default=OUT)
+    ap.add_argument("--cache", default="", help="npz of finished rows (resume)")
     args = ap.parse_args(argv)
     m_list = tuple(args.m) if args.m else M_GRID
     th_list = tuple(args.theta) if args.theta else THETA_GRID
-    D, Ds, info = reference(m_list, th_list)
+    D, Ds, Davg, info = reference(m_list, th_list, cache=args.cache)
     rel = np.full_like(D, np.nan)
+    rel_avg = np.full_like(Davg, np.nan)
     if args.check:
-        D2, _, info2 = reference(m_list, th_list, scale=2)
+        c2 = args.cache.replace(".npz", "_x2.npz") if args.cache else ""
+        D2, _, Davg2, info2 = reference(m_list, th_list, scale=2, cache=c2)
         with np.errstate(divide="ignore", invalid="ignore"):
             rel = np.abs(D2 - D) / np.maximum(np.abs(D2), 1e-300)
+            rel_avg = np.abs(Davg2 - Davg) / Davg2
         info += ["doubled: " + s for s in info2]
     np.set_printoptions(linewidth=200, precision=3)
     for i, m in enumerate(m_list):
         print(f"m={m:g}")
         for j, th in enumerate(th_list):
-            print(f"  {th:5.1f} deg  D={D[i, j]:.6e}  D_single={Ds[i, j]:.6e}  rel_change={rel[i, j]:.1e}")
+            print(
+                f"  {th:5.1f} deg  D={D[i, j]:.6e}  D_single={Ds[i, j]:.6e}  "
+                f"rel_change={rel[i, j]:.1e}"
+            )
     np.savez(
         args.out,
         m=np.array(m_list),
         theta_deg=np.array(th_list),
         D=D,
         D_single=Ds,
+        D_avg=Davg,
         rel_change=rel,
+        rel_change_avg=rel_avg,
         info=np.array("\n".join(info)),
     )
     print("wrote", args.out)

@@ -1,25 +1,16 @@
-"""Double-bounce tables: (1) the white albedo of single + double for the multiple-scattering
-remainder, (2) the measured "where does the double term matter" table behind terms="auto",
-(3) the energy of the coherent backscatter cone.
+"""Double-bounce tables: (1) the white albedo of the runtime double term (used by
+scripts/make_albedo_tables.py), (2) the measured "where does the double term matter" table
+behind terms="auto", (3) the energy of the coherent backscatter cone.
 
-    .venv/bin/python scripts/double_table.py --albedo   # writes ppr/data/albedo_double_single.npz
     .venv/bin/python scripts/double_table.py --matter   # writes docs/double_bounce_table.md + PNG
     .venv/bin/python scripts/double_table.py --cone     # prints the table of (3) (~8 min)
 
-(1) ``E_single + E_double`` on the grid of ``ppr/data/albedo_single.npz`` (same nodes):
-``E_double(m, mu) = int M00_double(white, incoherent, default order) (k'.n) d omega'`` by the
-half-vector rule of :func:`ppr.brdf.albedo.albedo_nodes` (HV_PHI x HV_W), which resolves the
-double lobe at every m (at large m it sits next to the mirror direction: two small facet
-tilts; at small m the rule covers the whole hemisphere). The former k' product rule
-(Gauss-Legendre 20 x 16 in ``cos theta'``, ``phi'``) could not resolve it at large m and the
-table set ``E_double = 0`` for m > 3000 (wrong at grazing: ``E_double(1e4, 89 deg)`` = 0.078).
-Rows with m >= M_MU_CUT are integrated for ``mu <= MU_CUT_K / sqrt(m + 1)`` only (the double
-lobe needs grazing incidence there); the first node above the cut is integrated too and
-its value is reported in the table's info string (the dropped part). The deficit
-``D = D_single - E_double`` goes through ``ppr.brdf.albedo.build_table``. The double term's
-table uses the *runtime default order*, so that single + double + multiple closes the white
-furnace with the BRDF that is actually evaluated. The coherent backscatter peak is left out
-of E (gamma = 0); the albedo it adds is measured by (3).
+(1) :func:`e_double_hv`: ``E_double(m, mu) = int M00_double(white, incoherent, default order)
+(k'.n) d omega'`` by the half-vector rule of :func:`ppr.brdf.albedo.albedo_nodes` (HV_PHI x HV_W),
+which resolves the double lobe at every m (at large m it sits next to the mirror direction: two
+small facet tilts; at small m the rule covers the whole hemisphere). The deficit tables of the
+multiple-scattering remainder are built by scripts/make_albedo_tables.py, which uses it for the
+closure of the runtime double term's quadrature error (docs/physics/multiple_scattering.md).
 
 (2) Relative contribution of the double term to the full BRDF vs bistatic angle and m,
 maximized over incidence 0-80 deg and the bistatic azimuth, for aluminium, TiO2 paint
@@ -58,8 +49,6 @@ from ppr.optics import default_frame  # noqa: E402
 
 N_MU, N_PHI = 20, 16  # k' product rule of :func:`kprime_nodes` (tests, broad lobes)
 HV_PHI, HV_W = 20, 10  # half-vector rule of ppr.brdf.albedo.albedo_nodes for the albedo table
-MU_CUT_K = 10.0  # rows m >= M_MU_CUT: nodes with mu > MU_CUT_K / sqrt(m) are not integrated
-M_MU_CUT = 300.0
 CHUNK = 4096  # k' evaluations per jitted call (one compilation)
 
 
@@ -135,73 +124,6 @@ def e_double(m_vals, mu_vals, order=DEFAULT_ORDER, n_mu=N_MU, n_phi=N_PHI, chunk
     kpp = np.broadcast_to(kp[None], (len(mu), Q, 3)).reshape(-1, 3)
     v = _eval_pairs(kk, kpp, np.repeat(m_vals, Q), order)
     return np.sum(v.reshape(-1, Q) * wt, -1)
-
-
-GRAZING_ORDER, GRAZING_HV = (16, 48), (12, 6)
-
-
-def grazing_limit(m_nodes, e_default):
-    """E_double at the mu = 0 column (limit mu -> 0+) with a converged order.
-
-    The runtime default order overshoots in the last ~0.1 deg before the horizon
-    (E_single + E_double up to 1.01 at mu = 1e-9, m >= 10; (12, 32) and (16, 48) agree to
-    ~5e-4 there, with E_single + E_double <= 1 + 3e-4). The mu = 0 node only anchors the
-    interpolant for mu < ~1e-4; a negative deficit there would zero the multiple-scattering
-    lobe at grazing. Returns (values, max |default - converged|)."""
-    e = e_double_hv(
-        m_nodes, np.zeros_like(m_nodes), order=GRAZING_ORDER, n_phi=GRAZING_HV[0], n_w=GRAZING_HV[1]
-    )
-    return e, float(np.max(np.abs(e - e_default)))
-
-
-def make_albedo():
-    t_single = albedo.load_table(("single",))
-    nx, nv = t_single.nx, t_single.nv
-    _, _, m_nodes, mu_nodes = albedo.grid_nodes(nx, nv)
-    M, MU = np.meshgrid(m_nodes, mu_nodes, indexing="ij")
-    mu_cut = np.where(M >= M_MU_CUT, MU_CUT_K / np.sqrt(M + 1.0), 2.0)
-    sel = MU <= mu_cut
-    # first node above the cut in each cut row: integrated too, to measure what is dropped
-    edge = np.zeros_like(sel)
-    for i in range(nx):
-        j = np.nonzero(~sel[i])[0]
-        if j.size:
-            edge[i, j[0]] = True
-    t0 = time.perf_counter()
-    E2 = np.zeros_like(M)
-    todo = sel | edge
-    E2[todo] = e_double_hv(M[todo], MU[todo])
-    t1 = time.perf_counter()
-    dropped = float(np.max(np.abs(E2[edge]))) if edge.any() else 0.0
-    E2[~sel] = 0.0
-    E2[:, 0], grazing_gap = grazing_limit(m_nodes, E2[:, 0])
-    # self-convergence on a sub-grid: doubled half-vector order, and doubled double-term
-    # order against the default (the table must match the runtime default order)
-    sub = np.zeros_like(sel)
-    sub[::5, ::8] = True
-    sub[::5, :3] = True  # grazing rows
-    sub &= sel
-    E2b = e_double_hv(M[sub], MU[sub], n_phi=2 * HV_PHI, n_w=2 * HV_W)
-    conv = float(np.max(np.abs(E2b - E2[sub])))
-    S = 1.0 - t_single.D
-    over = float(np.max(S + E2 - 1.0))
-    D = t_single.D - E2
-    info = (
-        f"terms=('double','single'); single from albedo_single.npz ({t_single.info}); "
-        f"E_double: white incoherent double term at the runtime default order {DEFAULT_ORDER}, "
-        f"half-vector rule (n_phi, n_w) = ({HV_PHI}, {HV_W}) at every node with m < "
-        f"{M_MU_CUT:g} and, for m >= {M_MU_CUT:g}, at mu <= {MU_CUT_K:g}/sqrt(m+1) (0 above; "
-        f"max E_double at the first node above = {dropped:.1e}); "
-        f"max |E_double(2 x hv order) - E_double| on a sub-grid = {conv:.2e}; "
-        f"mu = 0 column (the limit mu -> 0+, never evaluated at runtime): order "
-        f"{GRAZING_ORDER}, hv ({GRAZING_HV[0]}, {GRAZING_HV[1]}) (the default order is not "
-        f"converged there: it differs by up to {grazing_gap:.1e}); "
-        f"max E_single + E_double - 1 at the nodes = {over:.1e}; max E_double = {E2.max():.4f}"
-    )
-    table = albedo.build_table(("double", "single"), D, info=info)
-    path = albedo.save_table(table)
-    print(path, info, f"{t1 - t0:.1f} s")
-    return E2
 
 
 MS = (0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0, 3000.0)
@@ -487,12 +409,9 @@ def measure_cone(order=CONE_ORDER, hv=CONE_HV):
 
 def main(argv=None):
     ap = argparse.ArgumentParser()
-    ap.add_argument("--albedo", action="store_true")
     ap.add_argument("--matter", action="store_true")
     ap.add_argument("--cone", action="store_true")
     args = ap.parse_args(argv)
-    if args.albedo:
-        make_albedo()
     if args.matter:
         measure_matter_table(os.path.join(ROOT, "docs"))
     if args.cone:

@@ -22,14 +22,14 @@ point away from the surface (:mod:`ppr.optics.conventions`). It is the sum of na
     backscatter (``"double:backscatter"`` forces the tables).
 
 ``"multiple"`` (:func:`multiple_scattering_term`)
-    Depolarizing remainder of the explicit terms (docs/physics/energy.md),
+    Depolarizing remainder of the explicit terms (docs/physics/multiple_scattering.md),
 
         f_ms = F_add c D(k) D(k') diag(1, 0, 0, 0),  c = 1 / (pi D_avg),
         D = 1 - E,  D_avg = 1 - E_avg = 2 int_0^1 D(mu) mu dmu,
 
     ``E(m, mu)`` the white-surface (``F == 1``) directional albedo of the model's explicit terms
-    (:func:`explicit_terms`; tables in :mod:`ppr.brdf.albedo`), so that explicit + multiple has a
-    white-furnace albedo of exactly 1. ``F_add = F_avg^2 E_avg / (1 - F_avg D_avg)`` (Kulla &
+    (:func:`explicit_terms`; tables of ``log D`` in :mod:`ppr.brdf.albedo`), so that explicit +
+    multiple has a white-furnace albedo of 1. ``F_add = F_avg^2 E_avg / (1 - F_avg D_avg)`` (Kulla &
     Conty 2017) with ``F_avg = 2 int_0^1 F(mu) mu dmu`` the cosine-weighted hemispherical
     average of the unpolarized Fresnel reflectance, by fixed 32-point Gauss-Legendre
     (differentiable in ``n``); ``F_add = 1`` for the ideal white reflector.
@@ -279,31 +279,36 @@ def _single_flat(
 
 
 def _multiple_m00(ki, ko, nr, material: Material, m: Array) -> Array:
-    """The multiple-scattering remainder's only non-zero entry, ``M00`` (module docstring)."""
+    """The multiple-scattering remainder's only non-zero entry, ``M00`` (module docstring):
+    ``F_add / pi * exp(log D(k) + log D(k') - log D_avg)``, one ``exp`` of the tabulated logs
+    (positive, no product of two small deficits formed, no clamp; ``k' = k`` given as the same
+    array interpolates one deficit)."""
     dt = ki[0].dtype
     table = _albedo.load_table(explicit_terms())
     ci = _d3(ki, nr)
-    co = _d3(ko, nr)
-    valid = (ci > _grazing(dt)) & (co > _grazing(dt))
+    co = ci if ko is ki else _d3(ko, nr)
+    g = _grazing(dt)
+    valid = (ci > g) & (co > g)
     m_mat = material.m.astype(dt)
-    d_avg = _albedo.deficit_avg(table, m_mat)  # material shape only (cheap)
+    la = _albedo.log_deficit_avg(table, m_mat)  # material shape only (cheap)
+    d_avg = jnp.exp(la)
     f_avg = fresnel_average(material, dt)
-    d_avg_ok = d_avg > 1e-30
-    d_avg_s = jnp.where(d_avg_ok, d_avg, 1.0)
     f_add = f_avg * f_avg * (1.0 - d_avg) / (1.0 - f_avg * d_avg)
-    coef = jnp.where(d_avg_ok, f_add / (math.pi * d_avg_s), 0.0)
     if jnp.ndim(m_mat) == 0:
         # one material: the table's m-interpolation done once (ppr.brdf.albedo)
-        def deficit(mu):
-            return _albedo.deficit_one_material(table, m_mat, mu)
+        def log_deficit(mu):
+            return _albedo.log_deficit_one_material(table, m_mat, mu)
     else:
 
-        def deficit(mu):
-            return _albedo.deficit(table, m, mu)
+        def log_deficit(mu):
+            return _albedo.log_deficit(table, m, mu)
 
-    di = jnp.maximum(deficit(jnp.where(valid, ci, 1.0)), 0.0)
-    do = jnp.maximum(deficit(jnp.where(valid, co, 1.0)), 0.0)
-    return jnp.where(valid, jnp.broadcast_to(coef, m.shape) * di * do, 0.0)
+    li = log_deficit(jnp.where(valid, ci, 1.0))
+    lo = li if ko is ki else log_deficit(jnp.where(valid, co, 1.0))
+    val = jnp.broadcast_to(f_add / math.pi, m.shape) * jnp.exp(
+        li + lo - jnp.broadcast_to(la, m.shape)
+    )
+    return jnp.where(valid, val, 0.0)
 
 
 def _unflatten(flat: Array) -> Array:

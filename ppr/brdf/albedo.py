@@ -1,32 +1,41 @@
-r"""White-surface directional albedo ``E(m, cos theta)`` of the BRDF's explicit terms.
+r"""White-surface energy deficit ``D(m, cos theta)`` of the BRDF's explicit terms: tables.
 
-The multiple-scattering remainder (docs/physics/energy.md) needs, for an ideal white surface
-(``F == 1``, :meth:`ppr.Material.ideal_white`), the directional albedo carried by the
-*explicit* terms (single bounce now; single + double once the double-bounce term exists)
+The multiple-scattering remainder (:func:`ppr.brdf._brdf.multiple_scattering_term`,
+docs/physics/multiple_scattering.md) needs, for the ideal white surface (``F == 1``,
+:meth:`ppr.Material.ideal_white`), the fraction of the incident flux that the *explicit* terms
+(single + double) do not return,
 
-    E(m, mu) = integral over the outgoing hemisphere of f_explicit,00(k, k') (k'.n) d omega',
-    mu = k.n,
+    D(m, mu) = 1 - E(m, mu),   mu = k.n,
+    E = integral over the outgoing hemisphere of f_explicit,00 (k'.n) d omega',
 
-and its cosine-weighted hemispherical average ``E_avg(m) = 2 int_0^1 E(m, mu) mu d mu``.
+and its cosine-weighted hemispherical average ``D_avg(m) = 2 int_0^1 D(m, mu) mu d mu``.
 
 Tables
     One ``.npz`` table per set of explicit terms in ``ppr/data/albedo_<terms>.npz``
-    (``albedo_single.npz``; a ``albedo_double_single.npz`` for single + double), written by
-    ``scripts/make_albedo_tables.py`` and loaded once, lazily, as small NumPy constants.
+    (``albedo_single.npz``, ``albedo_double_single.npz``), written by
+    ``scripts/make_albedo_tables.py`` and loaded once, lazily, as small NumPy constants. The
+    node values are computed as a *positive* integral (the probability that light is still
+    inside the surface after one or two facets, scripts/deficit_reference.py), never as
+    ``1 - E``: ``D`` spans 300 decades (1e-3 at grazing incidence on a glossy surface, 1e-18 at
+    60 deg for m = 1000, below 1e-300 at normal incidence for m = 1e4), and a difference of two
+    numbers near 1 would leave only rounding and quadrature noise in its tail.
 
-    Grid: uniform in ``x = log(1 + m)`` (``0 <= m <= 1e6``) and in the warped cosine
-    ``v = log(mu + MU0) + ALPHA mu`` (``0 <= mu <= 1``). The log part resolves the grazing band
-    ``mu ~ 1/sqrt(m)`` at every roughness with the same number of nodes (E depends on
+    Stored: ``L = log D`` (floored at ``LOG_FLOOR``, D = 1e-300) on a grid uniform in
+    ``x = log(1 + m)`` (``0 <= m <= 1e6``) and in the warped cosine
+    ``v = log(mu + MU0) + ALPHA mu`` (``0 <= mu <= 1``). The log part of ``v`` resolves the
+    grazing band ``mu ~ 1/sqrt(m)`` at every roughness with the same nodes (``D`` depends on
     ``mu sqrt(m)`` there); the linear part keeps nodes near normal incidence for small m.
-    Interpolant: tensor-product Catmull-Rom (cubic convolution; C1, third-order) with ghost
-    nodes from quadratic extrapolation, so ``E`` is smooth and differentiable in ``m`` and
-    ``mu``. ``E_avg`` nodes are the exact (quadrature) integrals of the ``mu``-interpolant at
-    each ``x`` node, so the 1-D Catmull-Rom interpolant of ``E_avg`` in ``x`` equals the
-    integral of the 2-D interpolant (interpolation is linear in the node values): the
-    multiple-scattering lobe built from the *interpolated* E conserves energy exactly up to
-    that 1-D quadrature, independently of the table's own error.
+    Interpolant: tensor-product Catmull-Rom (cubic convolution; C1, third order) of ``L`` with
+    ghost nodes from quadratic extrapolation, then ``D = exp(L)``: positive by construction,
+    smooth and differentiable in ``m`` and ``mu``, with the relative precision of ``L`` (an
+    interpolant of ``D`` itself rings around its steep rise toward grazing and went negative,
+    which the remainder clamped to exact zeros). ``log D_avg`` is tabulated on an x grid
+    ``AVG_REFINE`` times finer, each node the integral of the 2-D interpolant at that ``m``
+    (8-point Gauss-Legendre per v cell), and interpolated by Catmull-Rom: the remainder built
+    from the *interpolated* ``D`` conserves energy up to that 1-D interpolation
+    (tests/test_furnace.py), independently of the table's own error.
 
-Quadrature (:func:`directional_albedo`)
+Quadrature of the BRDF (:func:`directional_albedo`, tests and benchmarks)
     In half-vector coordinates around the normal: with ``u = cos^(m+1) theta_h`` the lobe
     weight ``p(h) d omega_h = du d phi / (2 pi)`` is uniform, and with ``w = -log u`` the
     whole integrand (including ``p``) decays like ``e^-w`` for every m, with
@@ -62,6 +71,10 @@ __all__ = [
     "albedo_avg",
     "deficit",
     "deficit_avg",
+    "deficit_one_material",
+    "log_deficit",
+    "log_deficit_avg",
+    "log_deficit_one_material",
     "build_table",
     "directional_albedo",
     "load_table",
@@ -73,6 +86,10 @@ DATA_DIR = os.path.join(os.path.dirname(os.path.dirname(__file__)), "data")
 MU0 = 1e-4
 ALPHA = 3.0
 M_MAX = 1e6
+LOG_FLOOR = float(np.log(1e-300))
+"""Floor of the stored ``log D`` (D = 1e-300: the remainder is exactly 0 in either dtype)."""
+AVG_REFINE = 8
+"""The ``log D_avg`` grid is this many times finer in x than the deficit grid."""
 W_MAX = 40.0  # e^-40 = 4e-18: truncation of the w integral
 # static panel breakpoints in w (geometric), completed by the kink and the horizon
 _W_BREAKS = (0.5, 1.5, 3.5, 7.5, 15.5, 27.0)
@@ -99,13 +116,11 @@ def unwarp_v(v: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class AlbedoTable:
-    """Albedo table of one set of explicit terms (NumPy constants, float64).
+    """Deficit table of one set of explicit terms (NumPy constants, float64).
 
-    It stores the *deficit* ``D = 1 - E`` (and ``D_avg = 1 - E_avg``), small numbers that keep
-    their relative precision in float32 when ``E -> 1`` (large m away from grazing), so the
-    remainder ``D(k) D(k') / (pi D_avg)`` never divides rounding noise.
-    ``D_pad`` is ``(nx + 2, nv + 2)``: the ``nx x nv`` node values with one ghost node on each
-    side; ``D_avg_pad`` is ``(nx + 2,)``. Node ``i`` sits at ``x = x_lo + i dx``.
+    ``L_pad`` is ``(nx + 2, nv + 2)``: ``log D`` at the ``nx x nv`` nodes with one ghost node on
+    each side (node ``i`` at ``x = x_lo + i dx``, ``j`` at ``v = v_lo + j dv``). ``La_pad`` is
+    ``(nxa + 2,)``: ``log D_avg`` on the finer grid ``x = x_lo + i dxa`` with its ghosts.
     """
 
     terms: tuple[str, ...]
@@ -115,22 +130,37 @@ class AlbedoTable:
     v_lo: float
     dv: float
     nv: int
-    D_pad: np.ndarray
-    D_avg_pad: np.ndarray
+    L_pad: np.ndarray
+    dxa: float
+    nxa: int
+    La_pad: np.ndarray
     info: str = ""
+    Lm_pad: np.ndarray | None = None
+    """``log`` of the model's deficit (before the closure of scripts/make_albedo_tables.py),
+    padded like ``L_pad``; for tests and documentation, not used by the BRDF."""
+
+    @property
+    def L(self) -> np.ndarray:
+        """Node values of ``log D``."""
+        return self.L_pad[1:-1, 1:-1]
 
     @property
     def D(self) -> np.ndarray:
-        """Node values of the deficit ``1 - E``."""
-        return self.D_pad[1:-1, 1:-1]
+        """Node values of the deficit ``D = 1 - E``."""
+        return np.exp(self.L)
 
     @property
     def D_avg(self) -> np.ndarray:
-        return self.D_avg_pad[1:-1]
+        """``D_avg`` at the nodes of the fine x grid (:attr:`xa_nodes`)."""
+        return np.exp(self.La_pad[1:-1])
 
     @property
     def x_nodes(self) -> np.ndarray:
         return self.x_lo + self.dx * np.arange(self.nx)
+
+    @property
+    def xa_nodes(self) -> np.ndarray:
+        return self.x_lo + self.dxa * np.arange(self.nxa)
 
     @property
     def v_nodes(self) -> np.ndarray:
@@ -214,40 +244,62 @@ def _interp_1d_np_row(vals_pad: np.ndarray, v_lo: float, dv: float, nv: int, v: 
     return sum(w[a] * vals_pad[..., i + a] for a in range(4))
 
 
-def build_table(terms, D_nodes: np.ndarray, info: str = "") -> AlbedoTable:
-    """Table from deficit node values ``D_nodes = 1 - E`` of shape ``(nx, nv)`` on
-    :func:`grid_nodes`.
+def _log_avg_at_x(L_pad, x_lo, dx, nx, v, xq):
+    """``log D_avg`` of the 2-D interpolant at the x values ``xq`` (NumPy, float64): the
+    Catmull-Rom row in x, then ``2 int_0^1 exp(L(v)) mu dmu`` by 8-point Gauss-Legendre per
+    v cell (``dmu/dv`` from the exact inverse warp)."""
+    nv = len(v)
+    dv = v[1] - v[0]
+    s = np.clip((np.asarray(xq) - x_lo) / dx, 0.0, nx - 1.0)
+    i = np.clip(np.floor(s), 0, nx - 2).astype(int)
+    w = _cr_weights(s - i, np)
+    rows = sum(w[a][:, None] * L_pad[i + a] for a in range(4))  # (nq, nv + 2)
+    gx, gw = np.polynomial.legendre.leggauss(8)
+    vq = (v[:-1, None] + 0.5 * dv * (gx[None, :] + 1.0)).ravel()
+    wq = np.broadcast_to(0.5 * dv * gw[None, :], (nv - 1, 8)).ravel()
+    muq = unwarp_v(vq)
+    dmu_dv = 1.0 / (1.0 / (muq + MU0) + ALPHA)
+    Lq = _interp_1d_np_row(rows, v[0], dv, nv, vq)  # (nq, nvq)
+    wmu = 2.0 * muq * dmu_dv * wq
+    top = np.max(Lq, axis=-1, keepdims=True)
+    return top[:, 0] + np.log(np.sum(np.exp(Lq - top) * wmu[None, :], axis=-1))
 
-    ``D_avg`` at each x node is the 1-D integral ``2 int_0^1 D(mu) mu dmu`` of the
-    Catmull-Rom interpolant in ``v`` (8-point Gauss-Legendre per v cell, Jacobian
-    ``dmu/dv`` from the exact inverse warp), so it matches the runtime interpolant.
-    """
+
+def _log_pad(D_nodes) -> np.ndarray:
+    with np.errstate(divide="ignore"):
+        L = np.maximum(np.log(np.maximum(np.asarray(D_nodes, np.float64), 0.0)), LOG_FLOOR)
+    return _pad_quadratic(_pad_quadratic(L, 0), 1)
+
+
+def build_table(
+    terms, D_nodes: np.ndarray, info: str = "", D_model: np.ndarray | None = None
+) -> AlbedoTable:
+    """Table from deficit node values ``D_nodes`` (positive; floored at ``exp(LOG_FLOOR)``)
+    of shape ``(nx, nv)`` on :func:`grid_nodes`: ``log D`` with quadratic ghosts, and
+    ``log D_avg`` of the 2-D interpolant on the x grid refined ``AVG_REFINE`` times.
+    ``D_model``: the model's deficit, kept for reference (:attr:`AlbedoTable.Lm_pad`)."""
     D_nodes = np.asarray(D_nodes, np.float64)
     nx, nv = D_nodes.shape
     x, v, _, _ = grid_nodes(nx, nv)
-    D_pad = _pad_quadratic(_pad_quadratic(D_nodes, 0), 1)
-    # D_avg of each padded x row (ghost rows too: linear in the node values, so consistent)
-    gx, gw = np.polynomial.legendre.leggauss(8)
-    dv = v[1] - v[0]
-    a = v[:-1, None] + 0.5 * dv * (gx[None, :] + 1.0)  # (nv-1, 8)
-    wts = 0.5 * dv * gw[None, :] * np.ones_like(a)
-    vq = a.ravel()
-    wq = wts.ravel()
-    muq = unwarp_v(vq)
-    dmu_dv = 1.0 / (1.0 / (muq + MU0) + ALPHA)
-    Dq = _interp_1d_np_row(D_pad, v[0], dv, nv, vq)  # (nx+2, nq)
-    D_avg_pad = 2.0 * np.sum(Dq * (muq * dmu_dv * wq)[None, :], axis=-1)
+    L_pad = _log_pad(D_nodes)
+    nxa = AVG_REFINE * (nx - 1) + 1
+    dxa = (x[-1] - x[0]) / (nxa - 1)
+    xa = x[0] + dxa * np.arange(nxa)
+    La = _log_avg_at_x(L_pad, x[0], x[1] - x[0], nx, v, xa)
     return AlbedoTable(
         terms=tuple(sorted(terms)),
         x_lo=float(x[0]),
         dx=float(x[1] - x[0]),
         nx=nx,
         v_lo=float(v[0]),
-        dv=float(dv),
+        dv=float(v[1] - v[0]),
         nv=nv,
-        D_pad=D_pad,
-        D_avg_pad=D_avg_pad,
+        L_pad=L_pad,
+        dxa=float(dxa),
+        nxa=nxa,
+        La_pad=_pad_quadratic(La, 0),
         info=info,
+        Lm_pad=None if D_model is None else _log_pad(D_model),
     )
 
 
@@ -255,17 +307,36 @@ def table_path(terms) -> str:
     return os.path.join(DATA_DIR, "albedo_" + "_".join(sorted(terms)) + ".npz")
 
 
+_FORMAT = "log-deficit-1"
+
+
 def save_table(table: AlbedoTable, path: str | None = None) -> str:
     path = table_path(table.terms) if path is None else path
     os.makedirs(os.path.dirname(path), exist_ok=True)
     np.savez(
         path,
+        format=np.array(_FORMAT),
         terms=np.array(table.terms),
-        grid=np.array([table.x_lo, table.dx, table.nx, table.v_lo, table.dv, table.nv, MU0, ALPHA]),
-        D_pad=table.D_pad,
-        D_avg_pad=table.D_avg_pad,
+        grid=np.array(
+            [
+                table.x_lo,
+                table.dx,
+                table.nx,
+                table.v_lo,
+                table.dv,
+                table.nv,
+                MU0,
+                ALPHA,
+                table.dxa,
+                table.nxa,
+            ]
+        ),
+        L_pad=table.L_pad,
+        La_pad=table.La_pad,
+        Lm_pad=table.L_pad if table.Lm_pad is None else table.Lm_pad,
         info=np.array(table.info),
     )
+    load_table.cache_clear()
     return path
 
 
@@ -273,15 +344,18 @@ def save_table(table: AlbedoTable, path: str | None = None) -> str:
 def load_table(terms: tuple[str, ...]) -> AlbedoTable:
     """The table for the explicit terms ``terms`` (loaded once; NumPy constants)."""
     path = table_path(terms)
+    rebuild = f"run: python scripts/make_albedo_tables.py --terms {','.join(sorted(terms))}"
     if not os.path.exists(path):
         raise FileNotFoundError(
-            f"no albedo table for explicit terms {tuple(sorted(terms))!r} at {path}; "
-            f"run: python scripts/make_albedo_tables.py --terms {','.join(sorted(terms))}"
+            f"no albedo table for explicit terms {tuple(sorted(terms))!r} at {path}; {rebuild}"
         )
     with np.load(path) as z:
-        x_lo, dx, nx, v_lo, dv, nv, mu0, alpha = (float(g) for g in z["grid"])
+        fmt = str(z["format"]) if "format" in z.files else "deficit-0"
+        if fmt != _FORMAT:
+            raise ValueError(f"albedo table {path} has format {fmt!r}, not {_FORMAT!r}; {rebuild}")
+        x_lo, dx, nx, v_lo, dv, nv, mu0, alpha, dxa, nxa = (float(g) for g in z["grid"])
         if mu0 != MU0 or alpha != ALPHA:
-            raise ValueError(f"albedo table {path} was built with another warp; rebuild it")
+            raise ValueError(f"albedo table {path} was built with another warp; {rebuild}")
         return AlbedoTable(
             terms=tuple(str(t) for t in z["terms"]),
             x_lo=x_lo,
@@ -290,18 +364,18 @@ def load_table(terms: tuple[str, ...]) -> AlbedoTable:
             v_lo=v_lo,
             dv=dv,
             nv=int(nv),
-            D_pad=np.array(z["D_pad"]),
-            D_avg_pad=np.array(z["D_avg_pad"]),
+            L_pad=np.array(z["L_pad"]),
+            dxa=dxa,
+            nxa=int(nxa),
+            La_pad=np.array(z["La_pad"]),
             info=str(z["info"]),
+            Lm_pad=np.array(z["Lm_pad"]),
         )
 
 
-def deficit(table: AlbedoTable, m: ArrayLike, mu: ArrayLike) -> Array:
-    """Interpolated deficit ``D(m, mu) = 1 - E(m, mu)`` (broadcasts; dtype of the inputs).
-
-    Smooth (C1) and differentiable in ``m`` and ``mu``; ``m`` is clamped to [0, 1e6] and
-    ``mu`` to [0, 1]. Not clamped to >= 0 (callers that need a non-negative lobe clamp).
-    """
+def log_deficit(table: AlbedoTable, m: ArrayLike, mu: ArrayLike) -> Array:
+    """Interpolated ``log D(m, mu)`` (broadcasts; dtype of the inputs; ``m`` clamped to
+    [0, 1e6], ``mu`` to [0, 1]). Smooth (C1) and differentiable in ``m`` and ``mu``."""
     dt = float_dtype(m, mu)
     m = jnp.asarray(m, dt)
     mu = jnp.asarray(mu, dt)
@@ -310,46 +384,62 @@ def deficit(table: AlbedoTable, m: ArrayLike, mu: ArrayLike) -> Array:
     v = warp_mu(jnp.clip(mu, 0.0, 1.0))
     i, t = _cell(x, table.x_lo, table.dx, table.nx)
     j, s = _cell(v, table.v_lo, table.dv, table.nv)
-    D = jnp.asarray(table.D_pad, dt)
+    L = jnp.asarray(table.L_pad, dt)
     wx = _cr_weights(t)
     wv = _cr_weights(s)
     out = jnp.zeros(m.shape, dt)
     for a in range(4):
         row = jnp.zeros(m.shape, dt)
         for b in range(4):
-            row = row + wv[b] * D[i + a, j + b]
+            row = row + wv[b] * L[i + a, j + b]
         out = out + wx[a] * row
     return out
 
 
-def deficit_one_material(table: AlbedoTable, m0: ArrayLike, mu: ArrayLike) -> Array:
-    """:func:`deficit` for one ``m`` shared by the batch (scalar ``m0``): the Catmull-Rom step
-    in ``m`` is done once on the table (a ``(nv + 3,)`` row, by a dot so that XLA CPU stores
-    it rather than re-computing it per element), leaving a 4-point interpolation in ``mu``
-    per element. Equal to :func:`deficit` up to rounding (same interpolant, summed in the
-    other order; tests/test_furnace.py)."""
+def deficit(table: AlbedoTable, m: ArrayLike, mu: ArrayLike) -> Array:
+    """Interpolated deficit ``D(m, mu) = 1 - E(m, mu) = exp(log_deficit)``: positive,
+    smooth and differentiable in ``m`` and ``mu``."""
+    return jnp.exp(log_deficit(table, m, mu))
+
+
+def log_deficit_one_material(table: AlbedoTable, m0: ArrayLike, mu: ArrayLike) -> Array:
+    """:func:`log_deficit` for one ``m`` shared by the batch (scalar ``m0``): the Catmull-Rom
+    step in ``m`` is done once on the table (a ``(nv + 3,)`` row, by a dot so that XLA CPU
+    stores it rather than re-computing it per element), leaving a 4-point interpolation in
+    ``mu`` per element. Equal to :func:`log_deficit` up to rounding (same interpolant, summed
+    in the other order; tests/test_furnace.py)."""
     dt = float_dtype(m0, mu)
     m0 = jnp.asarray(m0, dt)
     mu = jnp.asarray(mu, dt)
     x = jnp.log1p(jnp.clip(m0, 0.0, M_MAX))
     i, t = _cell(x, table.x_lo, table.dx, table.nx)
-    D = jnp.asarray(table.D_pad, dt)
-    rows = jax.lax.dynamic_slice_in_dim(D, i, 4, axis=0)  # (4, nv + 3)
+    L = jnp.asarray(table.L_pad, dt)
+    rows = jax.lax.dynamic_slice_in_dim(L, i, 4, axis=0)  # (4, nv + 3)
     row = jnp.stack(_cr_weights(t)) @ rows  # (nv + 3,)
     v = warp_mu(jnp.clip(mu, 0.0, 1.0))
     j, s = _cell(v, table.v_lo, table.dv, table.nv)
     return _cr_eval(_cr_cubics(row, table.nv), j, s)
 
 
-def deficit_avg(table: AlbedoTable, m: ArrayLike) -> Array:
-    """Interpolated ``D_avg(m) = 1 - E_avg(m) = 2 int_0^1 D(m, mu) mu dmu`` (the exact
-    integral of the 2-D interpolant, see the module docstring)."""
+def deficit_one_material(table: AlbedoTable, m0: ArrayLike, mu: ArrayLike) -> Array:
+    """``exp`` of :func:`log_deficit_one_material`."""
+    return jnp.exp(log_deficit_one_material(table, m0, mu))
+
+
+def log_deficit_avg(table: AlbedoTable, m: ArrayLike) -> Array:
+    """Interpolated ``log D_avg(m)``, ``D_avg = 2 int_0^1 D(m, mu) mu dmu`` of the 2-D
+    interpolant (exact at the fine x nodes, Catmull-Rom between them)."""
     m = jnp.asarray(m, float_dtype(m))
     x = jnp.log1p(jnp.clip(m, 0.0, M_MAX))
-    i, t = _cell(x, table.x_lo, table.dx, table.nx)
-    Da = jnp.asarray(table.D_avg_pad, m.dtype)
+    i, t = _cell(x, table.x_lo, table.dxa, table.nxa)
+    La = jnp.asarray(table.La_pad, m.dtype)
     w = _cr_weights(t)
-    return sum(w[a] * Da[i + a] for a in range(4))
+    return sum(w[a] * La[i + a] for a in range(4))
+
+
+def deficit_avg(table: AlbedoTable, m: ArrayLike) -> Array:
+    """Interpolated ``D_avg(m) = 1 - E_avg(m)``."""
+    return jnp.exp(log_deficit_avg(table, m))
 
 
 def albedo(table: AlbedoTable, m: ArrayLike, mu: ArrayLike) -> Array:
@@ -413,9 +503,7 @@ def albedo_nodes(m: ArrayLike, mu: ArrayLike, n_phi: int = 24, n_w: int = 12):
     cos_t = np.exp(-w / (mm[..., None] + 1.0))
     one_minus = -np.expm1(-w / (mm[..., None] + 1.0))
     sin_t = np.sqrt(one_minus * (1.0 + cos_t))
-    h = np.stack(
-        [sin_t * cphi[:, None], sin_t * sphi[:, None], cos_t], axis=-1
-    )  # (..., P, Qw, 3)
+    h = np.stack([sin_t * cphi[:, None], sin_t * sphi[:, None], cos_t], axis=-1)  # (..., P, Qw, 3)
     k_in = np.stack([sin_k, np.zeros_like(mu), mu], axis=-1)
     kh = np.sum(h * k_in[..., None, None, :], axis=-1)
     k_out = 2.0 * kh[..., None] * h - k_in[..., None, None, :]
