@@ -29,7 +29,8 @@ point away from the surface (:mod:`ppr.optics.conventions`). It is the sum of na
 
     ``E(m, mu)`` the white-surface (``F == 1``) directional albedo of the model's explicit terms
     (:func:`explicit_terms`; tables of ``log D`` in :mod:`ppr.brdf.albedo`), so that explicit +
-    multiple has a white-furnace albedo of 1. ``F_add = F_avg^2 E_avg / (1 - F_avg D_avg)`` (Kulla &
+    multiple has a white-furnace albedo of 1 (to within the tables' closure budget of the double
+    term's quadrature error, 3e-4). ``F_add = F_avg^2 E_avg / (1 - F_avg D_avg)`` (Kulla &
     Conty 2017) with ``F_avg = 2 int_0^1 F(mu) mu dmu`` the cosine-weighted hemispherical
     average of the unpolarized Fresnel reflectance, by fixed 32-point Gauss-Legendre
     (differentiable in ``n``); ``F_add = 1`` for the ideal white reflector.
