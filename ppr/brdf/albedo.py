@@ -344,7 +344,7 @@ def save_table(table: AlbedoTable, path: str | None = None) -> str:
 def load_table(terms: tuple[str, ...]) -> AlbedoTable:
     """The table for the explicit terms ``terms`` (loaded once; NumPy constants)."""
     path = table_path(terms)
-    rebuild = f"run: python scripts/make_albedo_tables.py --terms {','.join(sorted(terms))}"
+    rebuild = "run: python scripts/make_albedo_tables.py (builds both tables)"
     if not os.path.exists(path):
         raise FileNotFoundError(
             f"no albedo table for explicit terms {tuple(sorted(terms))!r} at {path}; {rebuild}"
