@@ -89,7 +89,7 @@ N_LOBE = 160  # lobe-integral nodes in c
 NZ = 120  # uniform U nodes per sign of z and half of the elevation range
 
 # (m, incidence in degrees) of the stored reference
-M_GRID = (0.0, 1.0, 10.0, 100.0, 1000.0, 1e4, 1e5)
+M_GRID = (0.0, 1.0, 10.0, 100.0, 1000.0, 1e4)
 THETA_GRID = (
     0.0,
     30.0,

@@ -6,8 +6,8 @@ the white deficit ``D = 1 - E_single - E_double`` of the model as a positive int
 probability that light is still inside the surface after one or two facets), lobe integrals
 from their definition in mpmath, kink-aligned composite Gauss-Legendre, its hemispherical
 average ``D_avg``; no code of ppr's BRDF, tables or quadratures. Grid: m in {0, 1, 10, 100,
-1000, 1e4, 1e5} (all but 0 off the table's nodes) and incidence 0-89.98 deg (m = 1000:
-60-89.98 deg in 24 steps).
+1000, 1e4} (all but 0 off the table's nodes) and 24 incidences 0-89.98 deg (m = 1000 included:
+60-89.98 deg in 20 steps).
 
 Tolerances (relative, by band of the reference deficit): the table's interpolation of ``log D``
 is measured at <= 4e-3 where ``D >= 1e-8`` (the physically visible range: the remainder there
