@@ -222,7 +222,9 @@ def test_table_interpolation_error_off_nodes():
 def test_deficit_avg_is_integral_of_interpolant():
     """``D_avg(m)`` is the integral of the 2-D interpolant ``exp(L(m, mu))``: to rounding at the
     nodes of its fine x grid, and within its own Catmull-Rom interpolation between them
-    (8 times finer than the deficit grid: measured <= 2e-6 relative)."""
+    (8 times finer than the deficit grid; the closure of the double term's quadrature error
+    makes ``log D_avg(m)`` less smooth: measured 9.4e-5 relative at worst over 95 values of m,
+    i.e. below 3e-5 of the incident flux)."""
     table = _albedo.load_table(explicit_terms())
     gx, gw = np.polynomial.legendre.leggauss(64)
     # integrate in v (warped), where the interpolant of log D is piecewise cubic
@@ -236,7 +238,7 @@ def test_deficit_avg_is_integral_of_interpolant():
     xa = table.xa_nodes
     on_nodes = [float(np.expm1(xa[i])) for i in (0, 3, 101, 200, len(xa) - 1)]
     off_nodes = [0.37, 7.3, 512.0, 3.3e4, 7e5]
-    for ms, rtol in ((on_nodes, 1e-9), (off_nodes, 5e-6)):
+    for ms, rtol in ((on_nodes, 1e-9), (off_nodes, 2e-4)):
         for m in ms:
             D = np.asarray(_albedo.deficit(table, np.full_like(mu, m), mu))
             integral = 2.0 * np.sum(D * mu * dmu * w)
