@@ -135,7 +135,11 @@ def test_realizable_random(dtype):
     m00 = np.asarray(M[..., 0, 0], np.float64)
     # eigenvalues of a sum of rank-1 coherency matrices; rounding of the 4x4 entries
     tol = 1e-10 if dtype == jnp.float64 else 2e-6
-    assert np.all(w[..., -1] >= -tol * m00), np.min(w[..., -1] / m00)
+    # float32 flushes entries below its normal range (1.2e-38) to 0: a glossy single term of
+    # 1.7e-35 /sr (m = 1329, 57 deg -> 17 deg, where the multiple-scattering remainder is
+    # ~1e-60 and no longer masks it) loses its smallest entries, eigenvalue -2.5e-39
+    floor = 0.0 if dtype == jnp.float64 else 16 * float(np.finfo(np.float32).tiny)
+    assert np.all(w[..., -1] >= -(tol * m00 + floor)), np.min(w[..., -1] - (-tol * m00))
 
 
 # ----------------------------------------------------------------------------- components
