@@ -622,10 +622,11 @@ def execute(path: Path, timeout: float = 3600.0) -> float:
     """Run the notebook at ``path`` in full settings and store its outputs; seconds taken."""
     import nbclient
 
-    env_keep = {k: os.environ.get(k) for k in ("PPR_SMALL", "JAX_DISABLE_MOST_OPTIMIZATIONS")}
-    os.environ.pop("PPR_SMALL", None)
-    os.environ.pop("JAX_DISABLE_MOST_OPTIMIZATIONS", None)
-    os.environ.setdefault("MPLBACKEND", "Agg")
+    # full settings, JAX's default compilation, matplotlib's inline backend (figures stored)
+    keys = ("PPR_SMALL", "JAX_DISABLE_MOST_OPTIMIZATIONS", "MPLBACKEND")
+    env_keep = {k: os.environ.get(k) for k in keys}
+    for k in keys:
+        os.environ.pop(k, None)
     try:
         book = nbformat.read(path, as_version=4)
         t0 = time.perf_counter()
