@@ -37,8 +37,11 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, os.path.dirname(__file__))
 from _timing import median_time  # noqa: E402
 
-from ppr.brdf import albedo  # noqa: E402
-from ppr.brdf import explicit_terms, mueller_brdf  # noqa: E402
+from ppr.brdf import (  # noqa: E402
+    albedo,  # noqa: E402
+    explicit_terms,
+    mueller_brdf,
+)
 from ppr.materials import Material  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -95,20 +98,7 @@ def old_kernel(table, one_material: bool):
     D_pad = np.exp(table.L_pad)
 
     def deficit(m, mu):
-        dt = mu.dtype
-        x = jnp.log1p(jnp.clip(m, 0.0, albedo.M_MAX))
-        v = albedo.warp_mu(jnp.clip(mu, 0.0, 1.0))
-        i, t = albedo._cell(x, table.x_lo, table.dx, table.nx)
-        j, s = albedo._cell(v, table.v_lo, table.dv, table.nv)
-        D = jnp.asarray(D_pad, dt)
-        wx, wv = albedo._cr_weights(t), albedo._cr_weights(s)
-        out = jnp.zeros(mu.shape, dt)
-        for a in range(4):
-            row = jnp.zeros(mu.shape, dt)
-            for b in range(4):
-                row = row + wv[b] * D[i + a, j + b]
-            out = out + wx[a] * row
-        return out
+        return albedo.interpolate_nodes(table, D_pad, m, mu)
 
     def deficit_row(m0, mu):
         dt = mu.dtype

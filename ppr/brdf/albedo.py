@@ -380,18 +380,25 @@ def log_deficit(table: AlbedoTable, m: ArrayLike, mu: ArrayLike) -> Array:
     m = jnp.asarray(m, dt)
     mu = jnp.asarray(mu, dt)
     m, mu = jnp.broadcast_arrays(m, mu)
+    return interpolate_nodes(table, table.L_pad, m, mu)
+
+
+def interpolate_nodes(table: AlbedoTable, nodes_pad: ArrayLike, m: Array, mu: Array) -> Array:
+    """Catmull-Rom interpolation of padded node values ``nodes_pad`` (the shape of
+    ``table.L_pad``) on ``table``'s (log1p m, warped mu) grid at broadcast ``m``, ``mu``."""
+    dt = mu.dtype
     x = jnp.log1p(jnp.clip(m, 0.0, M_MAX))
     v = warp_mu(jnp.clip(mu, 0.0, 1.0))
     i, t = _cell(x, table.x_lo, table.dx, table.nx)
     j, s = _cell(v, table.v_lo, table.dv, table.nv)
-    L = jnp.asarray(table.L_pad, dt)
+    P = jnp.asarray(nodes_pad, dt)
     wx = _cr_weights(t)
     wv = _cr_weights(s)
-    out = jnp.zeros(m.shape, dt)
+    out = jnp.zeros(mu.shape, dt)
     for a in range(4):
-        row = jnp.zeros(m.shape, dt)
+        row = jnp.zeros(mu.shape, dt)
         for b in range(4):
-            row = row + wv[b] * L[i + a, j + b]
+            row = row + wv[b] * P[i + a, j + b]
         out = out + wx[a] * row
     return out
 
