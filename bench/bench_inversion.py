@@ -43,6 +43,7 @@ import json
 import math
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 import jax
@@ -558,29 +559,22 @@ def summarize(records, meta) -> str:
             kinds[key] = kinds.get(key, 0) + 1
     for k, v in sorted(kinds.items(), key=lambda kv: -kv[1]):
         lines.append(f"- {k}: {v} of {len(records)} observations")
-    worst: dict[str, int] = {}
-    for r in records:
-        for w in r.get("worst_rhat", []):
-            if w is not None and w[1] > 1.1:
-                worst[w[0]] = worst.get(w[0], 0) + 1
-    if worst:
-        lines += [
-            "",
-            "Parameter with the largest R-hat of a chain with R-hat > 1.1 (chains): "
-            + ", ".join(f"{k} {v}" for k, v in sorted(worst.items(), key=lambda kv: -kv[1]))
-            + ".",
-        ]
-    names: dict[str, int] = {}
-    for r in records:
-        for n in set(r.get("unobservable", [])):
-            names[n] = names.get(n, 0) + 1
-    if names:
-        lines += [
-            "",
-            "Unobservable directions named at the final fit (observations): "
-            + ", ".join(f"{k} {v}" for k, v in sorted(names.items(), key=lambda kv: -kv[1]))
-            + ".",
-        ]
+
+    def tally(title: str, keys) -> None:
+        counts = Counter(keys)
+        if counts:
+            lines.extend(
+                ["", f"{title}: " + ", ".join(f"{k} {v}" for k, v in counts.most_common()) + "."]
+            )
+
+    tally(
+        "Parameter with the largest R-hat of a chain with R-hat > 1.1 (chains)",
+        (w[0] for r in records for w in r.get("worst_rhat", []) if w is not None and w[1] > 1.1),
+    )
+    tally(
+        "Unobservable directions named at the final fit (observations)",
+        (n for r in records for n in set(r.get("unobservable", []))),
+    )
     return "\n".join(lines) + "\n"
 
 
