@@ -198,6 +198,20 @@ class PhysicalParams(eqx.Module):
 
 
 # --------------------------------------------------------------------------- reparametrisation
+def group_sizes(reference: PhysicalParams) -> dict[str, int]:
+    """Number of solver coordinates of each parameter group for ``reference``'s materials."""
+    k = reference.n_materials
+    return {
+        "attitude": 3,
+        "m": k,
+        "n": 2 * k,
+        "corr_length": k,
+        "range_offset": 1,
+        "gain": 1,
+        "thickness": len(reference.thickness_slots),
+    }
+
+
 class Parametrisation(eqx.Module):
     """Map between the unconstrained solver vector ``theta`` and :class:`PhysicalParams`.
 
@@ -235,16 +249,7 @@ class Parametrisation(eqx.Module):
         return tuple(g for g in GROUPS if g in self.free)
 
     def _sizes(self) -> dict[str, int]:
-        k = self.reference.n_materials
-        return {
-            "attitude": 3,
-            "m": k,
-            "n": 2 * k,
-            "corr_length": k,
-            "range_offset": 1,
-            "gain": 1,
-            "thickness": len(self.reference.thickness_slots),
-        }
+        return group_sizes(self.reference)
 
     @property
     def size(self) -> int:

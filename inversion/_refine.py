@@ -49,7 +49,14 @@ import optimistix as optx
 from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, Float
 
-from ._params import DEFAULT_FREE, GAIN_RANGE, Parametrisation, PhysicalParams, lift_start
+from ._params import (
+    DEFAULT_FREE,
+    GAIN_RANGE,
+    Parametrisation,
+    PhysicalParams,
+    group_sizes,
+    lift_start,
+)
 
 __all__ = [
     "GaussianNoise",
@@ -1332,16 +1339,7 @@ class _BoxMap(eqx.Module):
     range_scale: float = eqx.field(static=True)
 
     def _sizes(self):
-        k = self.reference.n_materials
-        return {
-            "attitude": 3,
-            "m": k,
-            "n": 2 * k,
-            "corr_length": k,
-            "range_offset": 1,
-            "gain": 1,
-            "thickness": len(self.reference.thickness_slots),
-        }
+        return group_sizes(self.reference)
 
     def ordered(self):
         from ._params import GROUPS

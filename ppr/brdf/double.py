@@ -491,6 +491,16 @@ def _tangent_frame(k, normal, dt):
     return t1, t2
 
 
+def _tilt_nodes(m: Array, order: int, dt):
+    """Gauss-Legendre nodes ``b`` (..., order) on ``[0, bmax]``, ``bmax = min(pi/2,
+    7/sqrt(m+1))`` (``cos^m`` < e^-24 beyond), with ``bmax`` and the weights on [0, 1]."""
+    x, w = np.polynomial.legendre.leggauss(order)
+    x = jnp.asarray(0.5 * (x + 1.0), dt)
+    w = jnp.asarray(0.5 * w, dt)
+    bmax = jnp.minimum(0.5 * math.pi, 7.0 * jax.lax.rsqrt(m + 1.0))
+    return bmax[..., None] * x, bmax, w
+
+
 def _mean_cosine_plus_fast(m: Array, c: Array, order: int) -> Array:
     """``<h.u>+`` for ``u.n = c`` by a short fixed rule (inner weight of the h1 quadrature).
 
@@ -502,11 +512,7 @@ def _mean_cosine_plus_fast(m: Array, c: Array, order: int) -> Array:
     <= 8e-4 for m in [0, 1e4] (worst at non-integer m < 1, ``cos^m`` at ``b = pi/2``).
     """
     dt = c.dtype
-    x, w = np.polynomial.legendre.leggauss(order)
-    x = jnp.asarray(0.5 * (x + 1.0), dt)
-    w = jnp.asarray(0.5 * w, dt)
-    bmax = jnp.minimum(0.5 * math.pi, 7.0 * jax.lax.rsqrt(m + 1.0))
-    b = bmax[..., None] * x
+    b, bmax, w = _tilt_nodes(m, order, dt)
     cb, sb = jnp.cos(b), jnp.sin(b)
     cc = c[..., None]
     mm = m[..., None]
@@ -547,11 +553,7 @@ def _cheb(deg: int):
 def _excess_shape(m: Array, c: Array, order: int) -> Array:
     """``g(m, c)`` with ``<h.u>+ = c <h.n> + s^(m+2) g`` (see :func:`_mean_cosine_plus_fast`)."""
     dt = c.dtype
-    x, w = np.polynomial.legendre.leggauss(order)
-    x = jnp.asarray(0.5 * (x + 1.0), dt)
-    w = jnp.asarray(0.5 * w, dt)
-    bmax = jnp.minimum(0.5 * math.pi, 7.0 * jax.lax.rsqrt(m + 1.0))
-    b = bmax[..., None] * x
+    b, bmax, w = _tilt_nodes(m, order, dt)
     cb, sb = jnp.cos(b), jnp.sin(b)
     sh = jnp.sin(0.5 * b)
     lcb = jnp.log1p(-2.0 * sh * sh)
