@@ -77,28 +77,18 @@ def double_figures(out_dir: str, *, order: tuple[int, int] = (16, 16)) -> list[s
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     mat = _material_of(0.94 + 6.42j, 2.0)
     fi = np.broadcast_to([0.0, 1.0, 0.0], k.shape)
-    coh = np.asarray(
-        double_bounce_term(
-            jnp.asarray(k),
-            jnp.asarray(kp),
-            jnp.asarray(z),
-            mat,
-            jnp.asarray(fi),
-            jnp.asarray(fi),
-            order=order,
+    coh, inc = (
+        np.asarray(
+            double_bounce_term(
+                *(jnp.asarray(a) for a in (k, kp, z)),
+                mat,
+                jnp.asarray(fi),
+                jnp.asarray(fi),
+                order=order,
+                coherent=coherent,
+            )
         )
-    )
-    inc = np.asarray(
-        double_bounce_term(
-            jnp.asarray(k),
-            jnp.asarray(kp),
-            jnp.asarray(z),
-            mat,
-            jnp.asarray(fi),
-            jnp.asarray(fi),
-            order=order,
-            coherent=False,
-        )
+        for coherent in (True, False)
     )
     for s_in, s_out, lab in [
         ((1, 1, 0, 0), (1, 1, 0, 0), "linear co-pol"),
