@@ -282,6 +282,16 @@ class Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+def add_command(sub, module, help: str, out_default: str) -> argparse.ArgumentParser:
+    """Register a config-driven command of ``module`` (its ``NAME``, ``help_text``,
+    ``DEFAULT_CONFIG``, ``SET_EXAMPLE``, ``run`` and ``load``): the subparser with the common
+    options (:func:`add_common`); returned for the command's own flags."""
+    p = sub.add_parser(module.NAME, help=help, describe=module.help_text, formatter_class=Formatter)
+    add_common(p, module.DEFAULT_CONFIG, out_default, module.SET_EXAMPLE)
+    p.set_defaults(func=module.run, load=module.load)
+    return p
+
+
 def add_common(
     p: argparse.ArgumentParser, default_config: str | None, out_default: str, set_example: str
 ) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from typing import Annotated, Any, Literal
 
@@ -73,14 +74,7 @@ def help_text() -> str:
 
 
 def register(sub) -> None:
-    p = sub.add_parser(
-        NAME,
-        help="Mueller BRDF sweep of one material",
-        describe=help_text,
-        formatter_class=c.Formatter,
-    )
-    c.add_common(p, DEFAULT_CONFIG, "out/brdf", SET_EXAMPLE)
-    p.set_defaults(func=run, load=load)
+    c.add_command(sub, sys.modules[__name__], "Mueller BRDF sweep of one material", "out/brdf")
 
 
 def load(args):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -111,14 +112,9 @@ def help_text() -> str:
 
 
 def register(sub) -> None:
-    p = sub.add_parser(
-        NAME,
-        help="top-k database candidates for observations",
-        describe=help_text,
-        formatter_class=c.Formatter,
+    c.add_command(
+        sub, sys.modules[__name__], "top-k database candidates for observations", "out/classify"
     )
-    c.add_common(p, DEFAULT_CONFIG, "out/classify", SET_EXAMPLE)
-    p.set_defaults(func=run, load=load)
 
 
 def load(args):

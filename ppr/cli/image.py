@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 from typing import Any, Literal
@@ -132,14 +133,7 @@ def help_text() -> str:
 
 
 def register(sub) -> None:
-    p = sub.add_parser(
-        NAME,
-        help="per-pixel Mueller images of a mesh",
-        describe=help_text,
-        formatter_class=c.Formatter,
-    )
-    c.add_common(p, DEFAULT_CONFIG, "out/image", SET_EXAMPLE)
-    p.set_defaults(func=run, load=load)
+    c.add_command(sub, sys.modules[__name__], "per-pixel Mueller images of a mesh", "out/image")
 
 
 def load(args):

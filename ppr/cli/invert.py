@@ -6,6 +6,7 @@ writes :meth:`inversion.Inversion.write`'s files."""
 from __future__ import annotations
 
 import functools
+import sys
 from pathlib import Path
 from typing import Any, Literal
 
@@ -246,14 +247,12 @@ def _files() -> list[str]:
 
 
 def register(sub) -> None:
-    p = sub.add_parser(
-        NAME,
-        help="shape, attitude and material of one observation, and how far to believe them",
-        describe=help_text,
-        formatter_class=c.Formatter,
+    c.add_command(
+        sub,
+        sys.modules[__name__],
+        "shape, attitude and material of one observation, and how far to believe them",
+        "out/invert",
     )
-    c.add_common(p, DEFAULT_CONFIG, "out/invert", SET_EXAMPLE)
-    p.set_defaults(func=run, load=load)
 
 
 def load(args):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from typing import Annotated, Literal
 
 import pydantic
@@ -83,11 +84,7 @@ def help_text() -> str:
 
 
 def register(sub) -> None:
-    p = sub.add_parser(
-        NAME, help="classifier evaluation report", describe=help_text, formatter_class=c.Formatter
-    )
-    c.add_common(p, DEFAULT_CONFIG, "out/report", SET_EXAMPLE)
-    p.set_defaults(func=run, load=load)
+    c.add_command(sub, sys.modules[__name__], "classifier evaluation report", "out/report")
 
 
 def load(args):

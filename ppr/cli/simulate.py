@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from typing import Any
 
@@ -44,13 +45,12 @@ def help_text() -> str:
 
 
 def register(sub) -> None:
-    p = sub.add_parser(
-        NAME,
-        help="range-resolved Mueller/Stokes return of a scene",
-        describe=help_text,
-        formatter_class=c.Formatter,
+    p = c.add_command(
+        sub,
+        sys.modules[__name__],
+        "range-resolved Mueller/Stokes return of a scene",
+        "out/simulate",
     )
-    c.add_common(p, DEFAULT_CONFIG, "out/simulate", SET_EXAMPLE)
     p.add_argument(
         "--states",
         metavar="NAMES",
@@ -74,7 +74,6 @@ def register(sub) -> None:
         help="macro double bounce between the object's surfaces (panel against body): auto "
         "includes it where surfaces face each other",
     )
-    p.set_defaults(func=run, load=load)
 
 
 def load(args):
