@@ -17,7 +17,8 @@ Channels
     The presets' circular state is ``L`` (``S3 = +1``).
 
 Noise (``NoiseModel``)
-    From a noise-free channel profile ``x`` (any units, ``x >= 0``) an observation is drawn as
+    From a noise-free channel profile ``x`` (any units, ``x >= 0`` up to rounding, see
+    :data:`ROUNDING_ULPS`) an observation is drawn as
 
     1. unknown range offset: a common shift of ``offset`` bins, uniform in
        ``[-max_offset_bins, max_offset_bins]``, applied by exact flux-conserving rebinning of the
@@ -369,6 +370,43 @@ def _noise_params(noise: NoiseModel, dtype) -> dict:
     }
 
 
+ROUNDING_ULPS: float = 16.0
+"""Negative values of an expected channel profile down to ``-ROUNDING_ULPS * eps * peak``
+(``eps`` of its dtype, ``peak`` its largest value) are rounding, not signal: a channel is the
+sum ``1/2 (1, u_a) . M . s_g`` of 16 products, and where the return is fully polarized
+across the analyzer (a crossed channel) the exact value 0 comes out as +-(a fraction of
+``eps * peak``) depending on how the compiler orders and contracts the sum (measured: down to
+-0.2 ``eps * peak`` in float32). :func:`observe` takes them as 0; anything more negative is
+an error."""
+
+
+def _checked_intensities(x: Array) -> Array:
+    """``x`` (C, B) with rounding-level negatives set to 0 (:data:`ROUNDING_ULPS`); a clear
+    error for non-finite values, real negatives or an all-zero profile."""
+    xn = np.asarray(x)
+    bad = ~np.isfinite(xn)
+    if bad.any():
+        c, b = np.argwhere(bad)[0]
+        raise ValueError(
+            f"expected has {int(bad.sum())} non-finite values (first {xn[c, b]} at channel "
+            f"{c}, bin {b}): channel profiles must be finite"
+        )
+    peak = float(xn.max()) if xn.size else 0.0
+    if not peak > 0:
+        raise ValueError(
+            f"expected has no positive value (largest {peak:.6g}): nothing to observe"
+        )
+    floor = -ROUNDING_ULPS * float(np.finfo(xn.dtype).eps) * peak
+    if np.any(xn < floor):
+        c, b = np.unravel_index(np.argmin(xn), xn.shape)
+        raise ValueError(
+            f"expected has negative values down to {xn[c, b]:.6g} at channel {c}, bin {b} "
+            f"(peak {peak:.6g}): channel profiles are intensities, >= 0 up to rounding "
+            f"({floor:.3g})"
+        )
+    return jnp.maximum(x, 0.0)
+
+
 def observe(
     expected: ArrayLike,
     noise: NoiseModel,
@@ -385,9 +423,7 @@ def observe(
         raise ValueError(f"expected must be (n_channels, n_bins), got shape {x.shape}")
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
-    xn = np.asarray(x)
-    if not np.all(np.isfinite(xn)) or np.any(xn < 0) or not np.sum(xn) > 0:
-        raise ValueError("expected must be finite, non-negative and not all zero")
+    x = _checked_intensities(x)
     if not isinstance(seed, int | np.integer):
         raise ValueError(f"seed must be an integer, got {seed!r}")
     data, truth = _draw(jax.random.key(int(seed)), x, _noise_params(noise, x.dtype))

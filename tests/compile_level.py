@@ -7,6 +7,19 @@ LLVM optimizing the generated kernels. The suite therefore compiles with JAX's
 passes): the double term's value+gradient program compiles in 13 s instead of 24 s (user CPU
 27 s instead of 45 s) and runs in 0.55 s instead of 0.07 s.
 
+The suite also sets ``SUITE_XLA_FLAGS`` (``tests/conftest.py``, through ``XLA_FLAGS``, so
+subprocesses and notebook kernels inherit it): XLA:CPU's legacy elemental kernel emitters
+instead of its MLIR fusion emitters (``--xla_cpu_use_fusion_emitters=false``). The HLO is the
+same; the MLIR emitters recompute a fused producer at each of its uses and take most of an
+unoptimized compilation (measured on the double term's value+gradient, 1101 rows, float64:
+34 CPU s with them, 13 s without; the whole of tests/test_grazing.py: ... ). Rounding can
+differ in the last bits (contractions, evaluation order): a crossed polarization channel that
+is exactly 0 came out as -0.2 ``eps`` of the peak with the legacy emitters and as +0 with
+the MLIR ones, which is why ``inversion.observe`` takes rounding-level negatives as 0
+(``inversion._noise.ROUNDING_ULPS``). ``USER_COMPILER_OPTIONS`` restores the user's default
+for one compilation (``jax.jit(..., compiler_options=USER_COMPILER_OPTIONS)``);
+``tests/test_compile_level.py`` compares the two settings.
+
 Tests whose cost is running (Monte Carlo sums over large batches, MCMC chains, high-order
 reference quadratures) are marked ``@pytest.mark.optimized`` and run with the defaults
 (``tests/conftest.py``). XLA's HLO passes are the same either way, so values agree to
@@ -25,6 +38,12 @@ from __future__ import annotations
 import contextlib
 
 import jax
+
+SUITE_XLA_FLAGS: tuple[str, ...] = ("--xla_cpu_use_fusion_emitters=false",)
+"""XLA flags of the test processes (module docstring)."""
+
+USER_COMPILER_OPTIONS: dict = {"xla_cpu_use_fusion_emitters": True}
+"""Per-compilation options that undo ``SUITE_XLA_FLAGS``: what users compile with."""
 
 UNOPTIMIZED = {"jax_disable_most_optimizations": True}
 DEFAULT = {"jax_disable_most_optimizations": False}

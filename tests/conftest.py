@@ -13,6 +13,15 @@ os.environ["PPR_JAX_CACHE"] = "0"
 # Compile unoptimized (tests/compile_level.py), here and in the subprocesses and notebook
 # kernels the tests start; tests marked `optimized` run with JAX's defaults.
 os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
+from compile_level import SUITE_XLA_FLAGS  # noqa: E402  (imports jax: after the line above)
+
+# ... and with XLA:CPU's legacy kernel emitters (tests/compile_level.py, SUITE_XLA_FLAGS): the
+# same HLO, generated 3-4x faster; process-wide, so the subprocesses and notebook kernels
+# inherit it through the environment.
+os.environ["XLA_FLAGS"] = " ".join(
+    [f for f in os.environ.get("XLA_FLAGS", "").split() if f not in SUITE_XLA_FLAGS]
+    + list(SUITE_XLA_FLAGS)
+)
 # PPR_TEST_JAX_CACHE=1: one persistent compilation cache per test session, in a new temporary
 # folder (hermetic: every run starts empty, as a clean checkout does, and the folder is removed
 # at the end), shared through the environment by the xdist workers, the notebook kernels and the
@@ -35,7 +44,7 @@ else:
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
-from compile_level import DEFAULT, UNOPTIMIZED, apply  # noqa: E402
+from compile_level import DEFAULT, UNOPTIMIZED, apply  # noqa: E402, I001
 from compile_log import CompileLog  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)

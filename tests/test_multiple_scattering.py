@@ -29,8 +29,8 @@ import numpy as np
 import pytest
 
 from ppr.brdf import albedo as _albedo
-from ppr.materials import Material
 from ppr.brdf import explicit_terms, mueller_brdf
+from ppr.materials import Material
 
 Z = np.array([0.0, 0.0, 1.0])
 # (lower end of the band of D_ref, relative tolerance of D)

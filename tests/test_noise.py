@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from inversion._noise import (
+    ROUNDING_ULPS,
     STATES,
     MeasurementModel,
     NoiseModel,
@@ -153,8 +154,13 @@ def test_reproducible_and_nuisances():
 
 
 def test_observe_bad_input():
-    with pytest.raises(ValueError, match="non-negative"):
+    with pytest.raises(ValueError, match="no positive value"):
         observe(-np.ones((2, 4)), NoiseModel(), 0)
+    with pytest.raises(ValueError, match="non-finite values .* channel 1, bin 2"):
+        observe(np.array([[1.0, 1, 1, 1], [1, 1, np.nan, 1]]), NoiseModel(), 0)
+    real_negative = np.array([[1.0, 1, 1, 1], [1, 1, -1e-4, 1]], np.float32)
+    with pytest.raises(ValueError, match="negative values down to -0.0001 at channel 1, bin 2"):
+        observe(real_negative, NoiseModel(), 0)
     with pytest.raises(ValueError, match="n_channels, n_bins"):
         observe(np.ones(4), NoiseModel(), 0)
     with pytest.raises((ValueError, TypeError)):  # beartype under pytest, ValueError otherwise
@@ -165,3 +171,35 @@ def test_observe_bad_input():
         NoiseModel(speckle_cells=0.5)
     with pytest.raises(ValueError, match="gain"):
         NoiseModel(gain_min=2.0, gain_max=1.0)
+
+
+def _polarizing_muellers(rng, n):
+    """Mueller matrices (4, 4, n) of rank-one Jones matrices ``e a^T`` (any input, output
+    state ``e`` cycling through H, V, D, A and both circular states): fully polarizing, so the
+    analyzer orthogonal to ``e`` passes exactly 0."""
+    from ppr.optics import jones_to_mueller
+
+    states = [(1, 0), (0, 1), (1, 1), (1, -1), (1, 1j), (1, -1j)]
+    J = np.zeros((n, 2, 2), complex)
+    for i in range(n):
+        e = np.asarray(states[i % 6], complex) / np.linalg.norm(states[i % 6])
+        J[i] = np.outer(e, rng.normal(size=2) + 1j * rng.normal(size=2))
+    return np.moveaxis(np.asarray(jones_to_mueller(J)), 0, -1)
+
+
+def test_rounding_negatives_of_a_crossed_channel_are_zero():
+    """A fully polarized return seen through crossed polarizers is exactly 0; computed as the
+    16-term channel sum it comes out as +-rounding (how far depends on the compiler's order of
+    the sum). Those values are taken as 0, so the noise-free observation is 0 there and the
+    rest unchanged, bit for bit."""
+    mm = MeasurementModel(("H", "V", "D", "L"), ("H", "V", "D", "A", "R", "L"))
+    rng = np.random.default_rng(3)
+    x = measure(mm, jnp.asarray(_polarizing_muellers(rng, 48), jnp.float32))
+    xn = np.asarray(x)
+    eps_peak = np.finfo(np.float32).eps * xn.max()
+    assert xn.min() < 0 and xn.min() > -ROUNDING_ULPS * eps_peak  # rounding, inside the rule
+    obs = observe(x, NoiseModel(), 0)
+    data = np.asarray(obs.data)
+    assert np.all(data >= 0)
+    np.testing.assert_array_equal(data[xn > 0], xn[xn > 0])
+    assert np.all(data[xn <= 0] == 0)
