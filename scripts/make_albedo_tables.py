@@ -14,8 +14,8 @@ tests/test_multiple_scattering.py measure the result off the nodes); ``D_single`
 
 Closure (``albedo_double_single.npz``). The runtime double term is a quadrature of fixed order
 (``ppr.brdf.double.DEFAULT_ORDER``) whose directional albedo ``E_double,rt`` differs from the
-model's ``E_double`` by ``delta = E_double - E_double,rt``: up to 1e-2 of the incident flux for m = 0
-near grazing and 1.6e-3 for m = 1000 at 88 deg (docs/physics/multiple_scattering.md). A
+model's ``E_double`` by ``delta = E_double - E_double,rt``: up to 1e-2 of the incident flux for
+m = 0 near grazing and 1.6e-3 for m = 1000 at 88 deg (docs/physics/multiple_scattering.md). A
 remainder built from ``D_model`` leaves that error in the white furnace; one built from
 ``1 - E_single - E_double,rt`` (the former tables) carries it into the remainder's lobe,
 where it is the size of ``D`` itself for m >= 10. The table stores

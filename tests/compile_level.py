@@ -12,7 +12,8 @@ subprocesses and notebook kernels inherit it): XLA:CPU's legacy elemental kernel
 instead of its MLIR fusion emitters (``--xla_cpu_use_fusion_emitters=false``). The HLO is the
 same; the MLIR emitters recompute a fused producer at each of its uses and take most of an
 unoptimized compilation (measured on the double term's value+gradient, 1101 rows, float64:
-34 CPU s with them, 13 s without; the whole of tests/test_grazing.py: ... ). Rounding can
+34 CPU s with them, 13 s without; tests/test_grazing.py, two such programs and more: 187
+CPU s with them, 94 s without). Rounding can
 differ in the last bits (contractions, evaluation order): a crossed polarization channel that
 is exactly 0 came out as -0.2 ``eps`` of the peak with the legacy emitters and as +0 with
 the MLIR ones, which is why ``inversion.observe`` takes rounding-level negatives as 0
