@@ -372,12 +372,13 @@ def _noise_params(noise: NoiseModel, dtype) -> dict:
 
 ROUNDING_ULPS: float = 16.0
 """Negative values of an expected channel profile down to ``-ROUNDING_ULPS * eps * peak``
-(``eps`` of its dtype, ``peak`` its largest value) are rounding, not signal: a channel is the
-sum ``1/2 (1, u_a) . M . s_g`` of 16 products, and where the return is fully polarized
-across the analyzer (a crossed channel) the exact value 0 comes out as +-(a fraction of
-``eps * peak``) depending on how the compiler orders and contracts the sum (measured: down to
--0.2 ``eps * peak`` in float32). :func:`observe` takes them as 0; anything more negative is
-an error."""
+(``eps`` of float32, ``peak`` the profile's largest value) are rounding, not signal: a
+channel is the sum ``1/2 (1, u_a) . M . s_g`` of 16 products, and where the return is fully
+polarized across the analyzer (a crossed channel) the exact value 0 comes out as +-(a
+fraction of ``eps * peak``) depending on how the compiler orders and contracts the sum
+(measured: down to -0.2 ``eps * peak``). float32's ``eps`` whatever the profile's dtype: a
+profile computed in float32 (ppr's fast path) and handed over in float64 keeps float32's
+rounding. :func:`observe` takes them as 0; anything more negative is an error."""
 
 
 def _checked_intensities(x: Array) -> Array:
@@ -396,7 +397,7 @@ def _checked_intensities(x: Array) -> Array:
         raise ValueError(
             f"expected has no positive value (largest {peak:.6g}): nothing to observe"
         )
-    floor = -ROUNDING_ULPS * float(np.finfo(xn.dtype).eps) * peak
+    floor = -ROUNDING_ULPS * float(np.finfo(np.float32).eps) * peak
     if np.any(xn < floor):
         c, b = np.unravel_index(np.argmin(xn), xn.shape)
         raise ValueError(

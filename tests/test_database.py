@@ -193,10 +193,16 @@ def test_two_devices_subprocess(reference, tmp_path):
     assert info == {"n_devices": 2, "out_devices": 2}
     two, one = load_database(path), load_database(ref_path)
     # rows are independent, so sharding over two devices changes nothing beyond float32
-    # vectorization effects: XLA may fuse and vectorize the per-device program differently
-    # (measured up to 3.4e-6 relative, 6e-9 absolute on 8 of 45056 entries with jax 0.10.2;
-    # a row computed wrongly or twice would differ by O(1))
-    np.testing.assert_allclose(two.signatures, one.signatures, rtol=1e-5, atol=1e-8)
+    # rounding: XLA may fuse, order and vectorize the per-device program differently, and the
+    # lobe power cos^m amplifies a direction's rounding by m (m = 3000 here; the single term's
+    # documented float32 precision is 5e-4 of the largest entry, docs/physics/numerics.md).
+    # Measured with jax 0.10.2: 3.4e-6 of the row's peak with the MLIR emitters, 2.5e-4 with
+    # the suite's legacy ones (tests/compile_level.py). A row computed wrongly or twice would
+    # differ by O(1) of its peak.
+    a, b = np.asarray(two.signatures), np.asarray(one.signatures)
+    peak = np.abs(b).max(axis=(1, 2), keepdims=True)
+    assert np.all(peak > 0)
+    assert np.all(np.abs(a - b) <= 5e-4 * peak), float((np.abs(a - b) / peak).max())
 
 
 def test_bad_inputs(reference, tmp_path):
