@@ -41,7 +41,9 @@ import numpy as np
 import pydantic
 
 from ppr.config import ConfigError, StrictModel, load_toml_model, validate_data
+from ppr.geometry import quat_from_rotvec_host, quat_multiply_host
 
+from ._observability import line_of_sight_of
 from ._params import (
     DEFAULT_FREE,
     GAIN_RANGE,
@@ -576,12 +578,28 @@ def sample_posterior(
         backend = emcee.backends.HDFBackend(str(path))
         backend.reset(sc.n_walkers, ndim)
     sh = _ReflectanceShear(param) if shear and _ReflectanceShear.applies(param) else None
-    if sh is not None:
+    los = line_of_sight_of(model)
+    rs = (
+        _RollSeparation(param, (0.0, 0.0, 1.0) if los is None else los)
+        if shear and _RollSeparation.applies(param)
+        else None
+    )
+
+    def to_theta(x):
+        x = x if rs is None else rs.inverse(x)
+        return x if sh is None else sh.inverse(x)
+
+    def from_theta(x):
+        x = x if sh is None else sh.forward(x)
+        return x if rs is None else rs.forward(x)
+
+    if sh is not None or rs is not None:
 
         def target(thetas_s):
-            return log_prob(sh.inverse(thetas_s))
+            lp = log_prob(to_theta(thetas_s))
+            return lp if rs is None else lp + rs.log_jacobian(thetas_s)
 
-        p_start = sh.forward(p0)
+        p_start = from_theta(p0)
     else:
         target, p_start = log_prob, p0
     sampler = emcee.EnsembleSampler(
@@ -596,8 +614,8 @@ def sample_posterior(
     )
 
     chain = sampler.get_chain()
-    if sh is not None:
-        chain = sh.inverse(chain)
+    if sh is not None or rs is not None:
+        chain = to_theta(chain)
         if backend is not None:  # the file holds theta too, like the returned chain
             import h5py
 
@@ -770,6 +788,90 @@ class _ReflectanceShear:
         out = np.array(theta_s, np.float64, copy=True)
         out[..., self.i_gain] -= self.shift(theta_s)  # the index entries are unchanged
         return out
+
+
+def _rotvec_host(q: np.ndarray) -> np.ndarray:
+    """Rotation vectors (rad, angle in [0, pi]) of quaternions ``(..., 4)``, host."""
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    q = np.where(q[..., :1] < 0, -q, q)
+    v = q[..., 1:]
+    sv = np.linalg.norm(v, axis=-1)
+    small = sv < 1e-12
+    angle = 2.0 * np.arctan2(sv, q[..., 0])
+    factor = np.where(small, 2.0 / q[..., 0], angle / np.where(small, 1.0, sv))
+    return factor[..., None] * v
+
+
+class _RollSeparation:
+    """Sampler coordinates in which the roll about the line of sight ``k`` is one axis: the
+    attitude's rotation vector ``w`` (``exp(w) q_ref``, sensor frame) replaced by
+    ``(t_1, t_2, phi)`` with ``exp(w) = exp(phi k) exp(t_1 e_1 + t_2 e_2)`` (``e_1, e_2``
+    perpendicular to ``k``; the swing-twist decomposition). A monostatic measurement sees the
+    line of sight through the tilt ``t`` only plus, through the polarization, the roll
+    ``phi``; in ``w`` a roll the data do not fix turns and rescales the thin tilt
+    cross-section as it goes (``exp(w)`` mixes them), a twisted tube the stretch move cannot
+    cross; in ``(t, phi)`` the tube is straight and axis-aligned. ``phi`` is kept in
+    ``(-pi, pi]`` and ``|t| < pi`` (each rotation once); the density is corrected by
+    ``log |det dw / d(t, phi)|`` (:meth:`log_jacobian`)."""
+
+    def __init__(self, param: Parametrisation, los=(0.0, 0.0, 1.0)):
+        labels = param.theta_labels
+        self.i = [labels.index(x) for x in ("rotvec_x", "rotvec_y", "rotvec_z")]
+        k = np.asarray(los, np.float64)
+        k = k / np.linalg.norm(k)
+        a = np.eye(3)[int(np.argmin(np.abs(k)))]
+        e1 = np.cross(k, a)
+        e1 /= np.linalg.norm(e1)
+        self.k, self.e1, self.e2 = k, e1, np.cross(k, e1)
+
+    @staticmethod
+    def applies(param: Parametrisation) -> bool:
+        return "attitude" in param.free
+
+    def _w(self, s: np.ndarray) -> np.ndarray:
+        t = s[..., 0:1] * self.e1 + s[..., 1:2] * self.e2
+        q = quat_multiply_host(
+            quat_from_rotvec_host(s[..., 2:3] * self.k), quat_from_rotvec_host(t)
+        )
+        return _rotvec_host(q)
+
+    def _s(self, w: np.ndarray) -> np.ndarray:
+        q = quat_from_rotvec_host(w)
+        q = np.where(q[..., :1] < 0, -q, q)
+        vk = q[..., 1:] @ self.k
+        phi = 2.0 * np.arctan2(vk, q[..., 0])  # in (-pi, pi] for q_w >= 0
+        half = 0.5 * phi
+        twist_conj = np.concatenate(
+            [np.cos(half)[..., None], -np.sin(half)[..., None] * self.k], axis=-1
+        )
+        t = _rotvec_host(quat_multiply_host(twist_conj, q))
+        return np.stack([t @ self.e1, t @ self.e2, phi], axis=-1)
+
+    def forward(self, theta: np.ndarray) -> np.ndarray:
+        out = np.array(theta, np.float64, copy=True)
+        out[..., self.i] = self._s(out[..., self.i])
+        return out
+
+    def inverse(self, theta_s: np.ndarray) -> np.ndarray:
+        out = np.array(theta_s, np.float64, copy=True)
+        out[..., self.i] = self._w(out[..., self.i])
+        return out
+
+    def log_jacobian(self, theta_s: np.ndarray) -> np.ndarray:
+        """``log |det dw / d(t, phi)|`` per row (central differences); ``-inf`` outside
+        ``|phi| <= pi``, ``|t| < pi``."""
+        s = np.asarray(theta_s, np.float64)[..., self.i]
+        h = 1e-6
+        cols = []
+        for j in range(3):
+            d = np.zeros(3)
+            d[j] = h
+            cols.append((self._w(s + d) - self._w(s - d)) / (2 * h))
+        jac = np.stack(cols, axis=-1)
+        with np.errstate(divide="ignore"):
+            out = np.log(np.abs(np.linalg.det(jac)))
+        inside = (np.abs(s[..., 2]) <= math.pi) & (np.hypot(s[..., 0], s[..., 1]) < math.pi)
+        return np.where(inside & np.isfinite(out), out, -np.inf)
 
 
 @eqx.filter_jit
