@@ -205,8 +205,9 @@ class SamplerConfig(StrictModel):
     # moves in its continuous prior box like the other parameters
     index: Literal["library", "continuous"] = "library"
     material_move: float = pydantic.Field(0.2, ge=0.0, lt=1.0)
-    # fraction of the steps that redraw the roll about the line of sight uniformly (needs
-    # roll_separation; _RollMove): a roll the data do not fix mixes in a few steps
+    # fraction of the steps that redraw the roll about the line of sight uniformly within
+    # +-90 deg (needs roll_separation; _RollMove): a roll the data do not fix mixes in a few
+    # steps
     roll_move: float = pydantic.Field(0.1, ge=0.0, lt=1.0)
     # the sampler's gain coordinate: "total_counts" (log of the total expected signal,
     # _CountsLogProb), "reflectance" (log gain + log normal-incidence reflectance,
@@ -1159,22 +1160,27 @@ class _MaterialMove(emcee.moves.MHMove):
 
 class _RollMove(emcee.moves.MHMove):
     """Independence move of the roll ``phi`` about the line of sight (the roll-separated
-    coordinate of :class:`_RollSeparation`): every walker proposes ``phi ~ U(-pi, pi)`` and
-    keeps its other coordinates. The proposal density is constant on the coordinate's
-    support, so the Hastings factor is 0 and the move is exact for any target; for the
-    uniform (Haar) attitude prior, whose density in ``(t, phi)`` does not depend on ``phi``
-    (left invariance), the acceptance is the likelihood ratio: ~1 for a roll the data do not
-    fix. It also carries walkers to the half turn about the line of sight when the data
-    allow it."""
+    coordinate of :class:`_RollSeparation`): a walker with ``|phi| < pi/2`` proposes
+    ``phi' ~ U(-pi/2, pi/2)`` and keeps its other coordinates; a walker outside that
+    half-circle proposes nothing it may accept (the proposal density is 0 at its current
+    point: Hastings factor ``-inf``). Inside, the proposal density is constant, so the
+    factor is 0 and the move is exact for any target; for the uniform (Haar) attitude prior,
+    whose density in ``(t, phi)`` does not depend on ``phi`` (left invariance), the
+    acceptance is the likelihood ratio: ~1 for a roll the data do not fix. The half-circle
+    keeps the walkers away from the half turn about the line of sight, an exact mode of
+    monostatic data that :func:`inversion.invert` samples as a mode of its own: a walker
+    carried there alone could not come back (the stretch move needs company)."""
 
     def __init__(self, i_phi: int):
         self.i_phi = int(i_phi)
         super().__init__(self._propose)
 
     def _propose(self, coords: np.ndarray, random):
+        w = coords.shape[0]
         new = np.array(coords, np.float64, copy=True)
-        new[:, self.i_phi] = random.uniform(-math.pi, math.pi, size=coords.shape[0])
-        return new, np.zeros(coords.shape[0])
+        new[:, self.i_phi] = random.uniform(-0.5 * math.pi, 0.5 * math.pi, size=w)
+        inside = np.abs(coords[:, self.i_phi]) < 0.5 * math.pi
+        return new, np.where(inside, 0.0, -np.inf)
 
 
 def _rotvec_host(q: np.ndarray) -> np.ndarray:
