@@ -1577,6 +1577,16 @@ def invert(
     mode_results = []
     mcmc_reasons = []
     with stages("sample"):
+        # with the index free, the chains sample it over the library materials, jumping
+        # between the per-material optima of the material stage (inversion._mcmc._LibraryIndex)
+        lib_n = lib_fits = None
+        if "n" in free_all:
+            names = list(materials)
+            lib_n = [materials[nm] for nm in names]
+            lib_fits = [
+                [next((mf.fit.params for mf in t if mf.name == nm), None) for nm in names]
+                for t in tables
+            ]
         n_sampled = 0
         for j, row in enumerate(mode_rows):
             post = diag = None
@@ -1602,6 +1612,8 @@ def invert(
                             noise=noise,
                             free=free_all,
                             progress_desc=f"MCMC mode {j} ({row['label']})",
+                            materials=lib_n,
+                            material_fits=lib_fits,
                         )
                     warns = tuple(str(x.message) for x in caught)
                     diag = post.diagnostics()

@@ -15,6 +15,18 @@ Jacobian of the reparametrisation (``m = e^x`` -> ``x``; ``n'' = softplus(u)`` -
 attitude prior). Visibility (``aux``) is fixed at the refined optimum during sampling (it is
 piecewise constant; the chain explores a small neighbourhood).
 
+The walkers move in sampler coordinates, bijections of ``theta`` whose log Jacobians enter
+the target, so the posterior is unchanged (``SamplerConfig``): the attitude as
+``exp(phi k) exp(t) q_ref`` with ``k`` the line of sight (:class:`_RollSeparation`), the
+gain as the log of the total expected signal (:class:`_CountsLogProb`), and, given a
+material library (``materials``, as :func:`inversion.invert` does), the index as a
+coordinate over the library's materials (:class:`_LibraryIndex`: the posterior over them
+with a uniform prior on the library). Besides emcee's moves, independence moves redraw the
+roll (:class:`_RollMove`) and jump between materials, translated between the per-material
+optima (:class:`_MaterialMove`); each satisfies detailed balance on its own. These make the
+directions a glossy target leaves flat (the roll, the index the gain absorbs) mix in a few
+steps instead of diffusing across the prior (``bench/results/mcmc_flat.md``).
+
 The log-probability is one ``jax.jit(jax.vmap(...))`` over walkers, called by
 ``emcee.EnsembleSampler(..., vectorize=True)``; float64 is required (x64 on). Chains can be
 stored in HDF5 (emcee's ``HDFBackend``). Diagnostics: integrated autocorrelation time per
@@ -41,7 +53,9 @@ import numpy as np
 import pydantic
 
 from ppr.config import ConfigError, StrictModel, load_toml_model, validate_data
+from ppr.geometry import quat_from_rotvec_host, quat_multiply_host
 
+from ._observability import line_of_sight_of
 from ._params import (
     DEFAULT_FREE,
     GAIN_RANGE,
@@ -182,6 +196,32 @@ class SamplerConfig(StrictModel):
     # emcee proposal: "stretch" (Goodman-Weare, emcee's default) or "de_snooker" (differential
     # evolution 0.8 + DE snooker 0.2, ter Braak & Vrugt 2008; bench/bench_mcmc_moves.py)
     moves: Literal["stretch", "de_snooker"] = "stretch"
+    # the attitude moves in roll-separated coordinates exp(phi k) exp(t) (k the line of
+    # sight; _RollSeparation), so the roll the data do not fix is one straight axis
+    roll_separation: bool = True
+    # with `materials` given to sample_posterior (inversion.invert gives its library), the
+    # index is sampled over those materials (_LibraryIndex), and this fraction of the steps
+    # redraws each walker's material uniformly (_MaterialMove); "continuous": the index
+    # moves in its continuous prior box like the other parameters
+    index: Literal["library", "continuous"] = "library"
+    material_move: float = pydantic.Field(0.2, ge=0.0, lt=1.0)
+    # fraction of the steps that redraw the roll about the line of sight uniformly within
+    # +-90 deg (needs roll_separation; _RollMove): a roll the data do not fix mixes in a few
+    # steps
+    roll_move: float = pydantic.Field(0.1, ge=0.0, lt=1.0)
+    # the sampler's gain coordinate: "total_counts" (log of the total expected signal,
+    # _CountsLogProb), "reflectance" (log gain + log normal-incidence reflectance,
+    # _ReflectanceShear) or "log_gain"; all have unit Jacobian (same posterior)
+    gain_coordinate: Literal["total_counts", "reflectance", "log_gain"] = "total_counts"
+
+    @pydantic.model_validator(mode="after")
+    def _moves_sum(self):
+        if self.material_move + self.roll_move >= 1.0:
+            raise ValueError(
+                f"material_move + roll_move must be < 1 (the rest are emcee's moves), got "
+                f"{self.material_move} + {self.roll_move}"
+            )
+        return self
 
     @pydantic.model_validator(mode="after")
     def _check(self):
@@ -271,6 +311,42 @@ class _LogProb(eqx.Module):
         return jnp.where(jnp.isnan(out), -jnp.inf, out)
 
 
+class _CountsLogProb(_LogProb):
+    """The log-posterior in coordinates whose gain entry is ``c = log_gain + h(rest)``,
+    ``h = log sum_ij (E_ij(gain 1) - b_ij)`` (``E`` the expected counts, ``b`` the model's
+    counts at gain 0 at the reference): ``c`` is the log of the total expected signal, which
+    the data fix to ``1/sqrt(counts)`` whatever the index, roughness or attitude. ``h`` does
+    not depend on the gain, so the map is a shear with unit Jacobian (the density needs no
+    correction); in these coordinates the reflectance, roughness or tilt the gain would
+    otherwise have to follow move freely. :meth:`pair` returns the log-posterior and the
+    log gain (``theta``'s entry) of each point.
+
+    ``affine``: the model is ``gain * E(gain 1) - (gain - 1) b`` (checked on the host), so
+    one model evaluation serves both ``h`` and the likelihood; otherwise the likelihood
+    evaluates the model again at the actual gain."""
+
+    i_gain: int = eqx.field(static=True, default=-1)
+    background: jax.Array | None = None
+    affine: bool = eqx.field(static=True, default=False)
+
+    def pair(self, s):
+        th1 = s.at[self.i_gain].set(0.0)
+        e1 = self.model.expected(self.param.to_physical(th1), self.aux) - self.background
+        tot = jnp.sum(e1)
+        ok = tot > 0
+        lg = s[self.i_gain] - jnp.log(jnp.where(ok, tot, 1.0))
+        theta = s.at[self.i_gain].set(lg)
+        lp = _log_prior_and_jacobian(self.param, theta, self.priors)
+        phys = self.param.to_physical(theta)
+        if self.affine:
+            expected = jnp.exp(lg) * e1 + self.background
+        else:
+            expected = self.model.expected(phys, self.aux)
+        ll = noise_log_likelihood(self.noise, self.data, expected, phys)
+        out = jnp.where(jnp.isfinite(lp) & ok, lp + ll, -jnp.inf)
+        return jnp.where(jnp.isnan(out), -jnp.inf, out), lg
+
+
 _JIT_CACHE: dict = {}
 
 
@@ -289,6 +365,78 @@ def _jitted_batched(static):
 
         fn = _JIT_CACHE[key] = jax.jit(batched)
     return fn
+
+
+def _jitted_pairs(static):
+    try:
+        key = ("pair", hash(static))
+    except TypeError:
+        key = ("pair", id(static))
+    fn = _JIT_CACHE.get(key)
+    if fn is None:
+
+        def batched(dyn, s):
+            lp = eqx.combine(dyn, static)
+            return jax.vmap(lp.pair)(s)
+
+        fn = _JIT_CACHE[key] = jax.jit(batched)
+    return fn
+
+
+def _make_counts_log_prob(
+    model, data, param: Parametrisation, priors: PriorConfig, noise, probe, batch: int
+):
+    """``f(s (W, P)) -> (W, 2)``: log-posterior and log gain in the total-signal gain
+    coordinate of :class:`_CountsLogProb` (the log gain is emcee's blob). ``probe``: a few
+    ``theta`` rows at which the model is checked for being affine in the gain; ``batch``:
+    smaller batches are padded to it."""
+    aux = model.prepare(param.reference)
+    shape = _model_shape(model, param.reference, aux)
+    data_j = jnp.asarray(check_observation(data, shape))
+    i = param.theta_labels.index("log_gain")
+
+    def at_gain(theta, g):
+        return np.asarray(model.expected(param.to_physical(jnp.asarray(theta).at[i].set(g)), aux))
+
+    th0 = np.asarray(probe[0], np.float64)
+    # counts at gain 0 (log gain -> -inf): from two gains, assuming the model is affine
+    e_a, e_b = at_gain(th0, 0.0), at_gain(th0, math.log(2.0))
+    b = 2.0 * e_a - e_b
+    affine = True
+    for th in probe:
+        th = np.asarray(th, np.float64)
+        e1, e3 = at_gain(th, 0.0), at_gain(th, math.log(3.0))
+        want = 3.0 * e1 - 2.0 * b
+        scale = np.max(np.abs(e3)) + 1e-300
+        if not np.all(np.isfinite(e3)) or np.max(np.abs(e3 - want)) > 1e-9 * scale:
+            affine = False
+            break
+    lp = _CountsLogProb(
+        _pure(model),
+        noise,
+        param,
+        aux,
+        data_j,
+        priors,
+        i_gain=i,
+        background=jnp.asarray(b),
+        affine=affine,
+    )
+    dyn, static = eqx.partition(lp, eqx.is_array)
+    batched = _jitted_pairs(static)
+
+    def f(s):
+        s = np.asarray(s, np.float64)
+        rows = s.shape[0]
+        if rows < batch:  # pad small batches to the walkers' (one compilation fewer)
+            s = np.concatenate([s, np.broadcast_to(s[:1], (batch - rows, s.shape[1]))])
+        lp_, lg = batched(dyn, jnp.asarray(s))
+        out = np.stack([np.asarray(lp_, np.float64), np.asarray(lg, np.float64)], axis=-1)
+        return out[:rows]
+
+    f.i_gain = i  # type: ignore[attr-defined]
+    f.affine = affine  # type: ignore[attr-defined]
+    return f
 
 
 def make_log_prob(model, data, param: Parametrisation, priors: PriorConfig, noise=None, aux=None):
@@ -504,6 +652,8 @@ def sample_posterior(
     range_scale: float = 0.01,
     shear: bool = True,
     progress_desc: str | None = None,
+    materials=None,
+    material_fits=None,
 ) -> MCMCResult:
     """Sample the posterior with emcee, started in a small ball around ``start``.
 
@@ -524,6 +674,11 @@ def sample_posterior(
       index-gain ridge.
     - `progress_desc`: label of the progress bar (``config.sampler.progress``), which
       starts after the log-probability has compiled.
+    - `materials`: library indices (complex); with ``"n"`` free and ``sampler.index =
+      "library"`` the index is sampled over them (uniform prior on the library, every
+      material slot independently; the chain's ``n_re``/``n_im`` are library values).
+    - `material_fits`: ``[slot][material]`` optima (:class:`PhysicalParams` or None) that
+      the material jumps translate between (none: jumps at fixed other coordinates).
 
     Raises ``ValueError`` when the data do not match the model, contain NaN, or a prior has
     no support at the start. Warns :class:`ChainTooShortWarning` when the chain is too short
@@ -575,17 +730,137 @@ def sample_posterior(
         path.parent.mkdir(parents=True, exist_ok=True)
         backend = emcee.backends.HDFBackend(str(path))
         backend.reset(sc.n_walkers, ndim)
-    sh = _ReflectanceShear(param) if shear and _ReflectanceShear.applies(param) else None
-    if sh is not None:
+    # sampler coordinates y: theta with the attitude roll-separated (rs), the gain as the
+    # log total signal (counts) or reflectance-sheared (sh), the index as a library
+    # coordinate (lib); every map is a bijection whose log Jacobian enters the target
+    los = line_of_sight_of(model)
+    rs = (
+        _RollSeparation(param, (0.0, 0.0, 1.0) if los is None else los)
+        if shear and sc.roll_separation and _RollSeparation.applies(param)
+        else None
+    )
+    lib = (
+        _LibraryIndex(param, materials, config.priors)
+        if materials is not None and sc.index == "library" and _LibraryIndex.applies(param)
+        else None
+    )
+    gc = sc.gain_coordinate if shear and "gain" in param.free else "log_gain"
+    sh = (
+        _ReflectanceShear(param)
+        if gc == "reflectance" and lib is None and _ReflectanceShear.applies(param)
+        else None
+    )
+    counts = None
+    if gc == "total_counts":
+        counts = _make_counts_log_prob(
+            model,
+            data,
+            param,
+            config.priors,
+            PoissonNoise() if noise is None else noise,
+            p0[:4],
+            nw,
+        )
 
-        def target(thetas_s):
-            return log_prob(sh.inverse(thetas_s))
+    def target(y):
+        if lib is not None:
+            s, inside = lib.expand(y)
+        else:
+            s, inside = np.asarray(y, np.float64), True
+        x = s if rs is None else rs.inverse(s)
+        if counts is not None:
+            out = counts(x)
+            lp = out[:, 0]
+        else:
+            lp = log_prob(x if sh is None else sh.inverse(x))
+        if rs is not None:
+            lp = lp + rs.log_jacobian(s)
+        if lib is not None:
+            lp = np.where(inside, lp + lib.log_correction(x), -np.inf)
+        if counts is not None:
+            return np.stack([lp, out[:, 1]], axis=-1)
+        return lp
 
-        p_start = sh.forward(p0)
-    else:
-        target, p_start = log_prob, p0
+    def to_theta(y, log_gain=None):
+        x = y if lib is None else lib.expand(y)[0]
+        x = x if rs is None else rs.inverse(x)
+        if counts is not None:
+            x = np.array(x, np.float64, copy=True)
+            x[..., counts.i_gain] = log_gain
+        return x if sh is None else sh.inverse(x)
+
+    def forward(theta):
+        """``theta`` rows -> sampler rows (before the library coordinate)."""
+        x = theta if sh is None else sh.forward(theta)
+        if counts is not None:
+            x = np.array(x, np.float64, copy=True)
+            lg = x[:, counts.i_gain].copy()
+            x[:, counts.i_gain] = 0.0
+            x[:, counts.i_gain] = lg - counts(x)[:, 1]  # c = log_gain + h
+        return x if rs is None else rs.forward(x)
+
+    x = forward(p0)
+    shifts = None
+    if lib is not None and material_fits is not None:
+        # y*_{jk}: sampler coordinates of each slot's per-material optimum (the material
+        # jumps translate by their differences; phi and z are not translated)
+        k_slots, n_lib = lib.i_re.size, lib.n.size
+        shifts = np.zeros((k_slots, n_lib, len(lib.keep)))
+        base = forward(theta0[None])[0][lib.keep]
+        for j in range(k_slots):
+            for m in range(n_lib):
+                ph = material_fits[j][m] if j < len(material_fits) else None
+                th = None if ph is None else np.asarray(_from_physical(param, ph), np.float64)
+                if th is None or not np.all(np.isfinite(th)):
+                    shifts[j, m] = base
+                    continue
+                y = forward(th[None])[0][lib.keep]
+                shifts[j, m] = np.where(np.isfinite(y), y, base)
+        fixed = list(lib.z_columns()) + ([lib.position(rs.i[2])] if rs is not None else [])
+        shifts[:, :, fixed] = 0.0
+        base[fixed] = 0.0
+    if lib is not None:
+        # each walker starts in a material drawn with its likelihood at the walker's other
+        # coordinates moved to that material's optimum (a starting point only: the chain's
+        # material jumps do the sampling)
+        rng_m = np.random.default_rng(sc.seed + 1)
+        k_slots, n_lib = lib.i_re.size, lib.n.size
+        which = np.zeros((nw, k_slots), int)
+        y = lib.compress(x, which, rng_m)
+        for j in range(k_slots):
+            cands = []
+            for m in range(n_lib):
+                c = y.copy()
+                if shifts is not None:
+                    c += shifts[j, m] - base
+                c[:, lib.z_columns()[j]] = m + 0.5
+                cands.append(c)
+            lk = np.stack([np.atleast_2d(target(c).T)[0] for c in cands], axis=1)
+            lk = np.where(np.isfinite(lk), lk, -np.inf)
+            best = np.max(lk, axis=1, keepdims=True)
+            pk = np.where(np.isfinite(best), np.exp(lk - best), 1.0)
+            pk /= pk.sum(axis=1, keepdims=True)
+            pick = np.array([rng_m.choice(n_lib, p=row) for row in pk])
+            y = np.stack([cands[m][i] for i, m in enumerate(pick)])
+            y[:, lib.z_columns()[j]] = pick + rng_m.uniform(0.05, 0.95, size=nw)
+        x = y
+    p_start = x
+    ndim_s = p_start.shape[1]
+    if backend is not None and ndim_s != ndim:
+        backend.reset(sc.n_walkers, ndim_s)
+    moves = _moves(sc.moves)
+    extra = []
+    if lib is not None and sc.material_move > 0:
+        extra.append((_MaterialMove(lib.z_columns(), lib.n.size, shifts), sc.material_move))
+    if sc.roll_move > 0 and rs is not None:
+        col = rs.i[2] if lib is None else lib.position(rs.i[2])
+        extra.append((_RollMove(col), sc.roll_move))
+    if extra:
+        own = moves if isinstance(moves, list) else [(moves, 1.0)]
+        rest = 1.0 - sum(w for _, w in extra)
+        moves = [(mv, w * rest) for mv, w in own] + extra
     sampler = emcee.EnsembleSampler(
-        sc.n_walkers, ndim, target, vectorize=True, backend=backend, moves=_moves(sc.moves)
+        sc.n_walkers, ndim_s, target, vectorize=True, backend=backend, moves=moves
     )
     sampler.random_state = np.random.RandomState(sc.seed).get_state()
     sampler.run_mcmc(
@@ -596,13 +871,17 @@ def sample_posterior(
     )
 
     chain = sampler.get_chain()
-    if sh is not None:
-        chain = sh.inverse(chain)
+    if counts is not None or sh is not None or rs is not None or lib is not None:
+        chain = to_theta(chain, None if counts is None else sampler.get_blobs())
         if backend is not None:  # the file holds theta too, like the returned chain
             import h5py
 
             with h5py.File(path, "r+") as f:
-                f[backend.name]["chain"][...] = chain
+                if ndim_s != ndim:
+                    del f[backend.name]["chain"]
+                    f[backend.name].create_dataset("chain", data=chain)
+                else:
+                    f[backend.name]["chain"][...] = chain
     lps = sampler.get_log_prob()
     kept = chain[sc.burn_in :: sc.thin]
     tau, converged = _autocorr(kept, sc.autocorr_tol)
@@ -770,6 +1049,222 @@ class _ReflectanceShear:
         out = np.array(theta_s, np.float64, copy=True)
         out[..., self.i_gain] -= self.shift(theta_s)  # the index entries are unchanged
         return out
+
+
+class _LibraryIndex:
+    """The index sampled over a library of materials: per material slot ``j`` one sampler
+    coordinate ``z_j`` in ``[0, K)`` replaces ``(log n'_j, softplus^-1 n''_j)``, and the slot
+    holds library index ``floor(z_j)``. The density in ``z`` is piecewise constant, so
+    sampling it is exactly sampling the discrete posterior over the library materials with a
+    uniform prior on them (each slot independently); the continuous prior's terms on the
+    index (``priors.n_re``, ``priors.n_im`` and the Jacobian of ``log``/``softplus``, which
+    the log-posterior in ``theta`` adds) are removed by :meth:`log_correction`; a library
+    index outside the continuous prior's support gets no mass.
+
+    Why: a glossy target's data leave a curved ridge of indices (the gain absorbing the
+    reflectance) across the whole prior box; its posterior mass then follows the prior
+    volume along the ridge, not the materials targets are made of, and the stretch move
+    cannot cross it in a few hundred steps. With a library, :class:`_MaterialMove` jumps
+    between materials (accepted when the data cannot tell them apart) and the posterior of
+    the gain, roughness and attitude is the evidence-weighted mixture over materials."""
+
+    def __init__(self, param: Parametrisation, materials, priors: PriorConfig):
+        labels = param.theta_labels
+        k = param.reference.n_materials
+        self.size = len(labels)
+        self.i_re = np.array([labels.index(f"log_n_re[{i}]") for i in range(k)])
+        self.i_im = np.array([labels.index(f"softplus_inv_n_im[{i}]") for i in range(k)])
+        self.keep = np.array([i for i in range(self.size) if i not in set(self.i_im)])
+        n = np.asarray(list(materials), np.complex128)
+        if n.ndim != 1 or n.size < 1 or not np.all(np.isfinite(n)) or np.any(n.real <= 0):
+            raise ValueError(f"materials: need indices with n' > 0, got {list(materials)}")
+        self.n = n
+        self.x = np.log(n.real)
+        self.u = np.maximum(np.log(np.expm1(np.maximum(n.imag, 1e-9))), U_N_IMAG_MIN)
+        self.p_re, self.p_im = priors.n_re, priors.n_im
+
+    @staticmethod
+    def applies(param: Parametrisation) -> bool:
+        return "n" in param.free
+
+    def z_columns(self) -> np.ndarray:
+        """Sampler columns of the ``z_j``."""
+        return np.searchsorted(self.keep, self.i_re)
+
+    def position(self, theta_col: int) -> int:
+        """Sampler column of ``theta`` column ``theta_col`` (not an index column)."""
+        return int(np.searchsorted(self.keep, theta_col))
+
+    def expand(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Sampler rows -> ``theta``-sized rows with the library index; and whether every
+        ``z_j`` is inside ``[0, K)``."""
+        y = np.asarray(y, np.float64)
+        out = np.zeros(y.shape[:-1] + (self.size,))
+        out[..., self.keep] = y
+        z = out[..., self.i_re]
+        inside = np.all((z >= 0) & (z < self.n.size), axis=-1)
+        kk = np.clip(np.floor(np.where(np.isfinite(z), z, 0.0)), 0, self.n.size - 1).astype(int)
+        out[..., self.i_re] = self.x[kk]
+        out[..., self.i_im] = self.u[kk]
+        return out, inside
+
+    def compress(self, theta: np.ndarray, which: np.ndarray, rng) -> np.ndarray:
+        """``theta`` rows -> sampler rows with material ``which`` ``(rows, k)`` (``z``
+        uniform within the material's unit interval)."""
+        y = np.array(np.asarray(theta, np.float64)[..., self.keep], copy=True)
+        y[..., self.z_columns()] = which + rng.uniform(0.05, 0.95, size=which.shape)
+        return y
+
+    def log_correction(self, theta: np.ndarray) -> np.ndarray:
+        """Minus the continuous prior's index terms of the log-posterior in ``theta`` (0 where
+        those are not finite: the log-posterior is then ``-inf`` already)."""
+        x, u = theta[..., self.i_re], theta[..., self.i_im]
+        n_re, n_im = np.exp(x), np.logaddexp(u, 0.0)
+        lp = np.asarray(self.p_re.logpdf(n_re)) + x
+        lp = lp + np.asarray(self.p_im.logpdf(n_im)) - np.logaddexp(0.0, -u)
+        lp = np.sum(lp, axis=-1)
+        return np.where(np.isfinite(lp), -lp, 0.0)
+
+
+class _MaterialMove(emcee.moves.MHMove):
+    """Jump between library materials (:class:`_LibraryIndex`): every walker picks one slot
+    ``j`` and a material ``k'`` uniformly, sets ``z_j`` to ``k'`` plus its fractional part,
+    and translates its other coordinates by ``y*_{j k'} - y*_{j k}`` (``y*_{jk}``: the
+    optimum with material ``k`` in slot ``j``, from ``shifts``; none: no translation). The
+    reverse jump is proposed with the same probability and the map is a translation (unit
+    Jacobian), so the Hastings factor is 0 and the move is exact for any target; the
+    translation carries a walker from one material's optimum to the other's (the gain,
+    roughness and attitude that material needs), so the jump is accepted about as often as
+    the two materials' evidences allow."""
+
+    def __init__(self, columns, n_materials: int, shifts: np.ndarray | None = None):
+        self.columns = np.asarray(columns, int)
+        self.k = int(n_materials)
+        self.shifts = shifts
+        super().__init__(self._propose)
+
+    def _propose(self, coords: np.ndarray, random):
+        w = coords.shape[0]
+        rows = np.arange(w)
+        new = np.array(coords, np.float64, copy=True)
+        j = random.randint(self.columns.size, size=w)
+        col = self.columns[j]
+        z = coords[rows, col]
+        k_old = np.clip(np.floor(z), 0, self.k - 1).astype(int)
+        k_new = random.randint(self.k, size=w)
+        if self.shifts is not None:
+            new += self.shifts[j, k_new] - self.shifts[j, k_old]
+        new[rows, col] = k_new + (z - np.floor(z))
+        return new, np.zeros(w)
+
+
+class _RollMove(emcee.moves.MHMove):
+    """Independence move of the roll ``phi`` about the line of sight (the roll-separated
+    coordinate of :class:`_RollSeparation`): a walker with ``|phi| < pi/2`` proposes
+    ``phi' ~ U(-pi/2, pi/2)`` and keeps its other coordinates; a walker outside that
+    half-circle proposes nothing it may accept (the proposal density is 0 at its current
+    point: Hastings factor ``-inf``). Inside, the proposal density is constant, so the
+    factor is 0 and the move is exact for any target; for the uniform (Haar) attitude prior,
+    whose density in ``(t, phi)`` does not depend on ``phi`` (left invariance), the
+    acceptance is the likelihood ratio: ~1 for a roll the data do not fix. The half-circle
+    keeps the walkers away from the half turn about the line of sight, an exact mode of
+    monostatic data that :func:`inversion.invert` samples as a mode of its own: a walker
+    carried there alone could not come back (the stretch move needs company)."""
+
+    def __init__(self, i_phi: int):
+        self.i_phi = int(i_phi)
+        super().__init__(self._propose)
+
+    def _propose(self, coords: np.ndarray, random):
+        w = coords.shape[0]
+        new = np.array(coords, np.float64, copy=True)
+        new[:, self.i_phi] = random.uniform(-0.5 * math.pi, 0.5 * math.pi, size=w)
+        inside = np.abs(coords[:, self.i_phi]) < 0.5 * math.pi
+        return new, np.where(inside, 0.0, -np.inf)
+
+
+def _rotvec_host(q: np.ndarray) -> np.ndarray:
+    """Rotation vectors (rad, angle in [0, pi]) of quaternions ``(..., 4)``, host."""
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    q = np.where(q[..., :1] < 0, -q, q)
+    v = q[..., 1:]
+    sv = np.linalg.norm(v, axis=-1)
+    small = sv < 1e-12
+    angle = 2.0 * np.arctan2(sv, q[..., 0])
+    factor = np.where(small, 2.0 / q[..., 0], angle / np.where(small, 1.0, sv))
+    return factor[..., None] * v
+
+
+class _RollSeparation:
+    """Sampler coordinates in which the roll about the line of sight ``k`` is one axis: the
+    attitude's rotation vector ``w`` (``exp(w) q_ref``, sensor frame) replaced by
+    ``(t_1, t_2, phi)`` with ``exp(w) = exp(phi k) exp(t_1 e_1 + t_2 e_2)`` (``e_1, e_2``
+    perpendicular to ``k``; the swing-twist decomposition). A monostatic measurement sees the
+    line of sight through the tilt ``t`` only plus, through the polarization, the roll
+    ``phi``; in ``w`` a roll the data do not fix turns and rescales the thin tilt
+    cross-section as it goes (``exp(w)`` mixes them), a twisted tube the stretch move cannot
+    cross; in ``(t, phi)`` the tube is straight and axis-aligned. ``phi`` is kept in
+    ``(-pi, pi]`` and ``|t| < pi`` (each rotation once); the density is corrected by
+    ``log |det dw / d(t, phi)|`` (:meth:`log_jacobian`)."""
+
+    def __init__(self, param: Parametrisation, los=(0.0, 0.0, 1.0)):
+        labels = param.theta_labels
+        self.i = [labels.index(x) for x in ("rotvec_x", "rotvec_y", "rotvec_z")]
+        k = np.asarray(los, np.float64)
+        k = k / np.linalg.norm(k)
+        a = np.eye(3)[int(np.argmin(np.abs(k)))]
+        e1 = np.cross(k, a)
+        e1 /= np.linalg.norm(e1)
+        self.k, self.e1, self.e2 = k, e1, np.cross(k, e1)
+
+    @staticmethod
+    def applies(param: Parametrisation) -> bool:
+        return "attitude" in param.free
+
+    def _w(self, s: np.ndarray) -> np.ndarray:
+        t = s[..., 0:1] * self.e1 + s[..., 1:2] * self.e2
+        q = quat_multiply_host(
+            quat_from_rotvec_host(s[..., 2:3] * self.k), quat_from_rotvec_host(t)
+        )
+        return _rotvec_host(q)
+
+    def _s(self, w: np.ndarray) -> np.ndarray:
+        q = quat_from_rotvec_host(w)
+        q = np.where(q[..., :1] < 0, -q, q)
+        vk = q[..., 1:] @ self.k
+        phi = 2.0 * np.arctan2(vk, q[..., 0])  # in (-pi, pi] for q_w >= 0
+        half = 0.5 * phi
+        twist_conj = np.concatenate(
+            [np.cos(half)[..., None], -np.sin(half)[..., None] * self.k], axis=-1
+        )
+        t = _rotvec_host(quat_multiply_host(twist_conj, q))
+        return np.stack([t @ self.e1, t @ self.e2, phi], axis=-1)
+
+    def forward(self, theta: np.ndarray) -> np.ndarray:
+        out = np.array(theta, np.float64, copy=True)
+        out[..., self.i] = self._s(out[..., self.i])
+        return out
+
+    def inverse(self, theta_s: np.ndarray) -> np.ndarray:
+        out = np.array(theta_s, np.float64, copy=True)
+        out[..., self.i] = self._w(out[..., self.i])
+        return out
+
+    def log_jacobian(self, theta_s: np.ndarray) -> np.ndarray:
+        """``log |det dw / d(t, phi)|`` per row (central differences); ``-inf`` outside
+        ``|phi| <= pi``, ``|t| < pi``."""
+        s = np.asarray(theta_s, np.float64)[..., self.i]
+        h = 1e-6
+        cols = []
+        for j in range(3):
+            d = np.zeros(3)
+            d[j] = h
+            cols.append((self._w(s + d) - self._w(s - d)) / (2 * h))
+        jac = np.stack(cols, axis=-1)
+        with np.errstate(divide="ignore"):
+            out = np.log(np.abs(np.linalg.det(jac)))
+        inside = (np.abs(s[..., 2]) <= math.pi) & (np.hypot(s[..., 0], s[..., 1]) < math.pi)
+        return np.where(inside & np.isfinite(out), out, -np.inf)
 
 
 @eqx.filter_jit
