@@ -396,13 +396,6 @@ class RefineResult:
 
 
 # --------------------------------------------------------------------------- core
-def _residuals(theta, param, model, aux, inv_sigma, data):
-    """Fixed-weight (Pearson) residuals: their Jacobian gives the Fisher information."""
-    phys = param.to_physical(theta)
-    mu = model.expected(phys, aux)
-    return (data - mu) * inv_sigma
-
-
 def _solver_residuals(theta, param, model, aux, inv_sigma, data, noise):
     """What the solver minimises: the noise model's residuals (Poisson deviance or Pearson).
 
@@ -485,8 +478,20 @@ def _solve_round(model, param, aux, inv_sigma, data, theta0, solver, max_steps, 
         return _solver_residuals(theta, param, model, aux, inv_sigma, data, noise)
 
     sol = optx.least_squares(fn, solver, theta0, None, max_steps=max_steps, throw=False)
-    r = fn(sol.value, None)
+    # the residuals at the returned point, as the solver last evaluated them there (its state
+    # holds the accepted point's): no further copy of the forward model in this program
+    r = _final_residuals(sol, fn)
     return sol.value, sol.result, sol.stats["num_steps"], jnp.sum(r * r)
+
+
+def _final_residuals(sol, fn):
+    """Residuals at ``sol.value``: the Gauss-Newton family's state (``f_info``, updated with
+    the accepted point, which is the value returned) when it has one, else evaluated."""
+    f_info = getattr(sol.state, "f_info", None)
+    r = getattr(f_info, "residual", None)
+    if r is None:
+        return fn(sol.value, None)
+    return r
 
 
 @eqx.filter_jit
@@ -499,17 +504,31 @@ def _from_physical(param, phys):
     return param.from_physical(phys)
 
 
-@eqx.filter_jit
 def _weights(model, noise, phys, aux):
-    mu = model.expected(phys, aux)
-    return 1.0 / jnp.sqrt(noise.variance(mu, phys)), mu
+    """``(1 / sqrt(var(mu)), mu)`` at ``phys``: the expected counts from the forward model's
+    own program (:func:`_expected_jit`, shared with every other caller of ``expected``), the
+    weights from a small one, so that no second copy of the forward model is compiled."""
+    mu = _expected_jit(model, phys, aux)
+    return _inv_sigma(noise, mu, phys), mu
+
+
+@eqx.filter_jit
+def _inv_sigma(noise, mu, phys):
+    return 1.0 / jnp.sqrt(noise.variance(mu, phys))
 
 
 @eqx.filter_jit
 def _jacobians(model, param, aux, inv_sigma, data, theta, noise=None):
-    J = jax.jacfwd(lambda t: _residuals(t, param, model, aux, inv_sigma, data).ravel())(theta)
+    # one forward-mode pass gives mu and d mu / d theta: the Pearson residuals' Jacobian
+    # (fixed weights) is -inv_sigma d mu / d theta, and the solver's cost comes from the same mu
+    def f(t):
+        mu = model.expected(param.to_physical(t), aux)
+        return mu, mu
+
+    dmu, mu = jax.jacfwd(f, has_aux=True)(theta)
+    J = (-jnp.asarray(inv_sigma)[..., None] * dmu).reshape(-1, theta.shape[-1])
     G = jax.jacfwd(param.physical_vector)(theta)
-    r = _solver_residuals(theta, param, model, aux, inv_sigma, data, noise)
+    r = noise_residuals(noise, data, mu, inv_sigma)
     return J, G, jnp.sum(r * r)
 
 
