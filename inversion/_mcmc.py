@@ -95,6 +95,11 @@ class ChainTooShortWarning(UserWarning):
     """The chain is too short for a reliable autocorrelation time (emcee's AutocorrError)."""
 
 
+class WalkersRaisedWarning(UserWarning):
+    """``sampler.n_walkers`` was below twice the number of sampled parameters (what emcee's
+    ensemble moves need); the chain ran with that many walkers instead."""
+
+
 # --------------------------------------------------------------------------- config schema
 class Prior1D(StrictModel):
     """A prior on one physical scalar (applied to every material slot of its group).
@@ -703,6 +708,17 @@ def sample_posterior(
     theta0 = np.asarray(_from_physical(param, phys), np.float64)
     _check_prior_support(param, theta0, config.priors)
     log_prob = make_log_prob(model, data, param, config.priors, noise=noise)
+    if sc.n_walkers < 2 * theta0.size:
+        # how many parameters are free is known only now (the index stage may free n); the
+        # refinement before this point is not thrown away for a setting that is too small
+        warnings.warn(
+            f"sampler.n_walkers = {sc.n_walkers} is below twice the {theta0.size} sampled "
+            f"parameters ({', '.join(param.labels)}) that emcee's ensemble moves need: "
+            f"running {2 * theta0.size} walkers",
+            WalkersRaisedWarning,
+            stacklevel=2,
+        )
+        sc = sc.model_copy(update={"n_walkers": 2 * theta0.size})
     nw = sc.n_walkers
     # every call has the walkers' batch shape (one compilation)
     lp0 = log_prob(np.tile(theta0, (nw, 1)))[0]

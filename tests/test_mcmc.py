@@ -21,6 +21,7 @@ from test_refine import TRUTH, TRUTH_INTERIOR, make_toy, perturbed
 from inversion._mcmc import (
     ChainTooShortWarning,
     MCMCConfig,
+    WalkersRaisedWarning,
     load_mcmc_config,
     make_log_prob,
     mcmc_config_from_dict,
@@ -132,6 +133,16 @@ def test_short_chain_warns_and_outputs_are_written(tmp_path):
     png = res.corner_plot(tmp_path / "corner.png", truth=TRUTH_INTERIOR)
     assert png.stat().st_size > 1000
     assert "acceptance" in res.summary()
+    # too few walkers for the 11 sampled parameters: emcee's moves need 2 x 11; the run goes
+    # on with 22 and says so, naming the setting (the refinement before it is not lost)
+    with (
+        pytest.warns(WalkersRaisedWarning, match="sampler.n_walkers = 8 is below twice the 11"),
+        pytest.warns(ChainTooShortWarning),
+    ):
+        few = sample_posterior(
+            model, data, ref, config=_fast_config(n_walkers=8, n_steps=20, burn_in=5), noise=noise
+        )
+    assert few.chain.shape == (20, 22, 11)
 
 
 def test_posterior_coverage_small():
