@@ -355,34 +355,19 @@ class _CountsLogProb(_LogProb):
 _JIT_CACHE: dict = {}
 
 
-def _jitted_batched(static):
-    """One ``jax.jit(vmap(log_prob))`` per static structure (model sizes, priors, layout)."""
+def _jitted_vmap(static, method: str = "single"):
+    """One ``jax.jit(vmap(<log_prob>.<method>))`` per static structure (model sizes, priors,
+    layout) and method (``"single"``: a walker's log-posterior; ``"pair"``: with its blob)."""
     try:
-        key = hash(static)
+        key = (method, hash(static))
     except TypeError:
-        key = id(static)
+        key = (method, id(static))
     fn = _JIT_CACHE.get(key)
     if fn is None:
 
-        def batched(dyn, thetas):
+        def batched(dyn, x):
             lp = eqx.combine(dyn, static)
-            return jax.vmap(lp.single)(thetas)
-
-        fn = _JIT_CACHE[key] = jax.jit(batched)
-    return fn
-
-
-def _jitted_pairs(static):
-    try:
-        key = ("pair", hash(static))
-    except TypeError:
-        key = ("pair", id(static))
-    fn = _JIT_CACHE.get(key)
-    if fn is None:
-
-        def batched(dyn, s):
-            lp = eqx.combine(dyn, static)
-            return jax.vmap(lp.pair)(s)
+            return jax.vmap(getattr(lp, method))(x)
 
         fn = _JIT_CACHE[key] = jax.jit(batched)
     return fn
@@ -428,7 +413,7 @@ def _make_counts_log_prob(
         affine=affine,
     )
     dyn, static = eqx.partition(lp, eqx.is_array)
-    batched = _jitted_pairs(static)
+    batched = _jitted_vmap(static, "pair")
 
     def f(s):
         s = np.asarray(s, np.float64)
@@ -462,7 +447,7 @@ def make_log_prob(model, data, param: Parametrisation, priors: PriorConfig, nois
     # Partition once and call a plain jax.jit: emcee calls this thousands of times, and
     # filter_jit's per-call pytree handling costs more than the toy-sized model itself.
     dyn, static = eqx.partition(lp, eqx.is_array)
-    batched = _jitted_batched(static)
+    batched = _jitted_vmap(static)
 
     def f(thetas):
         return np.asarray(batched(dyn, jnp.asarray(thetas, jnp.float64)), np.float64)
