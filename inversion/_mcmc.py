@@ -828,12 +828,24 @@ def sample_posterior(
         k_slots, n_lib = lib.i_re.size, lib.n.size
         which = np.zeros((nw, k_slots), int)
         y = lib.compress(x, which, rng_m)
+        # the walkers move by the differences between the per-material optima, from the
+        # library material nearest the start's index, not to the optima themselves: those may
+        # lie in another mode than the one sampled here (the material stage runs at the first
+        # fit, and a mirror image can be the best mode), far from this reference, where the
+        # visibility held fixed at this reference is wrong (measured: walkers started 100 deg
+        # away, at log-posterior -1.4e6 against -1.3e3 here, and climbed back for the whole
+        # chain)
+        n_ref = np.asarray(param.reference.n, np.complex128).reshape(-1)
+        anchor = [
+            int(np.argmin(np.abs(np.log(lib.n) - np.log(n_ref[min(j, n_ref.size - 1)]))))
+            for j in range(k_slots)
+        ]
         for j in range(k_slots):
             cands = []
             for m in range(n_lib):
                 c = y.copy()
                 if shifts is not None:
-                    c += shifts[j, m] - base
+                    c += shifts[j, m] - shifts[j, anchor[j]]
                 c[:, lib.z_columns()[j]] = m + 0.5
                 cands.append(c)
             lk = np.stack([np.atleast_2d(target(c).T)[0] for c in cands], axis=1)
