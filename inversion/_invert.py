@@ -1192,6 +1192,30 @@ def _with(phys: PhysicalParams, **kw) -> PhysicalParams:
     return PhysicalParams(**d)
 
 
+def _mode_material_optima(refiner, params: PhysicalParams, fits, lib_n, max_deg: float = 1.0):
+    """Per part and library material, the optimum next to ``params`` (a sampled mode): the
+    material stage's fit where its attitude is within ``max_deg`` of the mode's, else a
+    local refit from the mode with that material (the material stage ran at the first fit,
+    and the best mode can be another one, e.g. its mirror image: the sampler's material jumps
+    translate between these optima, and a translation taken from another mode is off by
+    more than the posterior's width at high SNR)."""
+    q = np.asarray(params.unit_quaternion(), np.float64)
+    out = []
+    for part, row in enumerate(fits):
+        new_row = []
+        for n, ph in zip(lib_n, row, strict=True):
+            if ph is not None:
+                qm = np.asarray(ph.unit_quaternion(), np.float64)
+                dot = min(abs(float(q @ qm)), 1.0)
+                if np.degrees(2.0 * np.arccos(dot)) <= max_deg:
+                    new_row.append(ph)
+                    continue
+            f = refiner.polish(_with(params, n=_set_part(params.n, part, n)), local=True)
+            new_row.append(f.params if np.isfinite(f.cost) else ph)
+        out.append(new_row)
+    return out
+
+
 def _set_part(a, k: int, v):
     a = np.array(np.asarray(a))
     a[k] = v
@@ -1601,6 +1625,9 @@ def invert(
                 start = final if j == 0 else row["fit"]
                 if start.parametrisation.free != free_all:
                     start = refiner.at(start.params, free_all)
+                mode_fits = lib_fits
+                if lib_fits is not None:
+                    mode_fits = _mode_material_optima(refiner, start.params, lib_fits, lib_n)
                 try:
                     with warnings.catch_warnings(record=True) as caught:
                         warnings.simplefilter("always", ChainTooShortWarning)
@@ -1613,7 +1640,7 @@ def invert(
                             free=free_all,
                             progress_desc=f"MCMC mode {j} ({row['label']})",
                             materials=lib_n,
-                            material_fits=lib_fits,
+                            material_fits=mode_fits,
                         )
                     warns = tuple(str(x.message) for x in caught)
                     diag = post.diagnostics()
