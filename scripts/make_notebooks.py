@@ -554,10 +554,15 @@ def reference(m, theta):
     k = np.array([np.sin(theta), 0.0, np.cos(theta)])
     def f(ph, th):
         h = np.array([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
-        return max(h @ k, 0.0) * (m + 1) / (2 * np.pi) * np.cos(th) ** m * np.sin(th)
+        return (h @ k) * (m + 1) / (2 * np.pi) * np.cos(th) ** m * np.sin(th)
+    def phi_max(th):   # h.k > 0 for |phi| < phi_max: integrate the smooth part only (no kink)
+        s, c = np.sin(th) * np.sin(theta), np.cos(th) * np.cos(theta)
+        if s < 1e-300:
+            return np.pi if c > 0 else 0.0
+        return np.arccos(np.clip(-c / s, -1.0, 1.0))
     width = min(np.pi / 2, 12 / np.sqrt(m + 1))   # the lobe: integrate where it lives
-    val, _ = dblquad(f, 0, width, 0, 2 * np.pi, epsabs=1e-13, epsrel=1e-10)
-    return val
+    val, _ = dblquad(f, 0, width, 0, phi_max, epsabs=1e-13, epsrel=1e-10)
+    return 2 * val   # phi in [-phi_max, phi_max]: twice [0, phi_max]
 cases = [(1.0, 30.0), (10.0, 60.0), (100.0, 85.0)] if SMALL else \\
         [(m, t) for m in (0.5, 1.0, 10.0, 100.0, 1000.0) for t in (0.0, 45.0, 80.0, 88.0, 89.9)]
 print(f"{'m':>7s} {'theta':>6s} {'ppr':>14s} {'quadrature':>14s} {'rel err':>9s}")
