@@ -45,7 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import bench_inversion as bi  # noqa: E402  (x64 and the compilation cache are set there)
 import numpy as np  # noqa: E402
-from scipy import stats  # noqa: E402
+from scipy import optimize  # noqa: E402
 
 import inversion  # noqa: E402
 import ppr  # noqa: E402
@@ -190,9 +190,7 @@ def one_truth(j, t, oob_models, models, prep, cfg, snrs):
         inv, wall = noisy[snr]
         c = (snr / SNR_REF) ** 2
         mu = mu_ref * c
-        devs = [
-            inversion.goodness_of_fit(mu, e * c, noise, n_params=0).deviance for _, e in cands
-        ]
+        devs = [inversion.goodness_of_fit(mu, e * c, noise, n_params=0).deviance for _, e in cands]
         k = int(np.argmin(devs))
         lam = float(devs[k])
         gof = inv.goodness_of_fit
@@ -279,7 +277,7 @@ def summarize(records, meta) -> str:
         f"{sum(r['bound'] for r in und):.2f} of {len(und)} |",
         f"| sum of GoF powers, all (expected detections) | "
         f"{sum(r['test_power'] for r in hi):.1f} (observed {sum(r['detected'] for r in hi)}) |",
-        f"| in-bank false alarms (last held-out run, `inversion_heldout.md`) | 0.04 +- 0.04 "
+        "| in-bank false alarms (last held-out run, `inversion_heldout.md`) | 0.04 +- 0.04 "
         "(1/24) |",
         "",
         "## Per SNR",
@@ -294,17 +292,33 @@ def summarize(records, meta) -> str:
             f"| {snr:g} | {len(rs)} | {rate(rs)} | {len(d)} | {rate(d)} | "
             f"{np.median([r['lam'] for r in rs]):.3g} |"
         )
+    nm = np.percentile([r["null_mean"] for r in records], [0, 50, 100])
+
+    def lam95(dof):
+        """Noncentrality at which the bound (dof None) or the chi-square test reaches 0.95."""
+
+        def f(lam):
+            if dof is None:
+                return inversion.detection_power_bound(lam, ALPHA) - 0.95
+            return inversion.detection_power(lam, dof, ALPHA) - 0.95
+
+        return optimize.brentq(f, 1e-6, 1e5)
+
     lines += [
         "",
         "## By noncentrality (all SNRs)",
         "",
-        "lambda = 22.4 is where the bound reaches 0.95; the goodness-of-fit test (about 1000 "
-        "degrees of freedom, fewer effective ones for sparse counts) needs 100-230.",
+        f"lambda = {lam95(None):.1f} is where the bound reaches 0.95. The goodness-of-fit "
+        "test spreads its power over every direction of misfit: its null deviance here has "
+        f"mean {nm[0]:.0f}-{nm[2]:.0f} (median {nm[1]:.0f}; 1024 values, most without "
+        "signal), so like a chi-square with that many degrees of freedom it needs lambda = "
+        f"{lam95(nm[0]):.0f}-{lam95(nm[2]):.0f} (median {lam95(nm[1]):.0f}) for a power of "
+        "0.95.",
         "",
         "| lambda | n | detected | mean bound | mean LR sim | mean GoF power |",
         "|---|---|---|---|---|---|",
     ]
-    edges = [0.0, 5.0, 22.4, 100.0, 230.0, math.inf]
+    edges = [0.0, 5.0, round(lam95(None), 1), 100.0, 230.0, math.inf]
     for a, b in zip(edges[:-1], edges[1:], strict=True):
         rs = [r for r in records if a <= r["lam"] < b]
         if not rs:
@@ -375,7 +389,11 @@ def main(argv=None):
     ap.add_argument("--grid", type=int, default=2, help="Hopf nside of the bank")
     ap.add_argument("--seed", type=int, default=2027)
     ap.add_argument("--tag", default="")
-    ap.add_argument("--resume", action="store_true", help="continue a stopped run")
+    ap.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue a stopped run, or extend a finished one (same seed, more truths)",
+    )
     ap.add_argument("--summarize", metavar="JSON", help="only rewrite the .md of a .json")
     args = ap.parse_args(argv)
     if args.summarize:
@@ -403,7 +421,12 @@ def main(argv=None):
     t_compile = time.perf_counter() - t0
     print(f"bank {len(bank)} templates; warm-up {t_compile:.1f} s", flush=True)
     partial = OUT / f".inversion_oob{args.tag}.partial.json"
-    records = json.loads(partial.read_text()) if args.resume and partial.exists() else []
+    final = OUT / f"inversion_oob{args.tag}.json"
+    records = []
+    if args.resume and partial.exists():
+        records = json.loads(partial.read_text())
+    elif args.resume and final.exists():  # a finished run, extended (e.g. more truths per mesh)
+        records = json.loads(final.read_text())["observations"]
     done = {r["truth"] for r in records}
     for j, t in enumerate(truths):
         if j in done:
@@ -433,9 +456,7 @@ def main(argv=None):
         load=open("/proc/loadavg").read().split()[:3],
     )
     records.sort(key=lambda r: (r["truth"], r["snr"]))
-    (OUT / f"inversion_oob{args.tag}.json").write_text(
-        json.dumps(dict(meta=meta, observations=records), indent=1, default=str)
-    )
+    final.write_text(json.dumps(dict(meta=meta, observations=records), indent=1, default=str))
     (OUT / f"inversion_oob{args.tag}.md").write_text(summarize(records, meta))
     partial.unlink(missing_ok=True)
     print(summarize(records, meta))

@@ -16,10 +16,10 @@ import pytest
 from scipy import stats
 
 from inversion._gof import (
-    detection_power,
-    detection_power_bound,
     _poisson_exact,
     _poisson_fields,
+    detection_power,
+    detection_power_bound,
     deviance_moments,
     goodness_of_fit,
     poisson_deviance_moments,
@@ -319,8 +319,9 @@ def test_detection_power_of_a_fitted_poisson_model_against_simulation():
     y = rng.poisson(mu1, size=(r, n)).astype(float)
     fit = _glm_fit(y, X, np.array([1.0, 0.0, -1.0]))
     rej = [
-        goodness_of_fit(y[i], fit[i], noise, jacobian=fit[i][:, None] * X, threshold=alpha)
-        .model_mismatch
+        goodness_of_fit(
+            y[i], fit[i], noise, jacobian=fit[i][:, None] * X, threshold=alpha
+        ).model_mismatch
         for i in range(r)
     ]
     sim = float(np.mean(rej))
