@@ -78,7 +78,7 @@ goodness-of-fit test, which does not know the alternative, spreads its power ove
 direction of misfit: its statistic is the non-central chi-square with the fitted degrees
 of freedom and noncentrality ``lambda`` (:func:`detection_power`): for a power of 0.95 at
 ``alpha = 1e-3`` it needs ``lambda = 40 / 86 / 232`` at 10 / 100 / 1000 degrees of freedom,
-where the bound needs ``lambda = 22.4``.
+where the bound needs ``lambda = 22.4`` (docs/physics/model_evidence.md).
 """
 
 from __future__ import annotations
