@@ -240,7 +240,7 @@ def summarize(records, meta) -> str:
     k_det = sum(r["detected"] for r in det)
     ok_target = bool(det) and k_det / len(det) >= 0.95
     lines = [
-        "# Out-of-bank mismatch detection against its physical bound",
+        "# Out-of-bank mismatch detection against its physical bound" + meta.get("title", ""),
         "",
         f"Command: `{meta['command']}` (x64, BRDF `ppr.mueller_brdf`, 16 PSG/PSA channels, "
         f"64 bins of 1 cm). {meta['n_truths']} out-of-bank truths ({meta['per_mesh']} per "
@@ -390,6 +390,11 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=2027)
     ap.add_argument("--tag", default="")
     ap.add_argument(
+        "--heldout-truths",
+        action="store_true",
+        help="the 4 out-of-bank truths of inversion_heldout.md instead of new ones",
+    )
+    ap.add_argument(
         "--resume",
         action="store_true",
         help="continue a stopped run, or extend a finished one (same seed, more truths)",
@@ -403,7 +408,7 @@ def main(argv=None):
         return
     t_all = time.perf_counter()
     models = {k: bi.make_model(f()) for k, f in bi.SHAPES.items()}
-    oob_meshes = {k: OOB[k]() for k in args.meshes}
+    oob_meshes = {k: OOB[k]() for k in (list(OOB) if args.heldout_truths else args.meshes)}
     oob_models = {k: bi.make_model(m) for k, m in oob_meshes.items()}
     mats = {m: complex(np.asarray(ppr.load_material(m).n)) for m in bi.MATERIALS}
     bank = inversion.screening_bank(models, mats, bi.FINISHES, grid={"size": args.grid})
@@ -414,6 +419,14 @@ def main(argv=None):
     rng = np.random.default_rng(args.seed)
     n = args.n_per_mesh * len(args.meshes)
     truths = random_truths(n, rng, args.meshes, oob_meshes)
+    if args.heldout_truths:  # the out-of-bank truths of `bench_inversion.py --n-in 8 --n-out 4`
+        rng = np.random.default_rng(2026)
+        bi.random_truths(8, rng, list(bi.SHAPES))  # its in-bank truths come first
+        truths = [
+            dict(t, materials=[t["material"]])
+            for t in bi.random_truths(4, rng, list(bi.OUT_OF_BANK))
+        ]
+        n = len(truths)
     t0 = time.perf_counter()  # warm-up: one in-bank observation compiles every program
     warm = bi.random_truths(1, np.random.default_rng(args.seed + 99), list(bi.SHAPES))[0]
     _, data = bi.observe(models[warm["shape"]], warm, 100.0, seed=99)
@@ -443,11 +456,12 @@ def main(argv=None):
                 flush=True,
             )
     meta = dict(
+        title=": the 4 out-of-bank truths of `inversion_heldout.md`" if args.heldout_truths else "",
         command="python bench/bench_inversion_oob.py "
         + " ".join(sys.argv[1:] if argv is None else argv),
         n_truths=len({r["truth"] for r in records}),
-        per_mesh=args.n_per_mesh,
-        seed=args.seed,
+        per_mesh="1-2" if args.heldout_truths else args.n_per_mesh,
+        seed=2026 if args.heldout_truths else args.seed,
         snrs=args.snrs,
         grid=args.grid,
         n_templates=len(bank),
