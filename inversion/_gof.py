@@ -595,7 +595,9 @@ def detection_power(noncentrality, dof, alpha: float = DEFAULT_MISMATCH_P):
       value, and the alternative is that law with the non-central chi-square's extra
       cumulants ``lambda``, ``4 lambda``, ``24 lambda`` (as its ``allowance``).
 
-    Never above :func:`detection_power_bound`. Scalar or array, like ``noncentrality``."""
+    Below :func:`detection_power_bound` (no test beats Neyman-Pearson) for ``dof >= 1``; a
+    null whose expected deviance is below 1 (almost no counts) is outside both
+    approximations. Scalar or array, like ``noncentrality``."""
     lam = _check_power_args(noncentrality, alpha)
     if isinstance(dof, GoodnessOfFit):
         var = dof.std**2

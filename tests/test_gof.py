@@ -295,6 +295,10 @@ def test_detection_power_of_a_linear_gaussian_fit_is_the_noncentral_chi_square()
     assert bound > pred + 0.2
     assert detection_power(0.0, n - 3, alpha) == pytest.approx(alpha)
     assert detection_power_bound(0.0, alpha) == pytest.approx(alpha)
+    # Neyman-Pearson: the omnibus test never beats the bound, at any dof and noncentrality
+    grid = np.linspace(0.0, 400.0, 401)
+    for dof in (1, 2, 10, 100, 1000):
+        assert np.all(detection_power(grid, dof, 1e-3) <= detection_power_bound(grid, 1e-3) + 1e-12)
 
 
 def test_detection_power_of_a_fitted_poisson_model_against_simulation():
