@@ -33,6 +33,8 @@ from ._database import (
 # calibrated goodness of fit, observability, posterior files (issue 26)
 from ._gof import (
     GoodnessOfFit,
+    detection_power,
+    detection_power_bound,
     deviance_moments,
     fit_goodness_of_fit,
     goodness_of_fit,
@@ -198,6 +200,8 @@ __all__ = [
     "fit_goodness_of_fit",
     "deviance_moments",
     "poisson_deviance_moments",
+    "detection_power",
+    "detection_power_bound",
     "Observability",
     "UnobservableDirection",
     "observability",

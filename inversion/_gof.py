@@ -65,6 +65,20 @@ simulated deviances each); a two-moment gamma was off by up to 2x, the normal by
 of "the model is exact" (used by the classifier for the template grid's resolution): a
 model error of Pearson size ``lambda`` adds ``lambda`` to the mean, ``4 lambda`` to the
 variance and ``24 lambda`` to the third cumulant (the non-central chi-square's cumulants).
+
+**Detectability.** A model error is only detectable if the data carry it. Fit the model to
+the *expected* data of the true source (noise-free; the deviance accepts non-integer
+counts): the minimum deviance ``lambda = D(mu_true, mu_0)`` is the noncentrality, ``mu_0``
+the closest model expectation found (any model expectation gives a valid, looser bound).
+By Neyman-Pearson no level-``alpha`` test of "the model holds" has more power at ``mu_true``
+than the likelihood-ratio test of the simple hypotheses ``mu_0`` against ``mu_true``, whose
+statistic is normal with mean difference ``lambda`` and variance ``lambda`` for large
+counts: power ``<= Phi(sqrt(lambda) - z_alpha)`` (:func:`detection_power_bound`). This
+goodness-of-fit test, which does not know the alternative, spreads its power over every
+direction of misfit: its statistic is the non-central chi-square with the fitted degrees
+of freedom and noncentrality ``lambda`` (:func:`detection_power`): for a power of 0.95 at
+``alpha = 1e-3`` it needs ``lambda = 40 / 86 / 232`` at 10 / 100 / 1000 degrees of freedom,
+where the bound needs ``lambda = 22.4`` (docs/physics/model_evidence.md).
 """
 
 from __future__ import annotations
@@ -84,6 +98,8 @@ __all__ = [
     "deviance_terms",
     "deviance_moments",
     "poisson_deviance_moments",
+    "detection_power",
+    "detection_power_bound",
 ]
 
 DEFAULT_MISMATCH_P = 1e-3
@@ -531,6 +547,74 @@ def _upper_tail(x, mean: float, var: float, k3: float):
         loc = mean - shape * scale
         out = special.gammaincc(shape, np.maximum((x - loc) / scale, 0.0))
     return float(out) if out.ndim == 0 else out
+
+
+def _upper_quantile(alpha: float, mean: float, var: float, k3: float) -> float:
+    """The ``x`` with ``P(X >= x) = alpha`` for the Pearson type III law of
+    :func:`_upper_tail`."""
+    sd = math.sqrt(var)
+    skew = k3 / var**1.5
+    if not skew > 1e-4:
+        return mean + sd * float(stats.norm.isf(alpha))
+    shape = 4.0 / skew**2
+    scale = 0.5 * sd * skew
+    return mean - shape * scale + scale * float(special.gammainccinv(shape, alpha))
+
+
+def _check_power_args(noncentrality, alpha):
+    lam = np.asarray(noncentrality, np.float64)
+    if not (np.all(np.isfinite(lam)) and np.all(lam >= 0)):
+        bad = lam[~(np.isfinite(lam) & (lam >= 0))].ravel()
+        raise ValueError(f"noncentrality must be finite and >= 0, got {bad[:3]!r}")
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha must lie in (0, 1), got {alpha!r}")
+    return lam
+
+
+def detection_power_bound(noncentrality, alpha: float = DEFAULT_MISMATCH_P):
+    """Upper bound on the power of *any* level-``alpha`` test of a model against a true source
+    whose expected data lie at deviance ``noncentrality`` from the closest model expectation
+    (module docstring, "Detectability"): the Neyman-Pearson likelihood-ratio test between the
+    two, ``Phi(sqrt(lambda) - z_alpha)`` (large-count normal limit; ``lambda`` the deviance
+    of the noise-free data at the closest fit). Scalar or array, like ``noncentrality``."""
+    lam = _check_power_args(noncentrality, alpha)
+    out = stats.norm.cdf(np.sqrt(lam) - stats.norm.isf(alpha))
+    return float(out) if out.ndim == 0 else out
+
+
+def detection_power(noncentrality, dof, alpha: float = DEFAULT_MISMATCH_P):
+    """Power of the goodness-of-fit test (reject when ``p < alpha``) against a model error
+    of size ``noncentrality`` (``lambda``: deviance of the noise-free true data at the closest
+    model expectation).
+
+    - ``dof`` a number: the chi-square test with ``dof`` degrees of freedom (dense counts,
+      Gaussian noise): ``P(chi'^2(dof, lambda) > chi^2_{1-alpha}(dof))``, the non-central
+      chi-square exactly.
+    - ``dof`` a :class:`GoodnessOfFit` (e.g. of the noise-free fit): its null law (Pearson
+      type III with the exact null moments, sparse counts included) gives the critical
+      value, and the alternative is that law with the non-central chi-square's extra
+      cumulants ``lambda``, ``4 lambda``, ``24 lambda`` (as its ``allowance``).
+
+    Below :func:`detection_power_bound` (no test beats Neyman-Pearson) for ``dof >= 1``; a
+    null whose expected deviance is below 1 (almost no counts) is outside both
+    approximations. Scalar or array, like ``noncentrality``."""
+    lam = _check_power_args(noncentrality, alpha)
+    if isinstance(dof, GoodnessOfFit):
+        var = dof.std**2
+        k3 = dof.skewness * var**1.5
+        crit = _upper_quantile(alpha, dof.expected, var, k3)
+        out = np.asarray(
+            [_upper_tail(crit, dof.expected + x, var + 4 * x, k3 + 24 * x) for x in lam.ravel()]
+        ).reshape(lam.shape)
+    else:
+        nu = float(dof)
+        if not (math.isfinite(nu) and nu > 0):
+            raise ValueError(f"dof must be a finite number > 0 or a GoodnessOfFit, got {dof!r}")
+        crit = stats.chi2.isf(alpha, nu)
+        # ncx2 at noncentrality 0 is the central law (scipy's ncx2 wants nc > 0 on some versions)
+        pos = lam > 0
+        out = np.where(pos, stats.ncx2.sf(crit, nu, np.where(pos, lam, 1.0)), alpha)
+    return float(out) if np.ndim(out) == 0 else out
 
 
 def goodness_of_fit(

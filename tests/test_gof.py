@@ -18,6 +18,8 @@ from scipy import stats
 from inversion._gof import (
     _poisson_exact,
     _poisson_fields,
+    detection_power,
+    detection_power_bound,
     deviance_moments,
     goodness_of_fit,
     poisson_deviance_moments,
@@ -249,3 +251,103 @@ def test_mismatch_is_flagged_and_reported():
         goodness_of_fit(y[0], truth, PoissonCounts(), threshold=0.0)
     with pytest.raises(ValueError, match="degrees of freedom"):
         goodness_of_fit(y[0, :2], truth[:2], PoissonCounts(), n_params=5)
+
+
+def _two_peaks(n, scale):
+    x = _design(n)[:, 1]
+    return scale * (
+        np.exp(-0.5 * ((x - 0.4) / 0.15) ** 2) + 0.6 * np.exp(-0.5 * ((x + 0.4) / 0.15) ** 2)
+    )
+
+
+def test_detection_power_of_a_linear_gaussian_fit_is_the_noncentral_chi_square():
+    """Gaussian data (sigma = 1) whose mean lies ``lambda = 25`` (squared distance) from a
+    3-parameter linear model: the residual sum of squares at the least-squares fit is the
+    non-central chi-square with 57 degrees of freedom, so the rejection rate of 20,000
+    simulated fits matches ``detection_power`` (also through the GoodnessOfFit null of the
+    noise-free fit), and the likelihood-ratio test against the closest model reaches the
+    Neyman-Pearson bound, above the goodness-of-fit test."""
+    rng = np.random.default_rng(7)
+    n, r, alpha = 60, 20000, 0.01
+    X = _design(n)
+    proj = X @ np.linalg.pinv(X)
+    e = _two_peaks(n, 1.0) - proj @ _two_peaks(n, 1.0)  # the misfit direction
+    e *= math.sqrt(25.0) / np.linalg.norm(e)
+    mu1 = X @ np.array([1.0, -0.5, 0.3]) + e
+    mu0 = proj @ mu1  # the closest model expectation
+    lam = float(np.sum((mu1 - mu0) ** 2))
+    y = mu1 + rng.normal(size=(r, n))
+    res = y - y @ proj.T
+    rss = np.sum(res * res, axis=1)
+    sim = np.mean(rss > stats.chi2.isf(alpha, n - 3))
+    pred = detection_power(lam, n - 3, alpha)
+    band = 4.0 * math.sqrt(pred * (1 - pred) / r)
+    assert abs(sim - pred) < band, (sim, pred)
+    assert 0.2 < pred < 0.8  # a sensitive point of the power curve
+    g0 = goodness_of_fit(mu1, mu0, GaussianNoise(1.0), jacobian=X)
+    assert g0.deviance == pytest.approx(lam, rel=1e-9)
+    assert detection_power(lam, g0, alpha) == pytest.approx(pred, abs=0.01)
+    # Neyman-Pearson: T = (mu1 - mu0) . (y - mu0) is N(0, lam) under mu0, N(lam, lam) under mu1
+    t1 = (y - mu0) @ (mu1 - mu0)
+    crit = math.sqrt(lam) * stats.norm.isf(alpha)
+    bound = detection_power_bound(lam, alpha)
+    assert abs(np.mean(t1 > crit) - bound) < 4.0 * math.sqrt(bound * (1 - bound) / r)
+    assert bound > pred + 0.2
+    assert detection_power(0.0, n - 3, alpha) == pytest.approx(alpha)
+    assert detection_power_bound(0.0, alpha) == pytest.approx(alpha)
+    # Neyman-Pearson: the omnibus test never beats the bound, at any dof and noncentrality
+    grid = np.linspace(0.0, 400.0, 401)
+    for dof in (1, 2, 10, 100, 1000):
+        assert np.all(detection_power(grid, dof, 1e-3) <= detection_power_bound(grid, 1e-3) + 1e-12)
+
+
+def test_detection_power_of_a_fitted_poisson_model_against_simulation():
+    """Poisson counts from two peaks (about 6 counts per bin at the top, 40 bins) fitted with
+    a log-quadratic model (one peak): ``lambda`` is the deviance of the noise-free counts at
+    their maximum-likelihood fit. The goodness-of-fit test's rejection rate over 600 simulated
+    fits matches ``detection_power(lambda, gof of the noise-free fit)``, below the bound.
+    The simulated Poisson likelihood-ratio test of two simple hypotheses (the fit against a
+    source half way to the truth, 40,000 draws each) matches ``detection_power_bound``:
+    the normal limit holds at these counts."""
+    rng = np.random.default_rng(5)
+    n, alpha = 40, 0.01
+    X = _design(n)
+    mu1 = _two_peaks(n, 5.0) + 1.0
+    mu0 = _glm_fit(mu1[None], X, np.array([1.0, 0.0, -1.0]))[0]
+    noise = PoissonCounts(background=1e-12)
+    g0 = goodness_of_fit(mu1, mu0, noise, jacobian=mu0[:, None] * X)
+    lam = g0.deviance
+    pred = detection_power(lam, g0, alpha)
+    assert 0.2 < pred < 0.8, pred
+    r = 600
+    y = rng.poisson(mu1, size=(r, n)).astype(float)
+    fit = _glm_fit(y, X, np.array([1.0, 0.0, -1.0]))
+    rej = [
+        goodness_of_fit(
+            y[i], fit[i], noise, jacobian=fit[i][:, None] * X, threshold=alpha
+        ).model_mismatch
+        for i in range(r)
+    ]
+    sim = float(np.mean(rej))
+    assert abs(sim - pred) < 4.0 * math.sqrt(pred * (1 - pred) / r) + 0.02, (sim, pred)
+    assert pred < detection_power_bound(lam, alpha) - 0.3
+    # the most powerful test of mu0 against mu_h: log-likelihood ratio, critical value from
+    # draws under mu0
+    mu_h = mu0 + 0.5 * (mu1 - mu0)
+    lam_h = float(np.sum(goodness_of_fit(mu_h, mu0, noise).deviance))
+    w = np.log(mu_h / mu0)
+    t0 = rng.poisson(mu0, size=(40000, n)) @ w
+    t1 = rng.poisson(mu_h, size=(40000, n)) @ w
+    lr = float(np.mean(t1 > np.quantile(t0, 1 - alpha)))
+    bound = detection_power_bound(lam_h, alpha)
+    assert 0.2 < bound < 0.8, bound
+    assert lr == pytest.approx(bound, abs=0.04), (lr, bound)
+
+
+def test_detection_power_rejects_bad_input():
+    with pytest.raises(ValueError, match="noncentrality.*-1"):
+        detection_power(-1.0, 10)
+    with pytest.raises(ValueError, match="alpha.*1.5"):
+        detection_power_bound(1.0, 1.5)
+    with pytest.raises(ValueError, match="dof.*0"):
+        detection_power(1.0, 0)
