@@ -1252,6 +1252,7 @@ class _Refiner:
             rounds,
             None,
             max_steps=self.cfg.max_steps,
+            bounds=BOUNDS,
         )
 
     def finish(self, best: StartSummary, ordered, t0, method="levenberg_marquardt"):
@@ -1278,9 +1279,11 @@ class _Refiner:
         return self.bounded(self.finish(s, [s], t0), start)
 
     def bounded(self, fit: RefineResult, start: PhysicalParams) -> RefineResult:
-        """``fit``, or when the unbounded solver left the physical box (the index or the
-        roughness trading against the gain along a ridge), the box-bounded L-BFGS-B refit
-        from ``start`` (:func:`inversion.refine_bounded`; compiled only when needed)."""
+        """``fit``, or should it lie outside the physical box, the box-bounded L-BFGS-B refit
+        from ``start`` (:func:`inversion.refine_bounded`; compiled only when needed). The
+        solver runs with the box clamped into its parametrisation (``refine(bounds=)``: a
+        roughness running off towards the mirror limit, or the index trading against the
+        gain along a ridge, stops on the bound), so this is a guard, not a step."""
         if not fit.outside_bounds(BOUNDS):
             return fit
         log.info("refit inside the physical box: %s", "; ".join(fit.outside_bounds(BOUNDS)))

@@ -48,6 +48,7 @@ from ppr.geometry import quat_conjugate, quat_from_rotvec, quat_multiply, rotvec
 __all__ = [
     "GROUPS",
     "GAIN_RANGE",
+    "BOX_FIELDS",
     "PhysicalParams",
     "Parametrisation",
     "lift_start",
@@ -198,6 +199,30 @@ class PhysicalParams(eqx.Module):
 
 
 # --------------------------------------------------------------------------- reparametrisation
+BOX_FIELDS = ("m", "n_re", "n_im", "corr_length", "range_offset", "gain", "thickness")
+"""The physical quantities a :class:`Parametrisation`'s box bounds (columns of its ``box``)."""
+
+
+def box_array(bounds=None) -> Array:
+    """``(2, len(BOX_FIELDS))`` array of a physical box: row 0 the low, row 1 the high bounds.
+
+    ``bounds``: ``None`` (unbounded: -inf / +inf), an object with the fields of
+    :data:`BOX_FIELDS` as ``(low, high)`` pairs (:class:`inversion.PhysicalBounds`), or such
+    an array (returned as is)."""
+    if bounds is None:
+        inf = np.full(len(BOX_FIELDS), np.inf)
+        return jnp.asarray(np.stack([-inf, inf]), jnp.result_type(float))
+    if isinstance(bounds, (jax.Array, np.ndarray)):
+        if bounds.shape != (2, len(BOX_FIELDS)):
+            raise ValueError(
+                f"Parametrisation bounds: a box array has shape (2, {len(BOX_FIELDS)}) "
+                f"(low / high of {BOX_FIELDS}), got {bounds.shape}"
+            )
+        return bounds
+    rows = np.asarray([tuple(getattr(bounds, f)) for f in BOX_FIELDS], np.float64).T
+    return jnp.asarray(rows, jnp.result_type(float))
+
+
 def group_sizes(reference: PhysicalParams) -> dict[str, int]:
     """Number of solver coordinates of each parameter group for ``reference``'s materials."""
     k = reference.n_materials
@@ -228,11 +253,28 @@ class Parametrisation(eqx.Module):
     gives a flat vector in user units (attitude as a rotation vector in *degrees* about
     ``q_ref``, ``m``, ``n'``, ``n''``, corr. length in metres, range offset in metres, gain);
     ``labels`` names its entries; covariances are reported in that vector's coordinates.
+    - `bounds`: an optional physical box (an object with the fields of :data:`BOX_FIELDS`
+      as ``(low, high)`` pairs, e.g. :class:`inversion.PhysicalBounds`, or the ``(2, 7)``
+      array :attr:`box`). ``to_physical`` clamps each free group's physical values into it
+      (``clip``: identity inside, a flat region outside), so an unbounded solver stays in the
+      box and a parameter whose optimum lies beyond a bound stops on it, the way the floors of
+      ``m`` and ``n''`` work. Unbounded by default (infinite box: ``to_physical`` is then
+      the same function). The box is a traced array: bounded and unbounded fits share one
+      compiled solver.
     """
 
     reference: PhysicalParams
     free: tuple[str, ...] = eqx.field(static=True, default=DEFAULT_FREE)
     range_scale: float = eqx.field(static=True, default=0.01)
+    # (2, len(BOX_FIELDS)) physical box, rows low / high; +-inf where unbounded. Always an
+    # array (never None), so a bounded and an unbounded parametrisation share every program
+    box: Array = None  # type: ignore[assignment]
+
+    def __init__(self, reference, free=DEFAULT_FREE, range_scale=0.01, bounds=None):
+        self.reference = reference
+        self.free = free
+        self.range_scale = range_scale
+        self.box = box_array(bounds)
 
     def __check_init__(self):
         bad = [g for g in self.free if g not in GROUPS]
@@ -315,30 +357,42 @@ class Parametrisation(eqx.Module):
         ref = self.reference
         parts = self._split(theta)
         k = ref.n_materials
+        box = jnp.asarray(self.box).astype(theta.dtype)
+
+        def clip(x, field):  # into the box (identity when unbounded)
+            j = BOX_FIELDS.index(field)
+            return jnp.clip(x, box[0, j], box[1, j])
+
         q = ref.unit_quaternion().astype(theta.dtype)
         if "attitude" in parts:
             q = quat_multiply(quat_from_rotvec(parts["attitude"]), q)
         m = (
-            jnp.exp(jnp.maximum(parts["m"], LOG_M_MIN))
+            clip(jnp.exp(jnp.maximum(parts["m"], LOG_M_MIN)), "m")
             if "m" in parts
             else ref.m.astype(theta.dtype)
         )
         if "n" in parts:
-            n_re = jnp.exp(parts["n"][:k])
-            n_im = _softplus(jnp.maximum(parts["n"][k:], U_N_IMAG_MIN))
+            n_re = clip(jnp.exp(parts["n"][:k]), "n_re")
+            n_im = clip(_softplus(jnp.maximum(parts["n"][k:], U_N_IMAG_MIN)), "n_im")
             n = jax.lax.complex(n_re, n_im)
         else:
             n = ref.n
-        corr = jnp.exp(parts["corr_length"]) if "corr_length" in parts else ref.corr_length
+        corr = (
+            clip(jnp.exp(parts["corr_length"]), "corr_length")
+            if "corr_length" in parts
+            else ref.corr_length
+        )
         off = (
-            parts["range_offset"][0] * self.range_scale
+            clip(parts["range_offset"][0] * self.range_scale, "range_offset")
             if "range_offset" in parts
             else ref.range_offset
         )
-        gain = jnp.exp(parts["gain"][0]) if "gain" in parts else ref.gain
+        gain = clip(jnp.exp(parts["gain"][0]), "gain") if "gain" in parts else ref.gain
         thick = ref.thickness.astype(theta.dtype)
         if "thickness" in parts and ref.thickness_slots:
-            thick = thick.at[jnp.asarray(ref.thickness_slots)].set(jnp.exp(parts["thickness"]))
+            thick = thick.at[jnp.asarray(ref.thickness_slots)].set(
+                clip(jnp.exp(parts["thickness"]), "thickness")
+            )
         return PhysicalParams(q, m, n, corr, off, gain, thick, ref.thickness_slots)
 
     def from_physical(self, phys: PhysicalParams) -> Float[Array, " P"]:
@@ -395,7 +449,7 @@ class Parametrisation(eqx.Module):
 
     def recentred(self, phys: PhysicalParams) -> Parametrisation:
         """Same layout with the reference moved to ``phys`` (so its rotation vector is 0)."""
-        return Parametrisation(phys, self.free, self.range_scale)
+        return Parametrisation(phys, self.free, self.range_scale, self.box)
 
     def with_reference(self, phys: PhysicalParams) -> Parametrisation:
         return self.recentred(phys)

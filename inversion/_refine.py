@@ -52,6 +52,7 @@ from jaxtyping import Array, Float
 from ._params import (
     DEFAULT_FREE,
     GAIN_RANGE,
+    GROUPS,
     Parametrisation,
     PhysicalParams,
     group_sizes,
@@ -556,16 +557,26 @@ def weighted_jacobian(
     ``d mu / d theta = -J / inv_sigma``), ``inv_sigma = 1 / sqrt(var(mu))`` and ``mu`` the
     expected values ``(C, B)`` at ``phys``, ``G = d physical_vector / d theta``, the
     :class:`Parametrisation` (reference ``phys``) and the solver's cost. One compiled program
-    per model, shared with the refiners' covariance.
+    per model, shared with the refiners' covariance: the Jacobian is computed with the groups
+    of ``free`` and :data:`~inversion._params.DEFAULT_FREE` free and ``free``'s columns are
+    kept (a group's coordinates do not depend on which others are free), so fits with
+    different free groups (``ppr invert``'s refinement without the index, its index stage
+    with it) share one program; the few extra forward-mode columns cost little next to a
+    compilation of the forward model's JVP.
     """
-    param = Parametrisation(phys, tuple(free), range_scale)
+    free = tuple(free)
+    param = Parametrisation(phys, free, range_scale)
+    wide = Parametrisation(
+        phys, tuple(g for g in GROUPS if g in free or g in DEFAULT_FREE), range_scale
+    )
+    cols = _columns_of(wide, free)
     if aux is None:
         aux = model.prepare(phys)
     inv_sigma, mu = _weights(_pure(model), noise, phys, aux)
-    theta = _from_physical(param, phys)
-    J, G, chi2 = _jacobians(_pure(model), param, aux, inv_sigma, jnp.asarray(data), theta, noise)
-    J = np.asarray(J, np.float64)
-    G = np.asarray(G, np.float64)
+    theta = _from_physical(wide, phys)
+    J, G, chi2 = _jacobians(_pure(model), wide, aux, inv_sigma, jnp.asarray(data), theta, noise)
+    J = np.asarray(J, np.float64)[:, cols]
+    G = np.asarray(G, np.float64)[np.ix_(cols, cols)]
     if not np.all(np.isfinite(J)):
         raise FloatingPointError(
             "covariance_at: the residual Jacobian has non-finite entries at the optimum "
@@ -579,6 +590,17 @@ def weighted_jacobian(
         param,
         float(chi2),
     )
+
+
+def _columns_of(wide: Parametrisation, free) -> np.ndarray:
+    """Indices in ``wide``'s ``theta`` (and ``physical_vector``) of the groups ``free``."""
+    sizes = group_sizes(wide.reference)
+    cols, i = [], 0
+    for g in wide.ordered_free:
+        if g in free:
+            cols += range(i, i + sizes[g])
+        i += sizes[g]
+    return np.asarray(cols, np.int64)
 
 
 def covariance_at(
@@ -723,6 +745,7 @@ def refine(
     range_scale: float = 0.01,
     keep: int | None = None,
     screen_tol: float = 1e-3,
+    bounds: PhysicalBounds | None = None,
 ) -> RefineResult:
     """Multi-start weighted least-squares refinement (see the module docstring).
 
@@ -744,6 +767,12 @@ def refine(
       ``starts`` with ``result = "screened_out"`` and their screening cost. ``None`` (default)
       refines every start fully. A solver given as an instance screens with its own
       tolerances.
+    - `bounds`: a physical box (:class:`PhysicalBounds`) the solver is kept in: the
+      parametrisation clamps the free groups into it (:class:`Parametrisation`'s ``bounds``),
+      so a parameter whose optimum lies beyond a bound stops on it (named in the start's
+      message, ``"at bounds: m[0]"``) and the fit never leaves the box. The same compiled
+      solver as the unbounded fit (the box is a traced array); an optimum inside the box is
+      the unbounded one. ``None`` (default): unbounded.
 
     **Returns:** :class:`RefineResult` for the lowest-cost start (successful starts preferred),
     with every start summarised in ``starts``.
@@ -768,7 +797,8 @@ def refine(
     dt = starts[0].m.dtype
     data_j = jnp.asarray(data_np, dt)
     run = functools.partial(
-        _refine_start, model, noise, data_j, free, range_scale, max_steps=max_steps
+        _refine_start, model, noise, data_j, free, range_scale, max_steps=max_steps,
+        bounds=bounds,
     )
 
     screened = {}
@@ -824,10 +854,14 @@ def refine(
 
 
 def _refine_start(
-    model, noise, data_j, free, range_scale, idx, start, phys, solv, rounds, aux, *, max_steps
+    model, noise, data_j, free, range_scale, idx, start, phys, solv, rounds, aux, *, max_steps,
+    bounds=None,
 ) -> StartSummary:
-    """Refine one start from ``phys`` in up to ``rounds`` visibility/weight rounds."""
-    param = Parametrisation(phys, free, range_scale)
+    """Refine one start from ``phys`` in up to ``rounds`` visibility/weight rounds (kept in
+    the physical box ``bounds`` when given: see :func:`refine`)."""
+    if bounds is not None:
+        phys = _clip_to(phys, bounds)
+    param = Parametrisation(phys, free, range_scale, bounds)
     total_steps, used_rounds = 0, 0
     prev_cost = np.inf
     res_code, cost = 0, np.inf
@@ -854,6 +888,10 @@ def _refine_start(
         prev_cost = cost
     name = RESULT_NAMES.get(res_code, str(res_code))
     ok = name == "successful" and np.isfinite(cost)
+    msg = _message(res_code)
+    at = _on_bounds(phys, free, bounds) if bounds is not None else []
+    if at:
+        msg = f"{msg}; at bounds: {', '.join(at)}"
     return StartSummary(
         index=idx,
         start=start,
@@ -861,13 +899,74 @@ def _refine_start(
         cost=cost,
         success=bool(ok),
         result=name,
-        message=_message(res_code),
+        message=msg,
         n_steps=total_steps,
         n_rounds=used_rounds,
     )
 
 
 RESULT_NAMES_INV = {v: k for k, v in RESULT_NAMES.items()}
+
+
+def _physical_entries(phys: PhysicalParams, free) -> list[tuple[str, str, float]]:
+    """``(label, BOX_FIELDS name, value)`` of the bounded physical values of the free groups."""
+    out = []
+    n = np.asarray(phys.n)
+    for g in GROUPS:
+        if g not in free:
+            continue
+        if g == "m":
+            out += [(f"m[{i}]", "m", v) for i, v in enumerate(np.asarray(phys.m))]
+        elif g == "n":
+            out += [(f"n_re[{i}]", "n_re", v) for i, v in enumerate(n.real)]
+            out += [(f"n_im[{i}]", "n_im", v) for i, v in enumerate(n.imag)]
+        elif g == "corr_length":
+            cl = np.asarray(phys.corr_length)
+            out += [(f"corr_length[{i}]", "corr_length", v) for i, v in enumerate(cl)]
+        elif g in ("range_offset", "gain"):
+            out.append((g, g, float(np.asarray(getattr(phys, g)))))
+        elif g == "thickness":
+            t = np.asarray(phys.thickness)
+            out += [(f"thickness[{i}]", "thickness", t[i]) for i in phys.thickness_slots]
+    return out
+
+
+def _on_bounds(phys: PhysicalParams, free, bounds: PhysicalBounds) -> list[str]:
+    """Labels of the free physical values on a bound of ``bounds`` (to 1e-9 relative)."""
+    hits = []
+    for lab, field, v in _physical_entries(phys, free):
+        lo, hi = getattr(bounds, field)
+        tol = 1e-9 * max(1.0, abs(float(v)))
+        if abs(float(v) - lo) <= tol or abs(float(v) - hi) <= tol:
+            hits.append(lab)
+    return hits
+
+
+def _clip_to(phys: PhysicalParams, bounds: PhysicalBounds) -> PhysicalParams:
+    """``phys`` with every value clipped into ``bounds`` (a start for a bounded fit); ``phys``
+    itself when it is inside."""
+    if not any(
+        not getattr(bounds, f)[0] <= float(v) <= getattr(bounds, f)[1]
+        for _, f, v in _physical_entries(phys, GROUPS)
+    ):
+        return phys
+    dt = phys.m.dtype
+    n = np.asarray(phys.n)
+    n = np.clip(n.real, *bounds.n_re) + 1j * np.clip(n.imag, *bounds.n_im)
+    thick = np.asarray(phys.thickness).copy()
+    slots = list(phys.thickness_slots)
+    if slots:
+        thick[slots] = np.clip(thick[slots], *bounds.thickness)
+    return PhysicalParams(
+        phys.quaternion,
+        jnp.asarray(np.clip(np.asarray(phys.m), *bounds.m), dt),
+        jnp.asarray(n, phys.n.dtype),
+        jnp.asarray(np.clip(np.asarray(phys.corr_length), *bounds.corr_length), dt),
+        jnp.asarray(np.clip(np.asarray(phys.range_offset), *bounds.range_offset), dt),
+        jnp.asarray(np.clip(np.asarray(phys.gain), *bounds.gain), dt),
+        jnp.asarray(thick, phys.thickness.dtype),
+        phys.thickness_slots,
+    )
 
 
 def _message(code: int) -> str:
@@ -1051,8 +1150,9 @@ def _refit_from(
     solver, bounds,
 ) -> RefineResult:
     """Refine from ``fit``'s parameters with the attitude ``q_start`` and the range offset
-    moved by ``range_shift`` (same free groups and range scale as ``fit``); refit with
-    :func:`refine_bounded` when ``bounds`` is given and the unbounded optimum leaves it."""
+    moved by ``range_shift`` (same free groups and range scale as ``fit``), kept inside
+    ``bounds`` when given (:func:`refine`'s box: the same compiled solver); refit with
+    :func:`refine_bounded` should the optimum still leave it."""
     p = fit.params
     start = PhysicalParams(
         jnp.asarray(q_start, p.m.dtype),
@@ -1074,6 +1174,7 @@ def _refit_from(
         max_steps=max_steps,
         rounds=rounds,
         range_scale=fit.parametrisation.range_scale,
+        bounds=bounds,
     )
     if bounds is not None and out.outside_bounds(bounds):
         out = refine_bounded(

@@ -658,16 +658,33 @@ def test_bounded_refine_recovers_truth_and_respects_bounds():
     )
     assert far.outside_bounds() == ["n_re[0] = 7.3 outside [0.05, 5]"]
     assert "outside the physical box (refit with refine_bounded)" in far.summary()
-    # mirror_check(bounds=): a mirror refit outside the box is redone with L-BFGS-B
+    # mirror_check(bounds=): the mirror refit stays in the box (the solver's clamped
+    # parametrisation) and ends on the bound the unbounded one crosses
     from inversion._refine import mirror_check
 
     fit = refine(model, data, tiny_start(), noise=noise, free=TINY_FREE)
     free_chk = mirror_check(model, data, fit, "dihedral:4", noise=noise)
-    assert free_chk.mirror.outside_bounds(tight) and free_chk.mirror.method != "lbfgsb_jaxopt"
+    assert free_chk.mirror.outside_bounds(tight)
     chk = mirror_check(model, data, fit, "dihedral:4", noise=noise, bounds=tight)
-    assert chk.mirror.method == "lbfgsb_jaxopt" and chk.mirror.outside_bounds(tight) == []
+    assert chk.mirror.outside_bounds(tight) == []
     assert abs(float(np.real(np.asarray(chk.mirror.params.n))[0]) - 1.2) < 1e-9
     assert chk.delta_deviance > 1.0 and chk.best is fit  # the boxed mirror fits worse
+
+    # refine(bounds=): the Levenberg-Marquardt solver kept in the box by its clamped
+    # parametrisation reaches L-BFGS-B's constrained optimum (on the bound n' = 1.2, the other
+    # parameters at their conditional optimum: the same point by two unrelated methods)
+    lm = refine(model, data, tiny_start(), noise=noise, free=TINY_FREE, bounds=tight)
+    assert lm.method == "levenberg_marquardt" and lm.success, lm.summary()
+    assert float(np.real(np.asarray(lm.params.n))[0]) == 1.2  # exactly on the bound
+    assert "at bounds: n_re[0]" in lm.message and lm.outside_bounds(tight) == []
+    np.testing.assert_allclose(lm.cost, res2.cost, rtol=1e-9)
+    for a, b in [(lm.params.m, res2.params.m), (lm.params.n, res2.params.n)]:
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6)
+    np.testing.assert_allclose(float(lm.params.gain), float(res2.params.gain), rtol=1e-6)
+    # an optimum inside the box: the box changes nothing (the clamp is the identity there)
+    inside = refine(model, data, tiny_start(), noise=noise, free=TINY_FREE, bounds=PhysicalBounds())
+    assert inside.n_steps == fit.n_steps and inside.cost == fit.cost
+    np.testing.assert_array_equal(np.asarray(inside.theta), np.asarray(fit.theta))
 
 
 # --------------------------------------------------------------------------- ppr simulator
