@@ -1795,7 +1795,8 @@ class SimulatorModel:
       (``ppr.simulate``'s switch; ``"auto"``: included when some surfaces face each other).
       :meth:`prepare` then returns ``(visibility, ppr.MacroPairs)``: the pairs, their
       visibility and glossy/broad kinds are held fixed over a round like the visibility,
-      at padded counts that grow (one more compilation) only when a pose needs more.
+      at padded counts (at least 8 of each kind, so that poses with and without broad pairs
+      share one program) that grow (one more compilation) only when a pose needs more.
     - `prune`: :meth:`prepare` returns a :class:`ppr.FaceSubset` of the facets lit and
       visible at the given pose instead of the whole mesh's fractions: the facets it leaves
       out contribute exactly zero at that visibility, so every result is the same (to the
@@ -1861,7 +1862,10 @@ class SimulatorModel:
         self.macro_options = macro_options or ppr.MacroOptions()
         geom = ppr.macro_geometry(mesh, plates=self.macro_options.plates)
         self.multibounce = multibounce is True or (multibounce == "auto" and not geom.convex)
-        self._macro_caps = (geom.n_macro, 0, 0)
+        # glossy and broad pair counts padded to at least 8 from the first pose: a pose with
+        # none of one kind (the simulated truth's smooth faces, while the rough screening
+        # templates have broad pairs) then shares the programs of those that have some
+        self._macro_caps = (geom.n_macro, 8, 8) if self.multibounce else (geom.n_macro, 0, 0)
         self.pure_model = SimulatorKernel(
             arrays=arrays,
             sensor=cast(sensor),
