@@ -119,7 +119,7 @@ __all__ = [
 log = logging.getLogger("inversion.invert")
 
 DEFAULT_FINISHES = {"rough": 10.0, "brushed": 300.0}
-# the physical box (the default priors' supports): fits that leave it are refit inside it
+# the physical box (the default priors' supports): the refiner's solvers are kept inside it
 BOUNDS = PhysicalBounds()
 N_RE_BOX = BOUNDS.n_re
 N_IM_BOX = BOUNDS.n_im
