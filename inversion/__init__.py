@@ -118,6 +118,7 @@ from ._refine import (
     refine_bounded,
 )
 from ._report import evaluate
+from ._roll import RollScan, roll_scan, rolled_about
 from ._synthetic import SyntheticSignatures
 
 __all__ = [
@@ -160,6 +161,9 @@ __all__ = [
     "candidate_modes",
     "equivalent_attitudes",
     "mode_separation_deg",
+    "RollScan",
+    "roll_scan",
+    "rolled_about",
     "ModeCheck",
     "ModeFit",
     "mode_check",

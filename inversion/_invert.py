@@ -104,6 +104,7 @@ from ._refine import (
     refine_bounded,
     weighted_jacobian,
 )
+from ._roll import roll_scan
 
 __all__ = [
     "InvertConfig",
@@ -1433,6 +1434,7 @@ def invert(
             w = c.bin_width
             off = 0.0 if w is None else float(cls.shift_refined[0, col]) * w
             aux = None
+            los_c = _roll_los(c.model)
             for m in bank_.names["finish_m"]:
                 p = PhysicalParams(bank_.quat[row], [m] * k, [n] * k, range_offset=off, gain=1.0)
                 if aux is None or getattr(c.model, "multibounce", False):
@@ -1440,6 +1442,23 @@ def invert(
                 total = float(_expect(c.model, p, aux).sum())
                 gain = float(max(data.sum(), 1.0) / max(total, 1e-300))
                 p = _with(p, gain=jnp.asarray(min(max(gain, 1e-300), 1e300), p.m.dtype))
+                if los_c is not None:
+                    # the template grid's roll about the line of sight is coarse, and the
+                    # deviance is multimodal in it: start at the template's best roll
+                    # (five model calls: inversion._roll); the turn keeps the visibility
+                    sc = roll_scan(
+                        c.model,
+                        data,
+                        p,
+                        noise=noise,
+                        los=los_c,
+                        monostatic=True,
+                        aux=aux,
+                        n_grid=ROLL_GRID,
+                    )
+                    if sc.minima[0] != 0:
+                        p = sc.params(p, int(sc.minima[0]))
+                        gain = float(np.asarray(p.gain))
                 if BOUNDS.gain[0] <= gain <= BOUNDS.gain[1]:
                     starts.setdefault(c.name, []).append(p)
                 else:
@@ -1461,6 +1480,25 @@ def invert(
                 out.append(r.start(i, s, lift_start(s), True, 1))
                 bar.step()
             screened[name] = sorted(out, key=lambda x: x.cost)
+            los_c = _roll_los(r.model)
+            if los_c is not None and np.isfinite(screened[name][0].cost):
+                # the screened optimum may sit in a side basin of the roll: rescreen from the
+                # best roll of its parameters when that is lower
+                best = screened[name][0]
+                sc = roll_scan(
+                    r.model,
+                    data,
+                    best.params,
+                    noise=noise,
+                    los=los_c,
+                    monostatic=True,
+                    n_grid=ROLL_GRID,
+                )
+                i = int(sc.minima[0])
+                if i != 0 and sc.deviance[i] < sc.deviance[0] - 1.0:
+                    p = sc.params(best.params, i)
+                    out.append(r.start(len(out), p, lift_start(p), True, 1))
+                    screened[name] = sorted(out, key=lambda x: x.cost)
         bar.close()
         best_screen = min(v[0].cost for v in screened.values())
         if not np.isfinite(best_screen):
@@ -1533,6 +1571,19 @@ def invert(
         los_world = np.array([0.0, 0.0, 1.0]) if los_world is None else los_world
         half_turn_exact, world_normal = _sensor_geometry(model, los_world)
         sym = cand.mode_symmetry(cfg.symmetry, cfg.near_tol)
+        from ._modes import candidate_modes
+
+        cands_m = candidate_modes(
+            np.asarray(fit.params.quaternion, np.float64),
+            sym,
+            mirror=cfg.mirror,
+            near=cfg.near_tol > 0,
+            half_turn_exact=half_turn_exact,
+            los=tuple(los_world),
+            world_normal=tuple(world_normal),
+            min_separation_deg=cfg.min_separation_deg,
+        )
+        cands_m += _roll_modes(model, data, fit, noise, sym, cands_m, half_turn_exact, cfg)
         chk = mode_check(
             model,
             data,
@@ -1549,6 +1600,7 @@ def invert(
             rounds=2,
             solver=cfg.solver,
             bounds=BOUNDS,
+            modes=cands_m,
         )
         distinct = [m for m in chk.modes if m.duplicate_of is None and np.isfinite(m.fit.cost)]
         lz = [log_evidence(m.fit, priors) for m in distinct]
@@ -1788,6 +1840,63 @@ def _expected_shape(model) -> tuple[int, int] | None:
     if c is None or b is None:
         return None
     return (int(c), int(b))
+
+
+# the roll about the line of sight (inversion._roll): grid of the scans (0.5 deg over the
+# 180 deg period), how many of its other minima are refit as modes and how far above the
+# fit's deviance a minimum may lie (before the refit, which only lowers it) to be one
+ROLL_GRID = 360
+ROLL_MODES = 3
+ROLL_MODE_DELTA = 50.0
+
+
+def _roll_los(model) -> np.ndarray | None:
+    """The world line of sight when the roll scan is exact (a monostatic ppr sensor: the turn
+    about it changes only the polarization), else None (no scan)."""
+    sensor = getattr(getattr(model, "pure_model", model), "sensor", None)
+    if sensor is None or not bool(getattr(sensor, "monostatic", False)):
+        return None
+    los = line_of_sight_of(model)
+    return None if los is None else np.asarray(los, np.float64)
+
+
+def _roll_modes(model, data, fit, noise, sym, kept, half_turn_exact, cfg) -> list:
+    """The other minima of the deviance in the roll about the line of sight at ``fit``
+    (:func:`inversion.roll_scan`), as modes to refit: at most ``ROLL_MODES``, each within
+    ``ROLL_MODE_DELTA`` (or a quarter of the deviance) of the fit's and farther than the
+    mode separation from every candidate already kept (modulo the exact equivalences)."""
+    from ._modes import Mode, mode_separation_deg
+
+    los = _roll_los(model)
+    if los is None or not np.isfinite(fit.cost):
+        return []
+    sc = roll_scan(model, data, fit.params, noise=noise, los=los, monostatic=True, n_grid=ROLL_GRID)
+    limit = sc.deviance[0] + max(ROLL_MODE_DELTA, 0.25 * sc.deviance[0])
+    quats = [np.asarray(m.quaternion, np.float64) for m in kept]
+    out = []
+    sep_kw = {"half_turn_exact": half_turn_exact, "los": tuple(los)}
+    for i in sc.minima:
+        if len(out) >= ROLL_MODES or sc.deviance[i] > limit:
+            break
+        a = float(sc.angles_deg[i])
+        q = np.asarray(sc.params(fit.params, int(i)).quaternion, np.float64)
+        sep = min(mode_separation_deg(qk, q, sym, **sep_kw) for qk in quats)
+        if sep <= max(cfg.min_separation_deg, 2.0):
+            continue
+        out.append(
+            Mode(
+                quaternion=q,
+                label=f"roll {a:.1f} deg about the line of sight",
+                kind="roll",
+                exact=False,
+                range_shift=0.0,
+                body=np.eye(3),
+                world=f"roll {a:.1f} deg",
+                residual=0.0,
+            )
+        )
+        quats.append(q)
+    return out
 
 
 def _sensor_geometry(model, los_world) -> tuple[bool, np.ndarray]:

@@ -606,6 +606,34 @@ def test_invert_end_to_end(tmp_path, capsys):
         assert not (tmp_path / "bad").exists()
 
 
+def test_invert_mcmc_none_switches_the_sampler_off(tmp_path, capsys):
+    """TOML has no null: ``mcmc = "none"`` (any case) or ``false``, in the file or by --set,
+    give the library config no sampler; ``true`` is refused by name."""
+    from ppr._config import load_toml_model
+    from ppr.cli import invert as ci
+
+    for text, over in (
+        ('mcmc = "none"', {}),
+        ("mcmc = false", {}),
+        ("", {"mcmc": "None"}),
+        ("", {"mcmc": False}),
+    ):
+        path = _write(tmp_path / "inv.toml", f'scene = "scene.toml"\n{text}\n')
+        cfg = load_toml_model(ci._schema(), path, over)
+        assert cfg.mcmc is None
+        assert ci.invert_config(cfg, path, False).mcmc is None
+    import argparse
+
+    from ppr.cli._common import overrides
+
+    assert overrides(argparse.Namespace(set=["mcmc=none"])) == {"mcmc": "none"}
+    path = _write(tmp_path / "inv.toml", 'scene = "scene.toml"\nmcmc = true\n')
+    assert run("invert", "-q", "-c", path, "-o", tmp_path / "out") == 2
+    line = error_line(capsys)
+    assert "mcmc = true" in line.lower() and "none" in line, line
+    assert not (tmp_path / "out").exists()
+
+
 # ------------------------------------------------------- bad inputs, interruptions (issue 28)
 NAN_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv nan 0 0\nf 1 2 3\nf 1 3 4\nf 1 2 4\nf 2 3 5\n"
 CORRUPT_STL = b"solid x\nfacet normal 0 0 1\n outer loop\n vertex 0 0 \xff\xfe junk"

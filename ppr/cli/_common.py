@@ -94,7 +94,7 @@ PATH_KEYS = {
     "database_path": (),
     "observations": ("simulate",),
     "observation.source": ("simulate",),
-    "mcmc": ("default",),
+    "mcmc": ("default", "none"),
 }
 
 
@@ -105,7 +105,11 @@ def overrides(args) -> dict:
     out = {}
     for text in getattr(args, "set", None) or []:
         key, value = parse_override(text)
-        is_path = key in PATH_KEYS and isinstance(value, str) and value not in PATH_KEYS[key]
+        is_path = (
+            key in PATH_KEYS
+            and isinstance(value, str)
+            and value.strip().lower() not in PATH_KEYS[key]
+        )
         if key == "sensor" and isinstance(value, str):  # a shipped sensor's name, or a file
             is_path = "/" in value or value.endswith(".toml")
         if is_path:

@@ -65,8 +65,20 @@ def _schema():
         mcmc: str | None = pydantic.Field(  # type: ignore[assignment]
             "default",
             description='priors + sampler config (configs/inversion/*.toml); "default": the '
-            "shipped one; null: no posterior sampling",
+            'shipped one; "none" (or false): no posterior sampling',
         )
+
+        @pydantic.field_validator("mcmc", mode="before")
+        @classmethod
+        def _no_sampling(cls, v):
+            # TOML has no null: "none" or false switch the sampler off (a file named "none"
+            # would have to be written "./none")
+            if v is False or (isinstance(v, str) and v.strip().lower() == "none"):
+                return None
+            if v is True:
+                raise ValueError('expected a config file, "default", "none" or false')
+            return v
+
         mcmc_walkers: int | None = pydantic.Field(None, ge=4, description="overrides the sampler's")
         mcmc_steps: int | None = pydantic.Field(None, ge=10, description="overrides the sampler's")
         mcmc_burn_in: int | None = pydantic.Field(None, ge=0, description="overrides the sampler's")
