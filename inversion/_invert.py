@@ -11,20 +11,26 @@ Stages (each logged with its wall time on the ``inversion.invert`` logger):
    models over an attitude grid x materials x finishes, :func:`screening_bank`). Starts: the
    top-k rows and the best rows of every shape (:meth:`~inversion.Classification.candidates`),
    with the row's attitude, material, finish, the fitted range shift and the gain that
-   matches the total counts.
+   matches the total counts, turned to its best roll about the line of sight (a monostatic
+   sensor: :func:`inversion.roll_scan`, exact from five model calls; the template grid is
+   coarse in the roll and the deviance multimodal in it).
 3. **refine**: screened multi-start refinement per shape: every start one loose round (the
    solver's tolerances are traced, so the same compiled program), the best screened start of
-   each competitive shape polished to full tolerance; shapes weighted by their evidence.
+   each competitive shape polished to full tolerance (after more screened starts from its
+   best roll, when that is lower, and from turns of 45, 90 and 135 deg about the line of
+   sight); shapes weighted by their evidence.
    The index ``n`` is held at the start's material here (see 4).
 4. **materials**: the chosen shape refit with the index of every library material, part by
-   part (the other parts at their best); each fit weighted by its evidence (Laplace
+   part (the other parts at their best), swept again while any part's best changed (at
+   most ``MATERIAL_SWEEPS``); each fit weighted by its evidence (Laplace
    approximation, :func:`log_evidence`, ``docs/physics/model_evidence.md``): posterior
    probabilities over the materials. A material whose reflectance the gain absorbs gives
    (nearly) equal deviances and volumes, hence spread probabilities.
 5. **modes**: every equivalent and near-equivalent attitude of the best fit refit and
    weighted (:func:`inversion.mode_check` with the candidate mesh's own symmetry at the
    config's near tolerance: mirror images, near symmetries, the half turn of a bistatic
-   sensor), weights from the same evidence.
+   sensor; and the other minima of the deviance in the roll about the line of sight,
+   ``"roll X deg about the line of sight"``), weights from the same evidence.
 6. **index**: with ``"n"`` among the free groups, Fisher scoring from the best
    library-material fit with the index free (the refiner's Jacobian program, the step in the
    observable subspace only): the continuous index, reported only where the data determine
@@ -1482,8 +1488,10 @@ def invert(
             screened[name] = sorted(out, key=lambda x: x.cost)
             los_c = _roll_los(r.model)
             if los_c is not None and np.isfinite(screened[name][0].cost):
-                # the screened optimum may sit in a side basin of the roll: rescreen from the
-                # best roll of its parameters when that is lower
+                # the screened optimum may sit in a side basin of the roll about the line of
+                # sight (a basin is about +-45 deg wide; the roll is coupled to m and n, so a
+                # scan at the screened parameters can miss the right one): rescreen from its
+                # best roll when that is lower and from ROLL_STARTS evenly spaced turns
                 best = screened[name][0]
                 sc = roll_scan(
                     r.model,
@@ -1495,10 +1503,14 @@ def invert(
                     n_grid=ROLL_GRID,
                 )
                 i = int(sc.minima[0])
+                turns = [k * 180.0 / ROLL_STARTS for k in range(1, ROLL_STARTS)]
                 if i != 0 and sc.deviance[i] < sc.deviance[0] - 1.0:
-                    p = sc.params(best.params, i)
+                    turns.insert(0, float(sc.angles_deg[i]))
+                for a in turns:
+                    j = int(round(a / 180.0 * ROLL_GRID)) % ROLL_GRID
+                    p = sc.params(best.params, j)
                     out.append(r.start(len(out), p, lift_start(p), True, 1))
-                    screened[name] = sorted(out, key=lambda x: x.cost)
+                screened[name] = sorted(out, key=lambda x: x.cost)
         bar.close()
         best_screen = min(v[0].cost for v in screened.values())
         if not np.isfinite(best_screen):
@@ -1537,30 +1549,41 @@ def invert(
     with stages("materials"):
         k_parts = cand.n_materials
         mat_names = list(materials)
-        tables: list[list[MaterialFit]] = []
         n_best = np.asarray(fit.params.n).copy()
-        bar = _Bar(cfg.progress, k_parts * len(mat_names), "material fits")
-        for part in range(k_parts):
-            fits = []
-            for name in mat_names:
-                n = materials[name]
-                if abs(complex(np.asarray(fit.params.n)[part]) - n) < 1e-12:
-                    f = fit  # the shape fit already holds this material
-                else:
-                    f = refiner.polish(_with(fit.params, n=_set_part(n_best, part, n)), local=True)
-                fits.append(f)
-                bar.step()
-            lz = [log_evidence(f, priors) for f in fits]
-            p = _probabilities(lz)
-            table = [
-                MaterialFit(part, nm, materials[nm], f, z, float(pp))
-                for nm, f, z, pp in zip(mat_names, fits, lz, p, strict=True)
-            ]
-            tables.append(table)
-            best_m = max(table, key=lambda m: m.probability)
-            n_best[part] = best_m.n
-            fit = best_m.fit
-        bar.close()
+        # coordinate descent over the parts: a part's best material depends on the others'
+        # (a start has one material everywhere), so sweep again while any part changed; the
+        # tables (and probabilities) are those of the last sweep, each part's conditional on
+        # the others' best materials
+        for sweep in range(MATERIAL_SWEEPS):
+            tables: list[list[MaterialFit]] = []
+            changed = False
+            bar = _Bar(cfg.progress, k_parts * len(mat_names), f"material fits (sweep {sweep + 1})")
+            for part in range(k_parts):
+                fits = []
+                for name in mat_names:
+                    n = materials[name]
+                    if abs(complex(np.asarray(fit.params.n)[part]) - n) < 1e-5:
+                        f = fit  # the current fit already holds this material (n'' lifted)
+                    else:
+                        f = refiner.polish(
+                            _with(fit.params, n=_set_part(n_best, part, n)), local=True
+                        )
+                    fits.append(f)
+                    bar.step()
+                lz = [log_evidence(f, priors) for f in fits]
+                p = _probabilities(lz)
+                table = [
+                    MaterialFit(part, nm, materials[nm], f, z, float(pp))
+                    for nm, f, z, pp in zip(mat_names, fits, lz, p, strict=True)
+                ]
+                tables.append(table)
+                best_m = max(table, key=lambda m: m.probability)
+                changed |= abs(complex(n_best[part]) - best_m.n) > 1e-5
+                n_best[part] = best_m.n
+                fit = best_m.fit
+            bar.close()
+            if not changed or k_parts == 1:
+                break
         if fit is not best_shape.fit:
             # the most probable material came from a local refit: polish it to convergence
             fit = refiner.polish(fit.params)
@@ -1846,6 +1869,11 @@ def _expected_shape(model) -> tuple[int, int] | None:
 # 180 deg period), how many of its other minima are refit as modes and how far above the
 # fit's deviance a minimum may lie (before the refit, which only lowers it) to be one
 ROLL_GRID = 360
+# turns about the line of sight rescreened from the best screened start of each shape
+# (0, 45, 90, 135 deg: one within 22.5 deg of any roll, modulo the half turn)
+ROLL_STARTS = 4
+# sweeps of the material stage over the parts (stops early when no part changed)
+MATERIAL_SWEEPS = 2
 ROLL_MODES = 3
 ROLL_MODE_DELTA = 50.0
 
