@@ -1876,6 +1876,8 @@ ROLL_STARTS = 4
 MATERIAL_SWEEPS = 2
 ROLL_MODES = 3
 ROLL_MODE_DELTA = 50.0
+# the rise of the deviance between the fit's roll and another minimum that makes it a mode
+ROLL_BARRIER = 2.0
 
 
 def _roll_los(model) -> np.ndarray | None:
@@ -1891,8 +1893,9 @@ def _roll_los(model) -> np.ndarray | None:
 def _roll_modes(model, data, fit, noise, sym, kept, half_turn_exact, cfg) -> list:
     """The other minima of the deviance in the roll about the line of sight at ``fit``
     (:func:`inversion.roll_scan`), as modes to refit: at most ``ROLL_MODES``, each within
-    ``ROLL_MODE_DELTA`` (or a quarter of the deviance) of the fit's and farther than the
-    mode separation from every candidate already kept (modulo the exact equivalences)."""
+    ``ROLL_MODE_DELTA`` (or a quarter of the deviance) of the fit's, behind a barrier of at
+    least ``ROLL_BARRIER`` on both ways round, and farther than the mode separation from
+    every candidate already kept (modulo the exact equivalences)."""
     from ._modes import Mode, mode_separation_deg
 
     los = _roll_los(model)
@@ -1903,9 +1906,19 @@ def _roll_modes(model, data, fit, noise, sym, kept, half_turn_exact, cfg) -> lis
     quats = [np.asarray(m.quaternion, np.float64) for m in kept]
     out = []
     sep_kw = {"half_turn_exact": half_turn_exact, "los": tuple(los)}
+    d = sc.deviance
     for i in sc.minima:
-        if len(out) >= ROLL_MODES or sc.deviance[i] > limit:
+        if len(out) >= ROLL_MODES or d[i] > limit:
             break
+        # a separate basin only: the scan must rise by ROLL_BARRIER above both ends on
+        # either way round (a flat or nearly flat scan is an unobservable roll, a continuous
+        # direction that observability() names, not a set of discrete modes)
+        i = int(i)
+        if i == 0:
+            continue
+        barrier = min(d[: i + 1].max(), np.concatenate([d[i:], d[:1]]).max())
+        if barrier - max(d[0], d[i]) < ROLL_BARRIER:
+            continue
         a = float(sc.angles_deg[i])
         q = np.asarray(sc.params(fit.params, int(i)).quaternion, np.float64)
         sep = min(mode_separation_deg(qk, q, sym, **sep_kw) for qk in quats)
