@@ -1596,9 +1596,7 @@ def invert(
         sym = cand.mode_symmetry(cfg.symmetry, cfg.near_tol)
         from ._modes import candidate_modes
 
-        cands_m = candidate_modes(
-            np.asarray(fit.params.quaternion, np.float64),
-            sym,
+        geometry = dict(
             mirror=cfg.mirror,
             near=cfg.near_tol > 0,
             half_turn_exact=half_turn_exact,
@@ -1606,6 +1604,7 @@ def invert(
             world_normal=tuple(world_normal),
             min_separation_deg=cfg.min_separation_deg,
         )
+        cands_m = candidate_modes(np.asarray(fit.params.quaternion, np.float64), sym, **geometry)
         cands_m += _roll_modes(model, data, fit, noise, sym, cands_m, half_turn_exact, cfg)
         chk = mode_check(
             model,
@@ -1613,12 +1612,7 @@ def invert(
             fit,
             sym,
             noise=noise,
-            mirror=cfg.mirror,
-            near=cfg.near_tol > 0,
-            half_turn_exact=half_turn_exact,
-            los=tuple(los_world),
-            world_normal=tuple(world_normal),
-            min_separation_deg=cfg.min_separation_deg,
+            **geometry,
             max_steps=cfg.max_steps,
             rounds=2,
             solver=cfg.solver,
