@@ -3,7 +3,9 @@
 
 The notebooks are generated, not hand-edited, so they stay reviewable as plain Python here.
 Each notebook's first code cell reads ``PPR_SMALL`` (``PPR_SMALL=1``: small grids, short
-chains; the test suite runs them that way, ``tests/test_notebooks.py``).
+chains; the test suite runs them that way, ``tests/test_notebooks.py``) and calls
+``ppr.compile_cache()`` (the persistent compilation cache of the ``ppr`` command; the tests
+switch it off with ``PPR_JAX_CACHE=0``).
 
     .venv/bin/python scripts/make_notebooks.py                 # write the sources, no outputs
     .venv/bin/python scripts/make_notebooks.py --execute       # write, then run each in full
@@ -43,6 +45,7 @@ import matplotlib.pyplot as plt
 import ppr
 from pathlib import Path
 ROOT = Path(ppr.__file__).resolve().parents[1]       # the repository (configs/, bench/)
+ppr.compile_cache()  # compiled programs kept on disk for the next kernel (PPR_JAX_CACHE=0: off)
 print("small settings" if SMALL else "full settings", "| jax", jax.__version__, jax.devices())'''
 
 
