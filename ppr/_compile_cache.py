@@ -29,11 +29,13 @@ def _check_folder(folder: Path, what: str) -> None:
 
 def compile_cache(path: str | os.PathLike | None = None) -> Path | None:
     """Keep every program JAX compiles in a folder on disk, so that a new process (the next run
-    of a script, a restarted notebook kernel) reads it back instead of compiling it again:
-    the first ``inversion.refine`` of a scene compiles for minutes, a warm start in seconds.
+    of a script, a restarted notebook kernel) reads it back instead of compiling it again
+    (tracing and lowering still run; XLA's compilation, most of a first ``inversion.refine``,
+    does not).
 
-    Call it once at the start of a script or notebook, before the first computation; the
-    ``ppr`` command line calls it for every command. Returns the folder in use, or ``None``
+    Call it once at the start of a script or notebook, before the first computation (programs
+    compiled earlier in the process are not written); the ``ppr`` command line calls it for
+    every command. Returns the folder in use, or ``None``
     when the cache is switched off.
 
     - ``PPR_JAX_CACHE=0`` switches it off (and nothing is changed; ``1`` or unset: on), so a
