@@ -25,7 +25,9 @@ inflated by the load; CPU seconds, program counts and sizes are not (or much les
 
 Writes ``bench/results/compile.json`` (all events; ``--only`` replaces that command's entry
 and keeps the others) and ``bench/results/compile.md`` (tables of every command in the json);
-``--results NAME`` writes ``NAME.json`` / ``NAME.md`` instead (e.g. a before/after pair).
+``--results NAME`` writes ``NAME.json`` / ``NAME.md`` instead (e.g. a before/after pair). The
+section "library scripts" (``bench/bench_script_cache.py``: a Python script's cold and warm
+start) is kept.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -354,6 +357,21 @@ def markdown(all_results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+# sections of the results file that other benches write (kept when the tables are rewritten)
+KEPT_SECTIONS = ("## library scripts",)  # bench/bench_script_cache.py
+
+
+def _kept_sections(path: Path) -> str:
+    if not path.exists():
+        return ""
+    text, kept = path.read_text(), []
+    for head in KEPT_SECTIONS:
+        m = re.search(rf"^{re.escape(head)}\n.*?(?=^## |\Z)", text, re.S | re.M)
+        if m:
+            kept.append("\n" + m.group(0).rstrip("\n") + "\n")
+    return "".join(kept)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", default=None, help="comma-separated commands " + str(list(COMMANDS)))
@@ -405,7 +423,8 @@ def main() -> None:
         md = markdown({k: stored[k] for k in COMMANDS if k in stored})
         print(md)
         if not args.no_write:
-            (RESULTS / f"{args.results}.md").write_text(md)
+            md_path = RESULTS / f"{args.results}.md"
+            md_path.write_text(md + _kept_sections(md_path))
     finally:
         if not args.keep:
             shutil.rmtree(tmp, ignore_errors=True)

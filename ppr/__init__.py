@@ -6,6 +6,8 @@ scattering) and facet-sum pulse synthesis over triangle meshes.
 
 Conventions (directions, frames, Stokes handedness, complex index sign, units) are fixed in
 :mod:`ppr.optics.conventions`. The library never enables ``jax_enable_x64``; dtypes follow inputs.
+Importing ppr never changes JAX's config: ``ppr.compile_cache()`` opts a script or notebook in
+to the persistent compilation cache the ``ppr`` command uses.
 """
 
 __version__ = "0.1.0"
@@ -20,6 +22,7 @@ def _load_public():
 # public names served without JAX (module, attribute; None: the module itself)
 _LIGHT = {
     "config": ("ppr.config", None),
+    "compile_cache": ("ppr._compile_cache", "compile_cache"),
     "shipped_config": ("ppr._resources", "shipped_config"),
     "shipped_configs_dir": ("ppr._resources", "shipped_configs_dir"),
 }

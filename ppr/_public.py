@@ -4,6 +4,7 @@ Each name comes through the public door of its subpackage (``ppr.optics``, ``ppr
 ``ppr.brdf``, ``ppr.geometry``, ``ppr.pulse``, ``ppr.image``; docs/DESIGN.md)."""
 
 from . import brdf, config, geometry, image, materials, microfacet, optics, pulse
+from ._compile_cache import compile_cache
 from ._labelled import image_dataset, profile_dataset
 from ._resources import shipped_config, shipped_configs_dir
 from .brdf import BACKSCATTER_PSI_MAX, mueller_brdf
@@ -142,4 +143,5 @@ __all__ = [
     "window_size",
     "shipped_config",
     "shipped_configs_dir",
+    "compile_cache",
 ]

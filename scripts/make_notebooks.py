@@ -3,7 +3,9 @@
 
 The notebooks are generated, not hand-edited, so they stay reviewable as plain Python here.
 Each notebook's first code cell reads ``PPR_SMALL`` (``PPR_SMALL=1``: small grids, short
-chains; the test suite runs them that way, ``tests/test_notebooks.py``).
+chains; the test suite runs them that way, ``tests/test_notebooks.py``) and calls
+``ppr.compile_cache()`` (the persistent compilation cache of the ``ppr`` command; the tests
+switch it off with ``PPR_JAX_CACHE=0``).
 
     .venv/bin/python scripts/make_notebooks.py                 # write the sources, no outputs
     .venv/bin/python scripts/make_notebooks.py --execute       # write, then run each in full
@@ -12,7 +14,8 @@ chains; the test suite runs them that way, ``tests/test_notebooks.py``).
 
 Needs ruff (test extra: the written notebooks are fixed and formatted with it); ``--execute``
 runs each notebook top to bottom with nbclient on this interpreter's kernel, with JAX's
-default compilation and ``PPR_SMALL`` unset, and stores the outputs (figures included) in the
+default compilation, ``PPR_SMALL`` unset and the compilation cache off (``PPR_JAX_CACHE=0``:
+the printed timings are a first run's), and stores the outputs (figures included) in the
 ``.ipynb``, so a reader on GitHub sees them; each notebook's run time is printed.
 """
 
@@ -43,6 +46,7 @@ import matplotlib.pyplot as plt
 import ppr
 from pathlib import Path
 ROOT = Path(ppr.__file__).resolve().parents[1]       # the repository (configs/, bench/)
+ppr.compile_cache()  # compiled programs kept on disk for the next kernel (PPR_JAX_CACHE=0: off)
 print("small settings" if SMALL else "full settings", "| jax", jax.__version__, jax.devices())'''
 
 
@@ -627,11 +631,13 @@ def execute(path: Path, timeout: float = 3600.0) -> float:
     """Run the notebook at ``path`` in full settings and store its outputs; seconds taken."""
     import nbclient
 
-    # full settings, JAX's default compilation, matplotlib's inline backend (figures stored)
-    keys = ("PPR_SMALL", "JAX_DISABLE_MOST_OPTIMIZATIONS", "MPLBACKEND")
+    # full settings, JAX's default compilation, matplotlib's inline backend (figures stored);
+    # the compilation cache off, so the stored timings are a first run's (compilation included)
+    keys = ("PPR_SMALL", "JAX_DISABLE_MOST_OPTIMIZATIONS", "MPLBACKEND", "PPR_JAX_CACHE")
     env_keep = {k: os.environ.get(k) for k in keys}
     for k in keys:
         os.environ.pop(k, None)
+    os.environ["PPR_JAX_CACHE"] = "0"
     try:
         book = nbformat.read(path, as_version=4)
         t0 = time.perf_counter()
@@ -645,6 +651,8 @@ def execute(path: Path, timeout: float = 3600.0) -> float:
         for k, v in env_keep.items():
             if v is not None:
                 os.environ[k] = v
+            else:
+                os.environ.pop(k, None)
 
 
 def main() -> None:

@@ -4,10 +4,8 @@ cache, Ctrl-C and SIGTERM rolling back the outputs being written."""
 from __future__ import annotations
 
 import contextlib
-import os
 import sys
 from collections.abc import Sequence
-from pathlib import Path
 
 import pydantic
 
@@ -62,27 +60,17 @@ def build_parser() -> c.Parser:
 
 
 def enable_compile_cache() -> None:
-    """Persistent XLA compilation cache for repeated ``ppr`` runs (the CLI is a program, so it
-    may set JAX config; the library never does). ``PPR_JAX_CACHE=0`` turns it off,
-    ``PPR_JAX_CACHE_DIR`` moves it (default ``~/.cache/ppr/jax``).
+    """The persistent XLA compilation cache for repeated ``ppr`` runs
+    (:func:`ppr.compile_cache`: ``~/.cache/ppr/jax``, ``PPR_JAX_CACHE=0`` off,
+    ``PPR_JAX_CACHE_DIR`` moves it, every program written). The CLI is a program, so it may set
+    JAX config; the library never does on its own.
 
-    Every program is cached, also those compiling in under a second (JAX's default keeps only
-    those above 1 s): a command compiles dozens of small programs (eager ops on concrete
-    arrays, unpadding, parameter maps). JAX never persists executables with host callbacks,
-    so the programs the commands run check their inputs on the host and carry none
-    (:class:`inversion.SimulatorModel` renders with the unchecked BRDF)."""
-    if os.environ.get("PPR_JAX_CACHE", "1") == "0":
-        return
-    import jax
+    JAX never persists executables with host callbacks, so the programs the commands run check
+    their inputs on the host and carry none (:class:`inversion.SimulatorModel` renders with the
+    unchecked BRDF)."""
+    from .._compile_cache import compile_cache
 
-    if jax.config.jax_compilation_cache_dir:
-        return
-    default = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "ppr" / "jax"
-    jax.config.update(
-        "jax_compilation_cache_dir", os.environ.get("PPR_JAX_CACHE_DIR", str(default))
-    )
-    if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    compile_cache()
 
 
 class Terminated(KeyboardInterrupt):
