@@ -141,6 +141,12 @@ def _distinct(v: list) -> list:
     dup = sorted({str(x) for x in v if v.count(x) > 1})
     if dup:
         raise ValueError(f"{dup[0]!r} is listed twice")
+    # materials: an inline index may not take a library name listed too (one would replace
+    # the other)
+    names = [getattr(x, "name", x) for x in v]
+    dup = sorted({str(x) for x in names if names.count(x) > 1})
+    if dup:
+        raise ValueError(f"the name {dup[0]!r} is given twice")
     return v
 
 
@@ -157,12 +163,26 @@ class GridConfig(StrictModel):
     )
 
 
-class InlineIndex(StrictModel):
-    """A material given by its index ``n_real + i n_imag`` (not in the library)."""
+def _in_box(box: tuple[float, float]):
+    def check(v: float) -> float:
+        if not box[0] <= v <= box[1]:
+            raise ValueError(
+                f"outside [{box[0]:g}, {box[1]:g}], the box the fits and the default priors "
+                "cover (inversion.PhysicalBounds)"
+            )
+        return v
 
-    name: str
-    n_real: float = pydantic.Field(gt=0.0)
-    n_imag: float = pydantic.Field(ge=0.0)
+    return pydantic.AfterValidator(check)
+
+
+class InlineIndex(StrictModel):
+    """A material given by its index ``n_real + i n_imag`` (not in the library), inside the
+    box the refiner keeps its fits in (:data:`N_RE_BOX`, :data:`N_IM_BOX`): a start outside
+    it would be moved into it."""
+
+    name: str = pydantic.Field(min_length=1)
+    n_real: Annotated[float, _in_box(N_RE_BOX)]
+    n_imag: Annotated[float, _in_box(N_IM_BOX)]
 
 
 Group = Literal["attitude", "m", "n", "corr_length", "range_offset", "gain"]
@@ -395,7 +415,14 @@ def _as_candidates(candidates) -> list[Candidate]:
     if isinstance(candidates, Candidate):
         return [candidates]
     if isinstance(candidates, Mapping):
-        out = [Candidate(str(k), v) for k, v in candidates.items()]
+        out = []
+        for k, v in candidates.items():
+            if isinstance(v, Candidate) or not (hasattr(v, "expected") and hasattr(v, "prepare")):
+                raise ValueError(
+                    f"candidates[{k!r}] is {type(v).__name__}: expected a forward model "
+                    "(prepare/expected)"
+                )
+            out.append(Candidate(str(k), v))
     elif isinstance(candidates, list | tuple):
         out = []
         for i, c in enumerate(candidates):
@@ -1352,6 +1379,11 @@ def invert(
         cands = _as_candidates(candidates)
         data, sensor = _observation_data(observation)
         noise = _noise_of(cfg) if noise is None else noise
+        if not callable(getattr(noise, "variance", None)):
+            raise ValueError(
+                "noise: expected a noise model (inversion.PoissonCounts, PoissonNoise or "
+                f"GaussianNoise), got {type(noise).__name__}"
+            )
         prep = bank if isinstance(bank, PreparedBank) else None
         bank_ = prep.bank if prep is not None else bank
         if bank_ is not None and not isinstance(bank_, TemplateBank):
@@ -1838,18 +1870,54 @@ def _sampler_progress(cfg: InvertConfig) -> MCMCConfig:
     )
 
 
+# photo-counts above 2^53 per bin are not integers in float64, and no detector records them:
+# such data are in other units (rescale them) and overflow the deviance's Jacobian products
+MAX_COUNTS = 2.0**53
+
+
 def _observation_data(observation) -> tuple[np.ndarray, str]:
+    """The observation as float64 ``(channels, bins)`` and its sensor tag, validated: real
+    numbers (no strings, booleans or complex numbers, whose imaginary part would be lost),
+    finite, at most :data:`MAX_COUNTS` in magnitude and not all zero (no signal: nothing to
+    fit). The same checks for an :class:`~inversion.Observation`'s data."""
+    sensor = ""
     if isinstance(observation, Observation):
-        return np.asarray(observation.data, np.float64), observation.sensor
-    arr = np.asarray(observation)
+        observation, sensor = observation.data, observation.sensor
+    try:
+        arr = np.asarray(observation)
+    except ValueError as err:  # ragged nested lists
+        raise ValueError(f"observation: not a (channels, bins) array ({err})") from None
     if arr.dtype == object or not np.issubdtype(arr.dtype, np.number):
         raise ValueError(f"observation: expected a numeric array, got dtype {arr.dtype}")
+    if np.iscomplexobj(arr):
+        raise ValueError(
+            f"observation: got complex dtype {arr.dtype}; expected real counts (the imaginary "
+            "part would be lost)"
+        )
     if arr.ndim != 2:
         raise ValueError(f"observation: expected (channels, bins), got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        bad = int((~np.isfinite(arr)).sum())
-        raise ValueError(f"observation: {bad} non-finite value(s) (NaN/inf)")
-    return arr.astype(np.float64), ""
+    arr = arr.astype(np.float64)
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        first = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(
+            f"observation: {int(bad.sum())} non-finite value(s) (NaN/inf), first at index "
+            f"{first} (channel, bin) = {float(arr[first])}"
+        )
+    big = np.abs(arr) > MAX_COUNTS
+    if big.any():
+        first = tuple(int(i) for i in np.argwhere(big)[0])
+        raise ValueError(
+            f"observation: value {float(arr[first]):g} at index {first} (channel, bin) is above "
+            f"{MAX_COUNTS:g} (2^53) counts in magnitude; photo-counts that large are not exact "
+            "in float64 (rescale the data)"
+        )
+    if arr.size and not np.any(arr):
+        raise ValueError(
+            f"observation: all {arr.size} values are 0 (no signal): the data constrain no "
+            "shape, attitude or material"
+        )
+    return arr, sensor
 
 
 def _expected_shape(model) -> tuple[int, int] | None:

@@ -163,7 +163,7 @@ class PoissonCounts(eqx.Module):
         if len(bad):
             raise ValueError(
                 f"{name}: PoissonCounts needs photo-counts >= 0, but {len(bad)} entries are "
-                f"negative (first at {tuple(int(i) for i in bad[0])}: {data[tuple(bad[0])]!r}); "
+                f"negative (first at {tuple(int(i) for i in bad[0])}: {float(data[tuple(bad[0])])}); "
                 "use PoissonNoise/GaussianNoise for background-subtracted or scaled data"
             )
 

@@ -166,21 +166,10 @@ def run_invert(cfg, cfg_path: Path, out, overwrite: bool = False, progress: bool
 
     lib_cfg = invert_config(cfg, cfg_path, progress)
     ob = cfg.observation
-    data = None
+    data, where = None, str(cfg_path)
     if ob.source != "simulate":
-        path = c.resolve_path(ob.source, cfg_path)
+        data = c.read_npz(ob.source, cfg_path, "observation.source")["data"]
         where = f"{cfg_path}: observation.source = {ob.source!r}"
-        if not path.is_file():
-            raise c.ConfigError(f"{where}: no such file")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                if "data" not in z.files:
-                    raise c.ConfigError(f"{where}: no 'data' array (it has {', '.join(z.files)})")
-                data = np.asarray(z["data"], np.float64)
-        except (OSError, ValueError, EOFError) as err:
-            if isinstance(err, c.ConfigError):
-                raise
-            raise c.ConfigError(f"{where}: not a NumPy .npz file of arrays") from None
     c.maybe_x64("float64")  # inversion runs in float64 (the MCMC needs it)
     scene = ppr.load_scene(c.resolve_path(cfg.scene, cfg_path))
     chm = inversion.MeasurementModel.preset(cfg.channels).channel_matrix()
@@ -190,11 +179,12 @@ def run_invert(cfg, cfg_path: Path, out, overwrite: bool = False, progress: bool
     model = inversion.SimulatorModel(scene, chm, brdf=brdf, dense=True)
     if data is not None and data.shape != (model.n_channels, model.n_bins):
         raise c.ConfigError(
-            f"{cfg_path}: observation.source = {ob.source!r}: data has shape {data.shape}; the "
-            f"scene and channels give ({model.n_channels} channels, {model.n_bins} bins)"
+            f"{where}: data has shape {data.shape}; the scene and channels give "
+            f"({model.n_channels} channels, {model.n_bins} bins)"
         )
     _outputs.refuse_existing(out, inversion.INVERT_FILES, overwrite)
     truth = None
+    data_file = data is not None
     if data is None:
         truth, expected = _simulated_truth(model, scene, ob.photons, ob.range_offset_m)
         # the kernel's roundoff can give -1e-22 counts; anything beyond roundoff is a bug
@@ -208,7 +198,11 @@ def run_invert(cfg, cfg_path: Path, out, overwrite: bool = False, progress: bool
     try:
         inv = inversion.invert(data, {name: model}, config=lib_cfg)
     except ValueError as err:
-        raise c.ConfigError(f"{cfg_path}: {err}") from None
+        # the data's own faults (negative counts, no signal) name the file they came from
+        msg = str(err)
+        if data_file and msg.startswith("observation"):
+            raise c.ConfigError(f"{where}: data{msg.removeprefix('observation')}") from None
+        raise c.ConfigError(f"{cfg_path}: {msg}") from None
     extra = {"command": "invert", "config_file": str(cfg_path), "observation": ob}
     if truth is not None:
         noise = inversion.PoissonCounts(lib_cfg.background)
