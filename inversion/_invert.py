@@ -193,8 +193,8 @@ class InvertConfig(StrictModel):
 
     - `free`: parameter groups fitted (``attitude``, ``m``, ``n``, ``corr_length``,
       ``range_offset``, ``gain``); ``n`` free adds the continuous-index stage.
-    - `likelihood`: ``"poisson"`` (photo-counts, :class:`~inversion.PoissonCounts` with
-      `background` counts per bin) or ``"gaussian"`` (``mu + 1`` variance,
+    - `likelihood`: ``"poisson"`` (photo-counts >= 0, non-integer ones included,
+      :class:`~inversion.PoissonCounts` with `background` counts per bin) or ``"gaussian"`` (``mu + 1`` variance,
       :class:`~inversion.PoissonNoise`, for scaled data).
     - `solver`: ``lm`` | ``dogleg`` | ``gauss_newton``; `max_steps` per round, `rounds` of
       visibility/weights when polishing; `screen_tol` the screening round's tolerance.
@@ -256,9 +256,10 @@ class InvertConfig(StrictModel):
         description="library materials weighed per mesh part (names, or {name, n_real, "
         "n_imag}); unset: the bank's, or every library material at the sensor's wavelength",
     )
-    finishes: dict[str, Annotated[float, pydantic.Field(ge=0.0, le=1e6)]] | None = pydantic.Field(
+    # m > 0: the refiner moves log m, whose derivative vanishes as m -> 0 (a start at 0 stays)
+    finishes: dict[str, Annotated[float, pydantic.Field(gt=0.0, le=1e6)]] | None = pydantic.Field(
         None,
-        description="{name = Blinn-Phong m} of the templates built from the candidate "
+        description="{name = Blinn-Phong m > 0} of the templates built from the candidate "
         "models (unset: rough = 10, brushed = 300)",
     )
     grid: GridConfig = pydantic.Field(
@@ -327,6 +328,21 @@ class InvertConfig(StrictModel):
             raise ValueError("must not be empty")
         return v
 
+    @pydantic.model_validator(mode="after")
+    def _finishes_in_prior(self):
+        # the refined fits start at the finishes' m, and log m barely moves from a very small
+        # one; the sampler then starts from a fit outside its prior and refuses to run,
+        # after the whole refinement: refused here instead
+        if isinstance(self.mcmc, MCMCConfig) and self.finishes:
+            lo, hi = self.mcmc.priors.m.support()
+            for name, m in self.finishes.items():
+                if not lo <= m <= hi:
+                    raise ValueError(
+                        f"finishes.{name} = {m!r}: outside the support [{lo:g}, {hi:g}] of "
+                        "mcmc.priors.m, where the refined fits that start from it are sampled"
+                    )
+        return self
+
 
 def load_invert_config(path, overrides: dict | None = None) -> InvertConfig:
     """An :class:`InvertConfig` from a TOML file (errors name the file, field and value)."""
@@ -342,8 +358,12 @@ def _as_config(config) -> InvertConfig:
         return config
     if isinstance(config, Mapping):
         return validate_data(InvertConfig, dict(config), "invert config")
+    hint = ""
+    if isinstance(config, str | Path):
+        hint = f" ({str(config)!r}: read a TOML file with inversion.load_invert_config(path))"
     raise ConfigError(
         f"invert config: expected an InvertConfig or a mapping, got {type(config).__name__}"
+        + hint
     )
 
 

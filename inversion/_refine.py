@@ -126,7 +126,9 @@ class PoissonCounts(eqx.Module):
     r"""Exact Poisson likelihood for photo-counts: the refiner minimises the Poisson deviance.
 
     The data are counts ``k >= 0`` (not multiplied by a gain) with expectation
-    ``lam = mu + background``. The least-squares residuals are the *deviance residuals*
+    ``lam = mu + background``. Non-integer ``k >= 0`` (dead-time or flat-field corrected
+    counts) are accepted: the deviance below and ``log k! = ln Gamma(k + 1)`` are defined for
+    any real ``k >= 0``; negative ``k`` are refused (:meth:`check_data`). The least-squares residuals are the *deviance residuals*
 
         r = sign(k - lam) sqrt(2 (lam - k + k log(k / lam)))      (r = -sqrt(2 lam) at k = 0)
 

@@ -134,7 +134,11 @@ def invert_config(cfg, cfg_path: Path, progress: bool):
         mcfg = mcfg.model_copy(update={"sampler": sampler})
     lib_fields = set(inversion.InvertConfig.model_fields) - {"mcmc", "progress"}
     data = {k: getattr(cfg, k) for k in lib_fields}
-    return inversion.InvertConfig.model_validate({**data, "mcmc": mcfg, "progress": progress})
+    try:
+        return inversion.InvertConfig.model_validate({**data, "mcmc": mcfg, "progress": progress})
+    except pydantic.ValidationError as err:  # checks across fields (finishes against priors)
+        msg = "; ".join(str(e["msg"]).removeprefix("Value error, ") for e in err.errors())
+        raise c.ConfigError(f"{cfg_path}: {msg} (mcmc = {cfg.mcmc!r})") from None
 
 
 def _simulated_truth(model, scene, photons: float, offset: float):
