@@ -194,8 +194,8 @@ class InvertConfig(StrictModel):
     - `free`: parameter groups fitted (``attitude``, ``m``, ``n``, ``corr_length``,
       ``range_offset``, ``gain``); ``n`` free adds the continuous-index stage.
     - `likelihood`: ``"poisson"`` (photo-counts >= 0, non-integer ones included,
-      :class:`~inversion.PoissonCounts` with `background` counts per bin) or ``"gaussian"`` (``mu + 1`` variance,
-      :class:`~inversion.PoissonNoise`, for scaled data).
+      :class:`~inversion.PoissonCounts` with `background` counts per bin) or ``"gaussian"``
+      (``mu + 1`` variance, :class:`~inversion.PoissonNoise`, for scaled data).
     - `solver`: ``lm`` | ``dogleg`` | ``gauss_newton``; `max_steps` per round, `rounds` of
       visibility/weights when polishing; `screen_tol` the screening round's tolerance.
     - `materials`: library names (``ppr.load_material``) or ``{name, n_real, n_imag}``
@@ -362,8 +362,7 @@ def _as_config(config) -> InvertConfig:
     if isinstance(config, str | Path):
         hint = f" ({str(config)!r}: read a TOML file with inversion.load_invert_config(path))"
     raise ConfigError(
-        f"invert config: expected an InvertConfig or a mapping, got {type(config).__name__}"
-        + hint
+        f"invert config: expected an InvertConfig or a mapping, got {type(config).__name__}" + hint
     )
 
 

@@ -246,8 +246,17 @@ def test_config_is_validated_before_any_computation(config, words):
         (np.ones((16, 64)), {"noise": "poisson"}, ["noise: expected a noise model", "str"]),
         (np.ones((16, 64)), {"candidates": {"box": 3}}, ["candidates['box'] is int"]),
     ],
-    ids=["complex", "observation-complex", "observation-nan", "zero", "huge", "ragged",
-         "negative", "noise", "candidate"],
+    ids=[
+        "complex",
+        "observation-complex",
+        "observation-nan",
+        "zero",
+        "huge",
+        "ragged",
+        "negative",
+        "noise",
+        "candidate",
+    ],
 )
 def test_bad_observation_or_argument_is_named_before_any_computation(observation, kwargs, words):
     """Data the likelihood cannot take, or would take only after a silent cast, are refused

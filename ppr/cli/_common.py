@@ -159,34 +159,39 @@ def read_npz(value: str, cfg_path: Path, field: str, optional: tuple[str, ...] =
     if not path.is_file():
         raise ConfigError(f"{where}: no such file ({path})")
     save = "np.savez(path, data=array)"
-    with open(path, "rb") as f:
-        head = f.read(6)
-    if not (head.startswith(b"PK") or head == b"\x93NUMPY"):
-        # np.load would take it for a pickle and say so
-        raise ConfigError(f"{where}: not a NumPy .npz file (no zip header); write it with {save}")
-    try:
-        z = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
-        raise ConfigError(
-            f"{where}: not a NumPy .npz file ({one_line(err)}); write it with {save}"
-        ) from None
-    if not isinstance(z, np.lib.npyio.NpzFile):
-        raise ConfigError(f"{where}: a single .npy array, not an .npz archive; write it with {save}")
     out = {}
-    with z:
-        if "data" not in z.files:
-            has = f"it has {', '.join(z.files)}" if z.files else "it holds no arrays"
-            raise ConfigError(f"{where}: no 'data' array ({has}); write it with {save}")
-        for name in ("data", *optional):
-            if name not in z.files:
-                continue
-            try:
-                out[name] = z[name]
-            except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
-                msg = one_line(err)
-                if "allow_pickle" in msg:
-                    msg = "an object array (pickled Python objects), not numbers"
-                raise ConfigError(f"{where}: array {name!r} cannot be read: {msg}") from None
+    with open(path, "rb") as f:  # ours to close (np.load leaks a corrupt archive's handle)
+        head = f.read(6)
+        if not (head.startswith(b"PK") or head == b"\x93NUMPY"):
+            # np.load would take it for a pickle and say so
+            raise ConfigError(
+                f"{where}: not a NumPy .npz file (no zip header); write it with {save}"
+            )
+        f.seek(0)
+        try:
+            z = np.load(f, allow_pickle=False)
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+            raise ConfigError(
+                f"{where}: not a NumPy .npz file ({one_line(err)}); write it with {save}"
+            ) from None
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise ConfigError(
+                f"{where}: a single .npy array, not an .npz archive; write it with {save}"
+            )
+        with z:
+            if "data" not in z.files:
+                has = f"it has {', '.join(z.files)}" if z.files else "it holds no arrays"
+                raise ConfigError(f"{where}: no 'data' array ({has}); write it with {save}")
+            for name in ("data", *optional):
+                if name not in z.files:
+                    continue
+                try:
+                    out[name] = z[name]
+                except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+                    msg = one_line(err)
+                    if "allow_pickle" in msg:
+                        msg = "an object array (pickled Python objects), not numbers"
+                    raise ConfigError(f"{where}: array {name!r} cannot be read: {msg}") from None
     data = out["data"]
     kind = data.dtype.kind
     if kind not in "iuf":
