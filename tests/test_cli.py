@@ -698,6 +698,51 @@ def test_invert_bad_observation_file_is_one_line_naming_it(tmp_path, capsys):
         assert not out.exists()
 
 
+def test_invert_failed_or_interrupted_keeps_the_previous_result(tmp_path, capsys, monkeypatch):
+    """``ppr invert --overwrite`` that fails or is stopped once the inversion has started
+    (after every check passed) leaves the previous result file for file."""
+    import signal
+    import time
+
+    import inversion
+    import inversion._invert as inv_mod
+
+    _write(tmp_path / "sensor.toml", INV_SENSOR)
+    _write(tmp_path / "scene.toml", INV_SCENE)
+    # a file observation: no simulation to compile before the inversion starts
+    np.savez(tmp_path / "obs.npz", data=np.ones((2, 32)))
+    cfg = _write(
+        tmp_path / "inv.toml",
+        'scene = "scene.toml"\nbrdf = "glossy"\nmcmc = "none"\n[observation]\nsource = "obs.npz"\n',
+    )
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in inversion.INVERT_FILES:
+        (out / name).write_text(f"previous {name}")
+    before = {p.name: p.read_text() for p in out.iterdir()}
+
+    def ctrl_c(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    def sigterm(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler raises first
+
+    def fails(*args, **kwargs):
+        raise RuntimeError("a failure inside the inversion")
+
+    for fake, code in ((ctrl_c, 130), (sigterm, 143), (fails, None)):
+        monkeypatch.setattr(inv_mod, "screening_bank", fake)  # the first stage after checks
+        capsys.readouterr()
+        if code is None:
+            with pytest.raises(RuntimeError, match="a failure inside"):
+                run("invert", "-q", "-c", cfg, "-o", out, "--overwrite")
+        else:
+            assert run("invert", "-q", "-c", cfg, "-o", out, "--overwrite") == code
+            assert "previous outputs were left as they were" in error_line(capsys)
+        assert {p.name: p.read_text() for p in out.iterdir()} == before
+
+
 # ------------------------------------------------------- bad inputs, interruptions (issue 28)
 NAN_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv nan 0 0\nf 1 2 3\nf 1 3 4\nf 1 2 4\nf 2 3 5\n"
 CORRUPT_STL = b"solid x\nfacet normal 0 0 1\n outer loop\n vertex 0 0 \xff\xfe junk"

@@ -113,7 +113,15 @@ def invert_config(cfg, cfg_path: Path, progress: bool):
         )
         if not mpath.is_file():
             raise c.ConfigError(f"{cfg_path}: mcmc = {cfg.mcmc!r}: no such file ({mpath})")
-        mcfg = inversion.load_mcmc_config(mpath, cfg.mcmc_set)
+        try:
+            mcfg = inversion.load_mcmc_config(mpath, cfg.mcmc_set)
+        except c.ConfigError as err:
+            if not cfg.mcmc_set:
+                raise
+            # the value may be the user's override, not the MCMC file's: say both
+            raise c.ConfigError(
+                f"{err} (that file with {cfg_path}'s mcmc_set = {cfg.mcmc_set!r})"
+            ) from None
         upd = {k: getattr(cfg, v) for k, v in _MCMC_FIELDS.items() if getattr(cfg, v) is not None}
         samp = {**mcfg.sampler.model_dump(), **upd, "progress": progress}
         try:
