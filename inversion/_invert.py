@@ -55,6 +55,7 @@ import functools
 import json
 import logging
 import math
+import numbers
 import time
 import warnings
 from collections.abc import Mapping, Sequence
@@ -380,6 +381,26 @@ class Candidate:
     model: Any
     symmetry: Any = None
     bin_width_m: float | None = None  # range bin width (default: the model's)
+
+    def __post_init__(self):
+        # checked here, not where the screening bank first uses them
+        where = f"Candidate {self.name!r}"
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"{where}: name must be a non-empty string")
+        if not (hasattr(self.model, "prepare") and hasattr(self.model, "expected")):
+            raise ValueError(
+                f"{where}: model is {type(self.model).__name__}, expected a forward model "
+                "(prepare/expected, e.g. inversion.SimulatorModel)"
+            )
+        if isinstance(self.symmetry, str):
+            try:
+                symmetry_group(self.symmetry)
+            except ValueError as err:
+                raise ValueError(f"{where}: symmetry = {self.symmetry!r}: {err}") from None
+        if self.bin_width_m is not None:
+            w = self.bin_width_m
+            if isinstance(w, bool) or not isinstance(w, numbers.Real) or not 0 < w < math.inf:
+                raise ValueError(f"{where}: bin_width_m = {w!r}: expected metres, finite and > 0")
 
     @property
     def mesh(self):

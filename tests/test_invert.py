@@ -272,6 +272,26 @@ def test_bad_observation_or_argument_is_named_before_any_computation(observation
         assert w in msg, msg
 
 
+@pytest.mark.parametrize(
+    "kwargs, words",
+    [
+        ({"symmetry": "weird"}, ["Candidate 'box': symmetry = 'weird'", "unknown symmetry"]),
+        ({"bin_width_m": -0.01}, ["Candidate 'box': bin_width_m = -0.01", "> 0"]),
+        ({"bin_width_m": math.nan}, ["bin_width_m = nan"]),
+        ({"model": None}, ["Candidate 'box': model is NoneType"]),
+        ({"name": ""}, ["name must be a non-empty string"]),
+    ],
+)
+def test_candidate_fields_are_checked_when_made(kwargs, words):
+    """A candidate's symmetry name, bin width and model are checked when it is made, not
+    where the screening bank first uses them."""
+    args = {"name": "box", "model": _Untouchable(), **kwargs}
+    with pytest.raises(ValueError) as err:
+        Candidate(**args)
+    for w in words:
+        assert w in str(err.value), str(err.value)
+
+
 def test_index_fisher_scoring_follows_the_reflectance_ridge_to_the_noise_free_optimum():
     """The continuous-index stage (Fisher scoring with ``n`` free) on a glossy box (m = 20)
     seen 8 deg off face-on: the return is nearly a normal-incidence Fresnel reflection, so
