@@ -834,6 +834,12 @@ BAD_INPUTS = [
     ),
     (
         "classify",
+        CLS + 'observations = "huge.npz"\n',
+        [],
+        ["observations = 'huge.npz'", "data value 1e+300 at index (0, 0, 0) overflows float32"],
+    ),
+    (
+        "classify",
         CLS + 'observations = "complex.npz"\n',
         [],
         ["observations = 'complex.npz'", "dtype complex128", "imaginary part"],
@@ -876,6 +882,7 @@ def test_bad_input_is_one_line_exit_2(tiny_db, tmp_path, capsys, command, text, 
     (tmp_path / "x.3ds").write_bytes(b"3ds")
     np.save(tmp_path / "plain.npy", np.ones((2, 32)))
     np.savez(tmp_path / "complex.npz", data=np.ones((2, 32)) + 1j)
+    np.savez(tmp_path / "huge.npz", data=np.full((2, 32), 1e300))
     argv = command.split()
     if text is not None:
         cfg = _write(tmp_path / "cfg.toml", text.format(db=db / "database.zarr", spec=spec))

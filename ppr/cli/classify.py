@@ -141,6 +141,14 @@ def read_observations(cfg, cfg_path: Path, bank) -> tuple[np.ndarray, str]:
             f"{where}: data has shape {data.shape}; this database needs (N, {want[0]} channels, "
             f"{want[1]} bins) or ({want[0]}, {want[1]})"
         )
+    # classify computes in float32 (JAX's default): larger values would become inf
+    big = np.abs(data) > np.finfo(np.float32).max
+    if big.any():
+        first = tuple(int(i) for i in np.argwhere(big)[0])
+        raise c.ConfigError(
+            f"{where}: data value {float(data[first]):g} at index {first} overflows float32, "
+            "the precision classify computes in; rescale the data"
+        )
     return data, sensor
 
 
