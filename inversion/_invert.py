@@ -56,6 +56,7 @@ import json
 import logging
 import math
 import numbers
+import os
 import time
 import warnings
 from collections.abc import Mapping, Sequence
@@ -1137,6 +1138,38 @@ class _Bar:
             self.bar.close()
 
 
+def _physical_memory() -> int | None:
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, OSError, ValueError):  # not a POSIX system
+        return None
+
+
+def _check_bank_fits(cfg: InvertConfig, cands: list[Candidate], n_mat: int, n_fin: int) -> None:
+    """Refuse a screening grid whose attitudes (before the symmetry reduction, 4 float64 each)
+    and templates (after it, one float32 per channel and bin) cannot be held in this
+    machine's memory: ``grid.size`` is bounded by the grid's schema, but a Hopf grid grows as
+    72 size^3 and one of size 4096 would need petabytes, found only when it is built."""
+    g = cfg.grid
+    n_att = 72 * g.size**3 if g.kind == "hopf" else g.size
+    need = 32 * n_att
+    n_templates = 0
+    for c in cands:
+        order = len(symmetry_group(c.exact_symmetry(cfg.symmetry)))
+        n_c = -(-n_att // order) * n_mat * n_fin
+        n_templates += n_c
+        shape = _expected_shape(c.model)
+        need += 4 * n_c * (shape[0] * shape[1] if shape is not None else 1)
+    have = _physical_memory()
+    if have is not None and need > have:
+        raise ConfigError(
+            f"grid.size = {g.size}: a {g.kind} grid of {n_att:.3g} attitudes gives "
+            f"{n_templates:.3g} screening templates (x {n_mat} materials x {n_fin} finishes, "
+            f"after the symmetry reduction), {need / 2**30:.3g} GiB, more than this machine's "
+            f"{have / 2**30:.3g} GiB of memory; lower grid.size"
+        )
+
+
 def _resolve_materials(cfg: InvertConfig, bank: TemplateBank | None, wavelength: float):
     """``{name: n}`` of the materials the material stage weighs (and, without a bank, the
     screening bank's)."""
@@ -1464,6 +1497,8 @@ def invert(
                 "materials = [{name, n_real, n_imag}, ...]"
             )
         finishes = dict(DEFAULT_FINISHES if cfg.finishes is None else cfg.finishes)
+        if bank_ is None:
+            _check_bank_fits(cfg, cands, len(materials), len(finishes))
         if cfg.mcmc is not None and not jax.config.jax_enable_x64:
             raise ValueError(
                 "mcmc: posterior sampling needs float64 (jax.config.update("

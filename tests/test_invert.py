@@ -189,6 +189,8 @@ class _Untouchable(eqx.Module):
         ({"top_k": 0}, ["top_k = 0"]),
         ({"materials": ["aluminium", "unobtainium"]}, ["materials[1] = 'unobtainium'"]),
         ({"symmetry": "dihedral"}, ["symmetry = 'dihedral'"]),
+        # a Hopf grid grows as 72 size^3: size 4096 would need petabytes, found when built
+        ({"grid": {"size": 4096}}, ["grid.size = 4096", "4.95e+12 attitudes", "lower grid.size"]),
         # a named order whose group closure would run for hours: refused before it is built
         ({"symmetry": "dihedral:100000000"}, ["symmetry = 'dihedral:100000000'", "above 64"]),
         # an inline index outside the refiner's box would be moved into it
