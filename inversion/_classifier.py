@@ -439,9 +439,22 @@ def check_observations(prep: PreparedBank, obs, dtype=np.float32) -> np.ndarray:
         raise ValueError(
             f"observation has n_bins={x.shape[2]}, the database has n_bins={bank.n_bins}"
         )
-    if not np.all(np.isfinite(x)):
-        raise ValueError("observation contains non-finite values")
-    return x.astype(dtype)
+    bad = ~np.isfinite(x)
+    if bad.any():
+        first = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(
+            f"observation contains {int(bad.sum())} non-finite value(s), first at index {first} "
+            "(observation, channel, bin)"
+        )
+    out = x.astype(dtype)
+    over = ~np.isfinite(out)
+    if over.any():  # finite, but beyond the database's precision
+        first = tuple(int(i) for i in np.argwhere(over)[0])
+        raise ValueError(
+            f"observation value {float(x[first]):g} at index {first} (observation, channel, "
+            f"bin) overflows {np.dtype(dtype).name}, the database's precision; rescale the data"
+        )
+    return out
 
 
 def classify(

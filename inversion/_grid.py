@@ -339,6 +339,11 @@ def los_half_turn(q, los=(0.0, 0.0, 1.0)) -> np.ndarray:
     return canonical_sign(quat_multiply_host(pure_a, q))
 
 
+# largest order n of a named class cyclic:n / dihedral:n (the group is built by closure,
+# quadratic in its size: dihedral:360 takes about a minute)
+MAX_NAMED_ORDER = 64
+
+
 def symmetry_group(name) -> np.ndarray:
     """Rotation group of a shape as ``(|G|, 4)`` quaternions (identity first).
 
@@ -364,6 +369,11 @@ def symmetry_group(name) -> np.ndarray:
             raise ValueError(f"symmetry group {name!r}: order must be an integer") from None
         if n < 1:
             raise ValueError(f"symmetry group {name!r}: order must be >= 1")
+        if n > MAX_NAMED_ORDER:
+            raise ValueError(
+                f"symmetry group {name!r}: order above {MAX_NAMED_ORDER}; a rounder shape's "
+                "own group comes from its mesh (symmetry = 'auto')"
+            )
         gens = [quat_from_axis_angle([0, 0, 1], 2 * math.pi / n)]
         if kind == "dihedral":
             gens.append(quat_from_axis_angle([1, 0, 0], math.pi))

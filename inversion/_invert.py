@@ -55,6 +55,8 @@ import functools
 import json
 import logging
 import math
+import numbers
+import os
 import time
 import warnings
 from collections.abc import Mapping, Sequence
@@ -141,6 +143,12 @@ def _distinct(v: list) -> list:
     dup = sorted({str(x) for x in v if v.count(x) > 1})
     if dup:
         raise ValueError(f"{dup[0]!r} is listed twice")
+    # materials: an inline index may not take a library name listed too (one would replace
+    # the other)
+    names = [getattr(x, "name", x) for x in v]
+    dup = sorted({str(x) for x in names if names.count(x) > 1})
+    if dup:
+        raise ValueError(f"the name {dup[0]!r} is given twice")
     return v
 
 
@@ -157,12 +165,26 @@ class GridConfig(StrictModel):
     )
 
 
-class InlineIndex(StrictModel):
-    """A material given by its index ``n_real + i n_imag`` (not in the library)."""
+def _in_box(box: tuple[float, float]):
+    def check(v: float) -> float:
+        if not box[0] <= v <= box[1]:
+            raise ValueError(
+                f"outside [{box[0]:g}, {box[1]:g}], the box the fits and the default priors "
+                "cover (inversion.PhysicalBounds)"
+            )
+        return v
 
-    name: str
-    n_real: float = pydantic.Field(gt=0.0)
-    n_imag: float = pydantic.Field(ge=0.0)
+    return pydantic.AfterValidator(check)
+
+
+class InlineIndex(StrictModel):
+    """A material given by its index ``n_real + i n_imag`` (not in the library), inside the
+    box the refiner keeps its fits in (:data:`N_RE_BOX`, :data:`N_IM_BOX`): a start outside
+    it would be moved into it."""
+
+    name: str = pydantic.Field(min_length=1)
+    n_real: Annotated[float, _in_box(N_RE_BOX)]
+    n_imag: Annotated[float, _in_box(N_IM_BOX)]
 
 
 Group = Literal["attitude", "m", "n", "corr_length", "range_offset", "gain"]
@@ -173,9 +195,9 @@ class InvertConfig(StrictModel):
 
     - `free`: parameter groups fitted (``attitude``, ``m``, ``n``, ``corr_length``,
       ``range_offset``, ``gain``); ``n`` free adds the continuous-index stage.
-    - `likelihood`: ``"poisson"`` (photo-counts, :class:`~inversion.PoissonCounts` with
-      `background` counts per bin) or ``"gaussian"`` (``mu + 1`` variance,
-      :class:`~inversion.PoissonNoise`, for scaled data).
+    - `likelihood`: ``"poisson"`` (photo-counts >= 0, non-integer ones included,
+      :class:`~inversion.PoissonCounts` with `background` counts per bin) or ``"gaussian"``
+      (``mu + 1`` variance, :class:`~inversion.PoissonNoise`, for scaled data).
     - `solver`: ``lm`` | ``dogleg`` | ``gauss_newton``; `max_steps` per round, `rounds` of
       visibility/weights when polishing; `screen_tol` the screening round's tolerance.
     - `materials`: library names (``ppr.load_material``) or ``{name, n_real, n_imag}``
@@ -236,9 +258,10 @@ class InvertConfig(StrictModel):
         description="library materials weighed per mesh part (names, or {name, n_real, "
         "n_imag}); unset: the bank's, or every library material at the sensor's wavelength",
     )
-    finishes: dict[str, Annotated[float, pydantic.Field(ge=0.0, le=1e6)]] | None = pydantic.Field(
+    # m > 0: the refiner moves log m, whose derivative vanishes as m -> 0 (a start at 0 stays)
+    finishes: dict[str, Annotated[float, pydantic.Field(gt=0.0, le=1e6)]] | None = pydantic.Field(
         None,
-        description="{name = Blinn-Phong m} of the templates built from the candidate "
+        description="{name = Blinn-Phong m > 0} of the templates built from the candidate "
         "models (unset: rough = 10, brushed = 300)",
     )
     grid: GridConfig = pydantic.Field(
@@ -307,6 +330,21 @@ class InvertConfig(StrictModel):
             raise ValueError("must not be empty")
         return v
 
+    @pydantic.model_validator(mode="after")
+    def _finishes_in_prior(self):
+        # the refined fits start at the finishes' m, and log m barely moves from a very small
+        # one; the sampler then starts from a fit outside its prior and refuses to run,
+        # after the whole refinement: refused here instead
+        if isinstance(self.mcmc, MCMCConfig) and self.finishes:
+            lo, hi = self.mcmc.priors.m.support()
+            for name, m in self.finishes.items():
+                if not lo <= m <= hi:
+                    raise ValueError(
+                        f"finishes.{name} = {m!r}: outside the support [{lo:g}, {hi:g}] of "
+                        "mcmc.priors.m, where the refined fits that start from it are sampled"
+                    )
+        return self
+
 
 def load_invert_config(path, overrides: dict | None = None) -> InvertConfig:
     """An :class:`InvertConfig` from a TOML file (errors name the file, field and value)."""
@@ -322,8 +360,11 @@ def _as_config(config) -> InvertConfig:
         return config
     if isinstance(config, Mapping):
         return validate_data(InvertConfig, dict(config), "invert config")
+    hint = ""
+    if isinstance(config, str | Path):
+        hint = f" ({str(config)!r}: read a TOML file with inversion.load_invert_config(path))"
     raise ConfigError(
-        f"invert config: expected an InvertConfig or a mapping, got {type(config).__name__}"
+        f"invert config: expected an InvertConfig or a mapping, got {type(config).__name__}" + hint
     )
 
 
@@ -341,6 +382,26 @@ class Candidate:
     model: Any
     symmetry: Any = None
     bin_width_m: float | None = None  # range bin width (default: the model's)
+
+    def __post_init__(self):
+        # checked here, not where the screening bank first uses them
+        where = f"Candidate {self.name!r}"
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"{where}: name must be a non-empty string")
+        if not (hasattr(self.model, "prepare") and hasattr(self.model, "expected")):
+            raise ValueError(
+                f"{where}: model is {type(self.model).__name__}, expected a forward model "
+                "(prepare/expected, e.g. inversion.SimulatorModel)"
+            )
+        if isinstance(self.symmetry, str):
+            try:
+                symmetry_group(self.symmetry)
+            except ValueError as err:
+                raise ValueError(f"{where}: symmetry = {self.symmetry!r}: {err}") from None
+        if self.bin_width_m is not None:
+            w = self.bin_width_m
+            if isinstance(w, bool) or not isinstance(w, numbers.Real) or not 0 < w < math.inf:
+                raise ValueError(f"{where}: bin_width_m = {w!r}: expected metres, finite and > 0")
 
     @property
     def mesh(self):
@@ -395,7 +456,14 @@ def _as_candidates(candidates) -> list[Candidate]:
     if isinstance(candidates, Candidate):
         return [candidates]
     if isinstance(candidates, Mapping):
-        out = [Candidate(str(k), v) for k, v in candidates.items()]
+        out = []
+        for k, v in candidates.items():
+            if isinstance(v, Candidate) or not (hasattr(v, "expected") and hasattr(v, "prepare")):
+                raise ValueError(
+                    f"candidates[{k!r}] is {type(v).__name__}: expected a forward model "
+                    "(prepare/expected)"
+                )
+            out.append(Candidate(str(k), v))
     elif isinstance(candidates, list | tuple):
         out = []
         for i, c in enumerate(candidates):
@@ -1070,6 +1138,38 @@ class _Bar:
             self.bar.close()
 
 
+def _physical_memory() -> int | None:
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, OSError, ValueError):  # not a POSIX system
+        return None
+
+
+def _check_bank_fits(cfg: InvertConfig, cands: list[Candidate], n_mat: int, n_fin: int) -> None:
+    """Refuse a screening grid whose attitudes (before the symmetry reduction, 4 float64 each)
+    and templates (after it, one float32 per channel and bin) cannot be held in this
+    machine's memory: ``grid.size`` is bounded by the grid's schema, but a Hopf grid grows as
+    72 size^3 and one of size 4096 would need petabytes, found only when it is built."""
+    g = cfg.grid
+    n_att = 72 * g.size**3 if g.kind == "hopf" else g.size
+    need = 32 * n_att
+    n_templates = 0
+    for c in cands:
+        order = len(symmetry_group(c.exact_symmetry(cfg.symmetry)))
+        n_c = -(-n_att // order) * n_mat * n_fin
+        n_templates += n_c
+        shape = _expected_shape(c.model)
+        need += 4 * n_c * (shape[0] * shape[1] if shape is not None else 1)
+    have = _physical_memory()
+    if have is not None and need > have:
+        raise ConfigError(
+            f"grid.size = {g.size}: a {g.kind} grid of {n_att:.3g} attitudes gives "
+            f"{n_templates:.3g} screening templates (x {n_mat} materials x {n_fin} finishes, "
+            f"after the symmetry reduction), {need / 2**30:.3g} GiB, more than this machine's "
+            f"{have / 2**30:.3g} GiB of memory; lower grid.size"
+        )
+
+
 def _resolve_materials(cfg: InvertConfig, bank: TemplateBank | None, wavelength: float):
     """``{name: n}`` of the materials the material stage weighs (and, without a bank, the
     screening bank's)."""
@@ -1352,6 +1452,11 @@ def invert(
         cands = _as_candidates(candidates)
         data, sensor = _observation_data(observation)
         noise = _noise_of(cfg) if noise is None else noise
+        if not callable(getattr(noise, "variance", None)):
+            raise ValueError(
+                "noise: expected a noise model (inversion.PoissonCounts, PoissonNoise or "
+                f"GaussianNoise), got {type(noise).__name__}"
+            )
         prep = bank if isinstance(bank, PreparedBank) else None
         bank_ = prep.bank if prep is not None else bank
         if bank_ is not None and not isinstance(bank_, TemplateBank):
@@ -1392,6 +1497,8 @@ def invert(
                 "materials = [{name, n_real, n_imag}, ...]"
             )
         finishes = dict(DEFAULT_FINISHES if cfg.finishes is None else cfg.finishes)
+        if bank_ is None:
+            _check_bank_fits(cfg, cands, len(materials), len(finishes))
         if cfg.mcmc is not None and not jax.config.jax_enable_x64:
             raise ValueError(
                 "mcmc: posterior sampling needs float64 (jax.config.update("
@@ -1838,18 +1945,54 @@ def _sampler_progress(cfg: InvertConfig) -> MCMCConfig:
     )
 
 
+# photo-counts above 2^53 per bin are not integers in float64, and no detector records them:
+# such data are in other units (rescale them) and overflow the deviance's Jacobian products
+MAX_COUNTS = 2.0**53
+
+
 def _observation_data(observation) -> tuple[np.ndarray, str]:
+    """The observation as float64 ``(channels, bins)`` and its sensor tag, validated: real
+    numbers (no strings, booleans or complex numbers, whose imaginary part would be lost),
+    finite, at most :data:`MAX_COUNTS` in magnitude and not all zero (no signal: nothing to
+    fit). The same checks for an :class:`~inversion.Observation`'s data."""
+    sensor = ""
     if isinstance(observation, Observation):
-        return np.asarray(observation.data, np.float64), observation.sensor
-    arr = np.asarray(observation)
+        observation, sensor = observation.data, observation.sensor
+    try:
+        arr = np.asarray(observation)
+    except ValueError as err:  # ragged nested lists
+        raise ValueError(f"observation: not a (channels, bins) array ({err})") from None
     if arr.dtype == object or not np.issubdtype(arr.dtype, np.number):
         raise ValueError(f"observation: expected a numeric array, got dtype {arr.dtype}")
+    if np.iscomplexobj(arr):
+        raise ValueError(
+            f"observation: got complex dtype {arr.dtype}; expected real counts (the imaginary "
+            "part would be lost)"
+        )
     if arr.ndim != 2:
         raise ValueError(f"observation: expected (channels, bins), got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        bad = int((~np.isfinite(arr)).sum())
-        raise ValueError(f"observation: {bad} non-finite value(s) (NaN/inf)")
-    return arr.astype(np.float64), ""
+    arr = arr.astype(np.float64)
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        first = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(
+            f"observation: {int(bad.sum())} non-finite value(s) (NaN/inf), first at index "
+            f"{first} (channel, bin) = {float(arr[first])}"
+        )
+    big = np.abs(arr) > MAX_COUNTS
+    if big.any():
+        first = tuple(int(i) for i in np.argwhere(big)[0])
+        raise ValueError(
+            f"observation: value {float(arr[first]):g} at index {first} (channel, bin) is above "
+            f"{MAX_COUNTS:g} (2^53) counts in magnitude; photo-counts that large are not exact "
+            "in float64 (rescale the data)"
+        )
+    if arr.size and not np.any(arr):
+        raise ValueError(
+            f"observation: all {arr.size} values are 0 (no signal): the data constrain no "
+            "shape, attitude or material"
+        )
+    return arr, sensor
 
 
 def _expected_shape(model) -> tuple[int, int] | None:

@@ -126,7 +126,10 @@ class PoissonCounts(eqx.Module):
     r"""Exact Poisson likelihood for photo-counts: the refiner minimises the Poisson deviance.
 
     The data are counts ``k >= 0`` (not multiplied by a gain) with expectation
-    ``lam = mu + background``. The least-squares residuals are the *deviance residuals*
+    ``lam = mu + background``. Non-integer ``k >= 0`` (dead-time or flat-field corrected
+    counts) are accepted: the deviance below and ``log k! = ln Gamma(k + 1)`` are defined for
+    any real ``k >= 0``; negative ``k`` are refused (:meth:`check_data`). The least-squares
+    residuals are the *deviance residuals*
 
         r = sign(k - lam) sqrt(2 (lam - k + k log(k / lam)))      (r = -sqrt(2 lam) at k = 0)
 
@@ -161,9 +164,10 @@ class PoissonCounts(eqx.Module):
         """Counts must be >= 0 (a gain-scaled or background-subtracted profile is not)."""
         bad = np.argwhere(data < 0)
         if len(bad):
+            first = tuple(int(i) for i in bad[0])
             raise ValueError(
                 f"{name}: PoissonCounts needs photo-counts >= 0, but {len(bad)} entries are "
-                f"negative (first at {tuple(int(i) for i in bad[0])}: {data[tuple(bad[0])]!r}); "
+                f"negative (first at {first}: {float(data[first])}); "
                 "use PoissonNoise/GaussianNoise for background-subtracted or scaled data"
             )
 

@@ -634,6 +634,115 @@ def test_invert_mcmc_none_switches_the_sampler_off(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def _obs_files(folder: Path) -> None:
+    """Observation files a user might hand ``ppr invert`` by mistake (2 channels x 32 bins:
+    the copol preset on INV_SENSOR)."""
+    good = np.random.default_rng(0).poisson(3.0, size=(2, 32)).astype(float)
+    neg, nan = good.copy(), good.copy()
+    neg[0, 3], nan[1, 5] = -2.0, np.nan
+    for name, arr in {
+        "nodata": {"counts": good},
+        "shape": {"data": np.ones(64)},
+        "str": {"data": np.full((2, 32), "1")},
+        "complex": {"data": good + 0j},
+        "bool": {"data": good > 2},
+        "nan": {"data": nan},
+        "neg": {"data": neg},
+        "zero": {"data": np.zeros((2, 32))},
+    }.items():
+        np.savez(folder / f"{name}.npz", **arr)
+    np.save(folder / "plain.npy", good)
+    (folder / "text.npz").write_text("1 2 3")
+    (folder / "trunc.npz").write_bytes((folder / "neg.npz").read_bytes()[:100])
+    (folder / "adir.npz").mkdir()
+
+
+# (observation file, what the one line must name besides the config file and the field):
+# refused before any computation, nothing cast or dropped silently
+BAD_OBSERVATIONS = [
+    ("missing.npz", ["no such file"]),
+    ("adir.npz", ["is a folder, not an .npz file"]),
+    ("plain.npy", ["a single .npy array, not an .npz archive", "np.savez(path, data=array)"]),
+    ("text.npz", ["not a NumPy .npz file (no zip header)"]),
+    ("trunc.npz", ["not a NumPy .npz file"]),
+    ("nodata.npz", ["no 'data' array (it has counts)"]),
+    ("shape.npz", ["data has shape (64,)", "(2 channels, 32 bins)"]),
+    ("str.npz", ["data has dtype <U1 (strings)"]),
+    ("complex.npz", ["data has dtype complex128", "imaginary part"]),
+    ("bool.npz", ["data has dtype bool"]),
+    ("nan.npz", ["1 NaN/inf value(s), first at index (1, 5) = nan"]),
+    ("neg.npz", ["photo-counts >= 0", "first at (0, 3): -2.0"]),
+    ("zero.npz", ["all 64 values are 0 (no signal)"]),
+]
+
+
+def test_invert_bad_observation_file_is_one_line_naming_it(tmp_path, capsys):
+    """``observation.source``: every faulty file is refused in one line naming the config
+    file, the field as written and the file, with the fault (the dtype, the first NaN or
+    negative count and its position), before any computation and with no --out folder."""
+    _write(tmp_path / "sensor.toml", INV_SENSOR)
+    _write(tmp_path / "scene.toml", INV_SCENE)
+    _obs_files(tmp_path)
+    cfg = _write(tmp_path / "inv.toml", 'scene = "scene.toml"\nbrdf = "glossy"\nmcmc = "none"\n')
+    out = tmp_path / "out"
+    for name, needles in BAD_OBSERVATIONS:
+        text = 'scene = "scene.toml"\nbrdf = "glossy"\nmcmc = "none"\n'
+        text += f'[observation]\nsource = "{name}"\n'
+        _write(cfg, text)
+        capsys.readouterr()
+        assert run("invert", "-q", "-c", cfg, "-o", out) == 2, name
+        line = error_line(capsys)
+        assert line.startswith(f"ppr invert: error: {cfg}: observation.source = '{name}': ")
+        for needle in needles:
+            assert needle in line, (needle, line)
+        assert not out.exists()
+
+
+def test_invert_failed_or_interrupted_keeps_the_previous_result(tmp_path, capsys, monkeypatch):
+    """``ppr invert --overwrite`` that fails or is stopped once the inversion has started
+    (after every check passed) leaves the previous result file for file."""
+    import signal
+    import time
+
+    import inversion
+    import inversion._invert as inv_mod
+
+    _write(tmp_path / "sensor.toml", INV_SENSOR)
+    _write(tmp_path / "scene.toml", INV_SCENE)
+    # a file observation: no simulation to compile before the inversion starts
+    np.savez(tmp_path / "obs.npz", data=np.ones((2, 32)))
+    cfg = _write(
+        tmp_path / "inv.toml",
+        'scene = "scene.toml"\nbrdf = "glossy"\nmcmc = "none"\n[observation]\nsource = "obs.npz"\n',
+    )
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in inversion.INVERT_FILES:
+        (out / name).write_text(f"previous {name}")
+    before = {p.name: p.read_text() for p in out.iterdir()}
+
+    def ctrl_c(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    def sigterm(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler raises first
+
+    def fails(*args, **kwargs):
+        raise RuntimeError("a failure inside the inversion")
+
+    for fake, code in ((ctrl_c, 130), (sigterm, 143), (fails, None)):
+        monkeypatch.setattr(inv_mod, "screening_bank", fake)  # the first stage after checks
+        capsys.readouterr()
+        if code is None:
+            with pytest.raises(RuntimeError, match="a failure inside"):
+                run("invert", "-q", "-c", cfg, "-o", out, "--overwrite")
+        else:
+            assert run("invert", "-q", "-c", cfg, "-o", out, "--overwrite") == code
+            assert "previous outputs were left as they were" in error_line(capsys)
+        assert {p.name: p.read_text() for p in out.iterdir()} == before
+
+
 # ------------------------------------------------------- bad inputs, interruptions (issue 28)
 NAN_OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv nan 0 0\nf 1 2 3\nf 1 3 4\nf 1 2 4\nf 2 3 5\n"
 CORRUPT_STL = b"solid x\nfacet normal 0 0 1\n outer loop\n vertex 0 0 \xff\xfe junk"
@@ -719,6 +828,24 @@ BAD_INPUTS = [
     ("classify", CLS + 'observations = "bad.stl"\n', [], ["observations = 'bad.stl'", ".npz"]),
     (
         "classify",
+        CLS + 'observations = "plain.npy"\n',
+        [],
+        ["observations = 'plain.npy'", "a single .npy array, not an .npz archive"],
+    ),
+    (
+        "classify",
+        CLS + 'observations = "huge.npz"\n',
+        [],
+        ["observations = 'huge.npz'", "data value 1e+300 at index (0, 0, 0) overflows float32"],
+    ),
+    (
+        "classify",
+        CLS + 'observations = "complex.npz"\n',
+        [],
+        ["observations = 'complex.npz'", "dtype complex128", "imaginary part"],
+    ),
+    (
+        "classify",
         'database = "nowhere.zarr"\n',
         [],
         ["database = 'nowhere.zarr'", "does not exist"],
@@ -727,6 +854,19 @@ BAD_INPUTS = [
     ("report", 'database = "{spec}"\ngain_range = [10.0, 0.1]\n', [], ["gain_range = [10.0, 0.1]"]),
     ("report", 'database = "nope.toml"\n', [], ["database = 'nope.toml'", "no such config file"]),
     ("demo", None, ["--only", "image", "--pixels", "2"], ["--pixels 2"]),
+    (
+        "invert",
+        None,
+        ["--set", "finishes={rough=1e-6}"],
+        ["finishes.rough = 1e-06", "support [0.001, 1e+06] of mcmc.priors.m", "mcmc = 'default'"],
+    ),
+    (
+        "invert",
+        None,
+        ["--set", 'materials=[{name="x",n_real=1e300,n_imag=0.1}]'],
+        ["materials[0].n_real = 1e+300", "outside [0.05, 5]"],
+    ),
+    ("invert", None, ["--set", 'symmetry="dihedral:100000000"'], ["order above 64"]),
 ]
 
 
@@ -740,6 +880,9 @@ def test_bad_input_is_one_line_exit_2(tiny_db, tmp_path, capsys, command, text, 
     (tmp_path / "nan.obj").write_text(NAN_OBJ)
     (tmp_path / "bad.stl").write_bytes(CORRUPT_STL)
     (tmp_path / "x.3ds").write_bytes(b"3ds")
+    np.save(tmp_path / "plain.npy", np.ones((2, 32)))
+    np.savez(tmp_path / "complex.npz", data=np.ones((2, 32)) + 1j)
+    np.savez(tmp_path / "huge.npz", data=np.full((2, 32), 1e300))
     argv = command.split()
     if text is not None:
         cfg = _write(tmp_path / "cfg.toml", text.format(db=db / "database.zarr", spec=spec))

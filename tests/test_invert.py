@@ -189,6 +189,31 @@ class _Untouchable(eqx.Module):
         ({"top_k": 0}, ["top_k = 0"]),
         ({"materials": ["aluminium", "unobtainium"]}, ["materials[1] = 'unobtainium'"]),
         ({"symmetry": "dihedral"}, ["symmetry = 'dihedral'"]),
+        # a Hopf grid grows as 72 size^3: size 4096 would need petabytes, found when built
+        ({"grid": {"size": 4096}}, ["grid.size = 4096", "4.95e+12 attitudes", "lower grid.size"]),
+        # a named order whose group closure would run for hours: refused before it is built
+        ({"symmetry": "dihedral:100000000"}, ["symmetry = 'dihedral:100000000'", "above 64"]),
+        # an inline index outside the refiner's box would be moved into it
+        (
+            {"materials": [{"name": "x", "n_real": 1e300, "n_imag": 0.1}]},
+            ["materials[0].n_real = 1e+300", "outside [0.05, 5]"],
+        ),
+        (
+            {"materials": [{"name": "x", "n_real": 1.5, "n_imag": -0.1}]},
+            ["materials[0].n_imag = -0.1", "outside [0, 15]"],
+        ),
+        # the refiner moves log m: a finish at m = 0 cannot move, one outside the m prior's
+        # support gives fits the sampler refuses (found after the whole refinement)
+        ({"finishes": {"rough": 0.0}}, ["finishes.rough = 0.0", "greater than 0"]),
+        (
+            {"finishes": {"rough": 1e-6}, "mcmc": {}},
+            ["finishes.rough = 1e-06", "support [0.001, 1e+06] of mcmc.priors.m"],
+        ),
+        # an inline index named like a listed library material would replace it
+        (
+            {"materials": [{"name": "gold", "n_real": 1.5, "n_imag": 0.0}, "gold"]},
+            ["materials = ", "the name 'gold' is given twice"],
+        ),
     ],
 )
 def test_config_is_validated_before_any_computation(config, words):
@@ -199,6 +224,74 @@ def test_config_is_validated_before_any_computation(config, words):
     assert len(msg.splitlines()) == 1
     for w in words:
         assert w in msg, msg
+
+
+@pytest.mark.parametrize(
+    "observation, kwargs, words",
+    [
+        # complex data: the imaginary part would be lost by a cast (also inside an Observation)
+        (np.ones((16, 64)) + 1j, {}, ["complex", "imaginary part"]),
+        (
+            inversion.Observation(data=np.ones((16, 64)) + 0j, sensor=""),
+            {},
+            ["complex", "imaginary part"],
+        ),
+        (
+            inversion.Observation(data=np.full((16, 64), np.nan), sensor=""),
+            {},
+            ["1024 non-finite", "first at index (0, 0)"],
+        ),
+        (np.zeros((16, 64)), {}, ["all 1024 values are 0", "no signal"]),
+        (np.full((16, 64), 1e300), {}, ["value 1e+300 at index (0, 0)", "2^53"]),
+        ([[1.0, 2.0], [3.0]], {}, ["observation: not a (channels, bins) array"]),
+        (np.ones((16, 64)) * np.r_[1.0, -2.0, np.ones(62)], {}, ["negative", "(0, 1): -2.0"]),
+        (np.ones((16, 64)), {"noise": "poisson"}, ["noise: expected a noise model", "str"]),
+        (np.ones((16, 64)), {"candidates": {"box": 3}}, ["candidates['box'] is int"]),
+    ],
+    ids=[
+        "complex",
+        "observation-complex",
+        "observation-nan",
+        "zero",
+        "huge",
+        "ragged",
+        "negative",
+        "noise",
+        "candidate",
+    ],
+)
+def test_bad_observation_or_argument_is_named_before_any_computation(observation, kwargs, words):
+    """Data the likelihood cannot take, or would take only after a silent cast, are refused
+    by name (with the first offending position and value) before a model is called: the
+    Poisson deviance has no signal to fit in all-zero counts (the fit would wander to the
+    edge of the gain and range boxes and call that converged), and counts above 2^53 are not
+    exact in float64 and overflow the refiner's normal equations."""
+    cands = kwargs.pop("candidates", {"box": _Untouchable()})
+    with pytest.raises(ValueError) as err:
+        inversion.invert(observation, cands, config={"materials": ["gold"]}, **kwargs)
+    msg = str(err.value)
+    for w in words:
+        assert w in msg, msg
+
+
+@pytest.mark.parametrize(
+    "kwargs, words",
+    [
+        ({"symmetry": "weird"}, ["Candidate 'box': symmetry = 'weird'", "unknown symmetry"]),
+        ({"bin_width_m": -0.01}, ["Candidate 'box': bin_width_m = -0.01", "> 0"]),
+        ({"bin_width_m": math.nan}, ["bin_width_m = nan"]),
+        ({"model": None}, ["Candidate 'box': model is NoneType"]),
+        ({"name": ""}, ["name must be a non-empty string"]),
+    ],
+)
+def test_candidate_fields_are_checked_when_made(kwargs, words):
+    """A candidate's symmetry name, bin width and model are checked when it is made, not
+    where the screening bank first uses them."""
+    args = {"name": "box", "model": _Untouchable(), **kwargs}
+    with pytest.raises(ValueError) as err:
+        Candidate(**args)
+    for w in words:
+        assert w in str(err.value), str(err.value)
 
 
 def test_index_fisher_scoring_follows_the_reflectance_ridge_to_the_noise_free_optimum():

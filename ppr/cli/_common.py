@@ -142,6 +142,85 @@ def resolve_path(value: str, config_file: Path) -> Path:
     return p if p.is_absolute() else config_file.parent / p
 
 
+def read_npz(value: str, cfg_path: Path, field: str, optional: tuple[str, ...] = ()) -> dict:
+    """The ``data`` array (float64) and the ``optional`` arrays present of the .npz file a
+    config field names. Errors name the config file, the field as written, the value and the
+    problem (no such file, a folder, not an .npz archive, no ``data``, a non-numeric, complex
+    or boolean ``data``, NaN/inf with the first position); nothing is cast silently: strings,
+    complex numbers (their imaginary part) and booleans are refused, not converted."""
+    import zipfile
+
+    where = f"{cfg_path}: {field} = {value!r}"
+    if not str(value).strip():
+        raise ConfigError(f"{where}: empty path; give an .npz file with a 'data' array")
+    path = resolve_path(value, cfg_path)
+    if path.is_dir():
+        raise ConfigError(f"{where}: {path} is a folder, not an .npz file")
+    if not path.is_file():
+        raise ConfigError(f"{where}: no such file ({path})")
+    save = "np.savez(path, data=array)"
+    out = {}
+    with open(path, "rb") as f:  # ours to close (np.load leaks a corrupt archive's handle)
+        head = f.read(6)
+        if not (head.startswith(b"PK") or head == b"\x93NUMPY"):
+            # np.load would take it for a pickle and say so
+            raise ConfigError(
+                f"{where}: not a NumPy .npz file (no zip header); write it with {save}"
+            )
+        f.seek(0)
+        try:
+            z = np.load(f, allow_pickle=False)
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+            raise ConfigError(
+                f"{where}: not a NumPy .npz file ({one_line(err)}); write it with {save}"
+            ) from None
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise ConfigError(
+                f"{where}: a single .npy array, not an .npz archive; write it with {save}"
+            )
+        with z:
+            if "data" not in z.files:
+                has = f"it has {', '.join(z.files)}" if z.files else "it holds no arrays"
+                raise ConfigError(f"{where}: no 'data' array ({has}); write it with {save}")
+            for name in ("data", *optional):
+                if name not in z.files:
+                    continue
+                try:
+                    out[name] = z[name]
+                except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+                    msg = one_line(err)
+                    if "allow_pickle" in msg:
+                        msg = "an object array (pickled Python objects), not numbers"
+                    raise ConfigError(f"{where}: array {name!r} cannot be read: {msg}") from None
+    data = out["data"]
+    kind = data.dtype.kind
+    if kind not in "iuf":
+        what = {
+            "b": "booleans, not counts",
+            "c": "complex numbers: the imaginary part would be lost",
+            "U": "strings",
+            "S": "strings",
+            "O": "Python objects",
+            "M": "dates",
+            "m": "time differences",
+            "V": "records (a structured array)",
+        }.get(kind, "not real numbers")
+        raise ConfigError(
+            f"{where}: data has dtype {data.dtype} ({what}); expected real numbers "
+            "(integer or float counts)"
+        )
+    data = data.astype(np.float64)
+    bad = ~np.isfinite(data)
+    if bad.any():
+        first = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ConfigError(
+            f"{where}: data holds {int(bad.sum())} NaN/inf value(s), first at index {first} "
+            f"= {float(data[first])}; mask or drop those bins before fitting"
+        )
+    out["data"] = data
+    return out
+
+
 def sub_model(model, data, cfg_path: Path, field: str):
     """Validate a sub-table with another module's schema; errors name ``field``."""
     try:

@@ -129,20 +129,10 @@ def load(args):
 
 def read_observations(cfg, cfg_path: Path, bank) -> tuple[np.ndarray, str]:
     """Observations ``(N, channels, bins)`` from an .npz file, checked against the bank."""
-    path = c.resolve_path(cfg.observations, cfg_path)
     where = f"{cfg_path}: observations = {cfg.observations!r}"
-    if not path.is_file():
-        raise c.ConfigError(f"{where}: no such file")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if "data" not in z.files:
-                raise c.ConfigError(f"{where}: no 'data' array (it has {', '.join(z.files)})")
-            data = np.asarray(z["data"], np.float64)
-            sensor = str(z["sensor"]) if "sensor" in z.files else bank.sensor
-    except c.ConfigError:
-        raise
-    except (OSError, ValueError, EOFError):
-        raise c.ConfigError(f"{where}: not a NumPy .npz file of arrays") from None
+    arrays = c.read_npz(cfg.observations, cfg_path, "observations", optional=("sensor",))
+    data = arrays["data"]
+    sensor = str(arrays["sensor"]) if "sensor" in arrays else bank.sensor
     if data.ndim == 2:
         data = data[None]
     want = (bank.n_channels, bank.n_bins)
@@ -151,8 +141,14 @@ def read_observations(cfg, cfg_path: Path, bank) -> tuple[np.ndarray, str]:
             f"{where}: data has shape {data.shape}; this database needs (N, {want[0]} channels, "
             f"{want[1]} bins) or ({want[0]}, {want[1]})"
         )
-    if not np.all(np.isfinite(data)):
-        raise c.ConfigError(f"{where}: data holds {int((~np.isfinite(data)).sum())} NaN/inf values")
+    # classify computes in float32 (JAX's default): larger values would become inf
+    big = np.abs(data) > np.finfo(np.float32).max
+    if big.any():
+        first = tuple(int(i) for i in np.argwhere(big)[0])
+        raise c.ConfigError(
+            f"{where}: data value {float(data[first]):g} at index {first} overflows float32, "
+            "the precision classify computes in; rescale the data"
+        )
     return data, sensor
 
 

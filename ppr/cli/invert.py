@@ -113,7 +113,15 @@ def invert_config(cfg, cfg_path: Path, progress: bool):
         )
         if not mpath.is_file():
             raise c.ConfigError(f"{cfg_path}: mcmc = {cfg.mcmc!r}: no such file ({mpath})")
-        mcfg = inversion.load_mcmc_config(mpath, cfg.mcmc_set)
+        try:
+            mcfg = inversion.load_mcmc_config(mpath, cfg.mcmc_set)
+        except c.ConfigError as err:
+            if not cfg.mcmc_set:
+                raise
+            # the value may be the user's override, not the MCMC file's: say both
+            raise c.ConfigError(
+                f"{err} (that file with {cfg_path}'s mcmc_set = {cfg.mcmc_set!r})"
+            ) from None
         upd = {k: getattr(cfg, v) for k, v in _MCMC_FIELDS.items() if getattr(cfg, v) is not None}
         samp = {**mcfg.sampler.model_dump(), **upd, "progress": progress}
         try:
@@ -134,7 +142,11 @@ def invert_config(cfg, cfg_path: Path, progress: bool):
         mcfg = mcfg.model_copy(update={"sampler": sampler})
     lib_fields = set(inversion.InvertConfig.model_fields) - {"mcmc", "progress"}
     data = {k: getattr(cfg, k) for k in lib_fields}
-    return inversion.InvertConfig.model_validate({**data, "mcmc": mcfg, "progress": progress})
+    try:
+        return inversion.InvertConfig.model_validate({**data, "mcmc": mcfg, "progress": progress})
+    except pydantic.ValidationError as err:  # checks across fields (finishes against priors)
+        msg = "; ".join(str(e["msg"]).removeprefix("Value error, ") for e in err.errors())
+        raise c.ConfigError(f"{cfg_path}: {msg} (mcmc = {cfg.mcmc!r})") from None
 
 
 def _simulated_truth(model, scene, photons: float, offset: float):
@@ -166,21 +178,10 @@ def run_invert(cfg, cfg_path: Path, out, overwrite: bool = False, progress: bool
 
     lib_cfg = invert_config(cfg, cfg_path, progress)
     ob = cfg.observation
-    data = None
+    data, where = None, str(cfg_path)
     if ob.source != "simulate":
-        path = c.resolve_path(ob.source, cfg_path)
+        data = c.read_npz(ob.source, cfg_path, "observation.source")["data"]
         where = f"{cfg_path}: observation.source = {ob.source!r}"
-        if not path.is_file():
-            raise c.ConfigError(f"{where}: no such file")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                if "data" not in z.files:
-                    raise c.ConfigError(f"{where}: no 'data' array (it has {', '.join(z.files)})")
-                data = np.asarray(z["data"], np.float64)
-        except (OSError, ValueError, EOFError) as err:
-            if isinstance(err, c.ConfigError):
-                raise
-            raise c.ConfigError(f"{where}: not a NumPy .npz file of arrays") from None
     c.maybe_x64("float64")  # inversion runs in float64 (the MCMC needs it)
     scene = ppr.load_scene(c.resolve_path(cfg.scene, cfg_path))
     chm = inversion.MeasurementModel.preset(cfg.channels).channel_matrix()
@@ -190,11 +191,12 @@ def run_invert(cfg, cfg_path: Path, out, overwrite: bool = False, progress: bool
     model = inversion.SimulatorModel(scene, chm, brdf=brdf, dense=True)
     if data is not None and data.shape != (model.n_channels, model.n_bins):
         raise c.ConfigError(
-            f"{cfg_path}: observation.source = {ob.source!r}: data has shape {data.shape}; the "
-            f"scene and channels give ({model.n_channels} channels, {model.n_bins} bins)"
+            f"{where}: data has shape {data.shape}; the scene and channels give "
+            f"({model.n_channels} channels, {model.n_bins} bins)"
         )
     _outputs.refuse_existing(out, inversion.INVERT_FILES, overwrite)
     truth = None
+    data_file = data is not None
     if data is None:
         truth, expected = _simulated_truth(model, scene, ob.photons, ob.range_offset_m)
         # the kernel's roundoff can give -1e-22 counts; anything beyond roundoff is a bug
@@ -208,7 +210,11 @@ def run_invert(cfg, cfg_path: Path, out, overwrite: bool = False, progress: bool
     try:
         inv = inversion.invert(data, {name: model}, config=lib_cfg)
     except ValueError as err:
-        raise c.ConfigError(f"{cfg_path}: {err}") from None
+        # the data's own faults (negative counts, no signal) name the file they came from
+        msg = str(err)
+        if data_file and msg.startswith("observation"):
+            raise c.ConfigError(f"{where}: data{msg.removeprefix('observation')}") from None
+        raise c.ConfigError(f"{cfg_path}: {msg}") from None
     extra = {"command": "invert", "config_file": str(cfg_path), "observation": ob}
     if truth is not None:
         noise = inversion.PoissonCounts(lib_cfg.background)
