@@ -343,6 +343,11 @@ class Classification:
     the bank's resolution allowed for; :mod:`inversion._template_fit`) and
     `no_template_fits`: its ``model_mismatch``, i.e. no template of the bank explains the
     observation within its noise (a shape, or a material or roughness, the bank lacks).
+
+    `no_signal` flags the observations without a single positive value: every channel is a
+    non-negative intensity, so such a frame holds no return (an empty or fully
+    background-subtracted frame) and its candidates are arbitrary (scores 0); it is flagged,
+    not dropped, so a batch keeps its order.
     """
 
     index: np.ndarray  # (N, k) int
@@ -354,6 +359,7 @@ class Classification:
     n_rescored: np.ndarray | None = None  # (N,) templates scored exactly (low-rank mode)
     fit: tuple | None = None  # (N,) GoodnessOfFit of the best template (with a noise model)
     no_template_fits: np.ndarray | None = None  # (N,) bool (with a noise model)
+    no_signal: np.ndarray | None = None  # (N,) bool: no positive value in the frame
 
     def best(self, bank: TemplateBank) -> dict:
         """Attributes of the top candidate of each observation."""
@@ -501,6 +507,7 @@ def classify(
             prep, x, rhs, xnorm, max_shift, k, n_candidates
         )
     res = Classification(idx, sc, lg, lg + fr, time.perf_counter() - t0, certified, n_rescored)
+    res.no_signal = ~np.any(np.asarray(x) > 0, axis=(1, 2))
     if noise is None:
         return res
     from ._template_fit import template_goodness_of_fit

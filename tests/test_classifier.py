@@ -337,3 +337,16 @@ def test_flags_an_observation_that_no_template_fits():
     strict = classify(prep, x, k=3, noise=noise, resolution_scale=0.0)
     assert strict.no_template_fits[:6].all(), [f.summary() for f in strict.fit[:6]]
     assert classify(prep, x, k=3).fit is None  # no noise model, no verdict
+
+
+def test_empty_frame_is_flagged_and_leaves_the_batch_unchanged(bank, exact):
+    """A frame with no positive value holds no return (every channel is an intensity):
+    flagged, in place, and the other observations' candidates are those they get alone."""
+    y = np.asarray(bank.signatures[[5, 40]], np.float64) * 1e3
+    batch = np.stack([y[0], np.zeros_like(y[0]), y[1], -np.abs(y[1])])
+    res = classify(exact, batch, k=3)
+    np.testing.assert_array_equal(res.no_signal, [False, True, False, True])
+    alone = classify(exact, y, k=3)
+    np.testing.assert_array_equal(res.index[[0, 2]], alone.index)
+    np.testing.assert_allclose(res.score[[0, 2]], alone.score, atol=1e-6)
+    assert np.all(np.isfinite(res.score))  # the empty frames score 0, not NaN

@@ -495,6 +495,18 @@ def test_classify_end_to_end(tiny_db, tmp_path):
         f'database = "{db / "database.zarr"}"\nobservations = "{out / "classify.npz"}"\n',
     )
     assert run("classify", "-q", "-c", cfg2, "-o", tmp_path / "cls2") == 0
+    # an empty frame (no return) is flagged in place, not classified silently
+    with np.load(out / "classify.npz") as z:
+        data = z["data"].copy()
+        assert not z["no_signal"].any()
+    data[2] = 0.0
+    np.savez(tmp_path / "empty.npz", data=data)
+    cfg3 = _write(
+        tmp_path / "c3.toml",
+        f'database = "{db / "database.zarr"}"\nobservations = "{tmp_path / "empty.npz"}"\n',
+    )
+    assert run("classify", "-q", "-c", cfg3, "-o", tmp_path / "cls3") == 0
+    assert json.loads((tmp_path / "cls3" / "classify.json").read_text())["no_signal"] == [2]
 
 
 def test_classify_missing_database(tmp_path, capsys):

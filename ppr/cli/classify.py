@@ -242,7 +242,15 @@ def run(args) -> int:
             "seconds": res.seconds,
             "ms_per_observation": 1e3 * res.seconds / len(data),
             "candidates": cands,
+            # frames without a positive value hold no return: their candidates are arbitrary
+            "no_signal": [int(i) for i in np.flatnonzero(res.no_signal)],
         }
+        if res.no_signal.any():
+            print(
+                f"ppr classify: observations {summary['no_signal']} have no positive value (no "
+                "return): their candidates are arbitrary (classify.json 'no_signal')",
+                file=sys.stderr,
+            )
         if truth is not None:
             best = res.best(bank)
             summary["accuracy"] = {
@@ -258,6 +266,7 @@ def run(args) -> int:
             index=res.index,
             score=res.score,
             shift=res.shift_refined,
+            no_signal=res.no_signal,
             **extra,
         )
         plot_classification(
