@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import ppr
+from ppr.config import first_nonfinite
 from ppr.geometry import quat_angle_deg, quat_multiply_host
 
 from ._database import TemplateBank
@@ -445,11 +446,10 @@ def check_observations(prep: PreparedBank, obs, dtype=np.float32) -> np.ndarray:
         raise ValueError(
             f"observation has n_bins={x.shape[2]}, the database has n_bins={bank.n_bins}"
         )
-    bad = ~np.isfinite(x)
-    if bad.any():
-        first = tuple(int(i) for i in np.argwhere(bad)[0])
+    bad = first_nonfinite(x)
+    if bad is not None:
         raise ValueError(
-            f"observation contains {int(bad.sum())} non-finite value(s), first at index {first} "
+            f"observation contains {bad[0]} non-finite value(s), first at index {bad[1]} "
             "(observation, channel, bin)"
         )
     out = x.astype(dtype)

@@ -70,7 +70,7 @@ import numpy as np
 import pydantic
 
 import ppr
-from ppr.config import ConfigError, StrictModel, validate_data
+from ppr.config import ConfigError, StrictModel, first_nonfinite, validate_data
 
 from ._classifier import (
     Classification,
@@ -1972,12 +1972,12 @@ def _observation_data(observation) -> tuple[np.ndarray, str]:
     if arr.ndim != 2:
         raise ValueError(f"observation: expected (channels, bins), got shape {arr.shape}")
     arr = arr.astype(np.float64)
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        first = tuple(int(i) for i in np.argwhere(bad)[0])
+    bad = first_nonfinite(arr)
+    if bad is not None:
+        count, first, value = bad
         raise ValueError(
-            f"observation: {int(bad.sum())} non-finite value(s) (NaN/inf), first at index "
-            f"{first} (channel, bin) = {float(arr[first])}"
+            f"observation: {count} non-finite value(s) (NaN/inf), first at index "
+            f"{first} (channel, bin) = {value}"
         )
     big = np.abs(arr) > MAX_COUNTS
     if big.any():

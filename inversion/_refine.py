@@ -49,6 +49,8 @@ import optimistix as optx
 from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, Float
 
+from ppr.config import first_nonfinite
+
 from ._params import (
     DEFAULT_FREE,
     GAIN_RANGE,
@@ -249,12 +251,11 @@ def check_observation(data: Any, shape: tuple[int, ...], name: str = "data") -> 
             f"{name}: observation shape {arr.shape} does not match the model's (channels, bins) "
             f"= {tuple(shape)}"
         )
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        first = tuple(int(i) for i in np.argwhere(bad)[0])
+    bad = first_nonfinite(arr)
+    if bad is not None:
         raise ValueError(
-            f"{name}: observation contains {int(bad.sum())} non-finite value(s) (NaN/inf), "
-            f"first at index {first} (channel, bin); mask or drop those bins before fitting"
+            f"{name}: observation contains {bad[0]} non-finite value(s) (NaN/inf), "
+            f"first at index {bad[1]} (channel, bin); mask or drop those bins before fitting"
         )
     return arr.astype(np.float64)
 

@@ -71,6 +71,19 @@ class StrictModel(pydantic.BaseModel):
         return data
 
 
+def first_nonfinite(arr) -> tuple[int, tuple[int, ...], float] | None:
+    """``(count, index, value)`` of the non-finite (NaN/inf) entries of an array and the first
+    one in C order, or ``None`` when every entry is finite: what an error about bad data names."""
+    import numpy as np
+
+    a = np.asarray(arr)
+    bad = ~np.isfinite(a)
+    if not bad.any():
+        return None
+    first = tuple(int(i) for i in np.argwhere(bad)[0])
+    return int(bad.sum()), first, float(a[first])
+
+
 def _find_nan(obj: Any, path: str = "") -> tuple[str, float] | None:
     if isinstance(obj, float) and not math.isfinite(obj):
         return path or "<root>", obj

@@ -90,7 +90,8 @@ def test_roll_scan_is_the_exact_deviance_at_every_roll(mono):
 def test_roll_scan_finds_the_true_roll_from_a_start_turned_away(mono):
     """Noise-free data: from the truth turned by 70 deg about the line of sight, the scan's
     lowest minimum is the turn back (110 deg mod 180) on its 1 deg grid, with the deviance of
-    the data against themselves there, and the turned-back attitude is the truth's half turn (the same data)."""
+    the data against themselves there, and the turned-back attitude is the truth's half turn
+    (the same data)."""
     model, truth, mu = mono
     los = line_of_sight_of(model)
     sc = roll_scan(model, mu, rolled_about(truth, 70.0, los))

@@ -16,7 +16,13 @@ import numpy as np
 import pydantic
 
 from .. import _outputs
-from .._config import ConfigError, StrictModel, load_toml_model, parse_override
+from .._config import (
+    ConfigError,
+    StrictModel,
+    first_nonfinite,
+    load_toml_model,
+    parse_override,
+)
 from .._resources import shipped_config
 
 __all__ = [
@@ -210,12 +216,12 @@ def read_npz(value: str, cfg_path: Path, field: str, optional: tuple[str, ...] =
             "(integer or float counts)"
         )
     data = data.astype(np.float64)
-    bad = ~np.isfinite(data)
-    if bad.any():
-        first = tuple(int(i) for i in np.argwhere(bad)[0])
+    bad = first_nonfinite(data)
+    if bad is not None:
+        count, first, value = bad
         raise ConfigError(
-            f"{where}: data holds {int(bad.sum())} NaN/inf value(s), first at index {first} "
-            f"= {float(data[first])}; mask or drop those bins before fitting"
+            f"{where}: data holds {count} NaN/inf value(s), first at index {first} "
+            f"= {value}; mask or drop those bins before fitting"
         )
     out["data"] = data
     return out
