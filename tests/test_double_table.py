@@ -188,6 +188,49 @@ def test_reciprocity_and_realizability():
     assert np.all(eig[:, -1] > -1e-6 * M[:, 0, 0]), (eig[:, -1] / M[:, 0, 0]).min()
 
 
+def test_quadrature_term_is_the_double_term_without_the_table_branch():
+    """``"double:quadrature"`` is what ``"double"`` runs on a batch that is not all within
+    PSI_MAX of backscatter (equal to rounding, eager and traced), and a traced call of it holds
+    no dispatching ``lax.cond`` (the table branch is neither compiled nor differentiated;
+    tests/test_grazing.py differentiates the quadrature on the stiff set). A concrete
+    bistatic sensor gets it from ``sensor_terms`` (a monostatic one the table); naming two
+    double terms is an error."""
+    import ppr
+    from ppr.pulse._pulse import sensor_terms
+
+    rng = np.random.default_rng(5)
+    nrm, k, kp, fi, fo = random_geometry(rng, 8, 0.3)
+    mat = Material(n=AL, m=3.0)
+
+    def call(names):
+        def f(a, b, m):
+            return mueller_brdf(
+                a, b, nrm, Material(n=AL, m=m), terms=names, frame_in=fi, frame_out=fo
+            )
+
+        return f
+
+    quad = np.asarray(call(("double:quadrature",))(k, kp, 3.0))
+    tol = dict(rtol=1e-9, atol=1e-12 * np.abs(quad[:, 0, 0]).max())  # program rounding
+    np.testing.assert_allclose(quad, np.asarray(call(("double",))(k, kp, 3.0)), **tol)
+    conds = {
+        names: str(jax.make_jaxpr(call(names))(k, kp, 3.0)).count("cond[")
+        for names in (("double",), ("double:quadrature",), ("double:backscatter",))
+    }
+    # the traced checks' conds are common to all three; "double" adds its dispatch
+    assert conds[("double:quadrature",)] == conds[("double:backscatter",)], conds
+    assert conds[("double",)] == conds[("double:quadrature",)] + 1, conds
+    traced = jax.jit(call(("double:quadrature",)))(k, kp, 3.0)
+    np.testing.assert_allclose(np.asarray(traced), quad, **tol)
+
+    bi = ppr.Sensor.make((0.0, 0.0, -1.0), bistatic_angle=0.05)
+    mono = ppr.Sensor.make((0.0, 0.0, -1.0))
+    assert sensor_terms(mueller_brdf, None, bi) == ("single", "double:quadrature", "multiple")
+    assert sensor_terms(mueller_brdf, None, mono) == ("single", "double:backscatter", "multiple")
+    with pytest.raises(ValueError, match="same term"):
+        mueller_brdf(k, kp, nrm, mat, terms=("double", "double:quadrature"))
+
+
 def test_brdf_routing_and_errors():
     """mueller_brdf's "double" uses the table when the whole batch is within PSI_MAX of
     backscatter; "double:backscatter" refuses larger bistatic angles naming the argument;

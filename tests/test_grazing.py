@@ -7,7 +7,9 @@ One jitted value-and-gradient program per dtype evaluates, on the same rows,
   lobe-average quadrature of ``ppr.microfacet`` and the per-element deficit table),
 * the same with one (scalar) material per call, ``vmap``-ed over the materials (the
   one-material paths: the per-call visibility table in float32, the deficit row),
-* the double term with a per-element material (its quadrature: the bistatic rows),
+* the double term with a per-element material (its quadrature, ``"double:quadrature"``: the
+  branch ``"double"`` takes on these rows, which are not all within ``PSI_MAX`` of
+  backscatter),
 
 and the reverse-mode gradient of everything with respect to ``k_in``, ``k_out``, the normal,
 ``m`` and both parts of ``n``. The exact-backscatter kernel and the double term's table
@@ -124,7 +126,10 @@ def _program(dtype):
         ki, ko, nrm, m, n_re, n_im = per_element
         mat = material(m, n_re, n_im)
         core = mueller_brdf(ki, ko, nrm, mat, terms=CORE)
-        double = mueller_brdf(ki, ko, nrm, mat, terms=("double",))
+        # the quadrature: what "double" runs on this mixed batch (not every row is within
+        # PSI_MAX of backscatter), without the table branch its lax.cond would also trace,
+        # differentiate and compile (3-4x the trace time) but never run here
+        double = mueller_brdf(ki, ko, nrm, mat, terms=("double:quadrature",))
         gk, gko, gn, ms, ns_re, ns_im = one_material
 
         def one(m, n_re, n_im):  # a scalar material: the one-material paths

@@ -517,6 +517,21 @@ def _double_backscatter_term(
     )
 
 
+def _double_quadrature_term(
+    k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=DEFAULT_WAVELENGTH_M
+):
+    return double_term_dispatch(
+        k_in,
+        k_out,
+        normal,
+        material,
+        frame_in,
+        frame_out,
+        wavelength=wavelength,
+        branch="quadrature",
+    )
+
+
 def _double_auto_term(
     k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=DEFAULT_WAVELENGTH_M
 ):
@@ -532,6 +547,7 @@ TERMS: dict[str, TermFn] = {
     "double": _double_term,
     "multiple": multiple_scattering_term,
     "double:backscatter": _double_backscatter_term,
+    "double:quadrature": _double_quadrature_term,
 }
 """Term registry: name -> ``term(k_in, k_out, normal, material, frame_in, frame_out, *,
 wavelength) -> (..., 4, 4)`` (contract in docs/DESIGN.md). ``"double"`` uses the
@@ -539,7 +555,12 @@ exact-backscatter table of :mod:`ppr.brdf.double_table` when every element of th
 within ``PSI_MAX`` (1e-3 rad) of backscatter and the quadrature otherwise;
 ``"double:backscatter"`` forces the table (inputs beyond ``PSI_MAX`` are an error): a
 caller that knows its geometry is monostatic (``ppr.render`` for a monostatic sensor) uses it
-to keep the quadrature out of the compiled program."""
+to keep the quadrature out of the compiled program; ``"double:quadrature"`` forces the
+quadrature (any geometry, exact at backscatter too): a caller whose geometry is known to be
+bistatic (``ppr.render`` for a bistatic sensor beyond ``PSI_MAX``) or mixed uses it to keep the
+table branch, and its ``lax.cond``, out of a traced program (a ``lax.cond`` compiles and
+differentiates both branches: the gradient of a bistatic batch traces 3-4x faster without it,
+docs/benchmarks.md "Compilation")."""
 
 EXPLICIT_TERMS = ("single", "double")
 """Terms computed explicitly; ``"multiple"`` is the white-furnace remainder of those
@@ -578,9 +599,10 @@ def _resolve_terms(terms) -> tuple[str, ...]:
             raise ValueError(f"terms: unknown term {t!r}; choose from {tuple(TERMS)} or 'auto'")
     if len(set(terms)) != len(terms):
         raise ValueError(f"terms: duplicate names in {terms!r}")
-    if "double" in terms and "double:backscatter" in terms:
+    doubles = [t for t in terms if t in ("double", "double:backscatter", "double:quadrature")]
+    if len(doubles) > 1:
         raise ValueError(
-            f'terms: "double" and "double:backscatter" are the same term, got {terms!r}'
+            f"terms: {' and '.join(map(repr, doubles))} are the same term, got {terms!r}"
         )
     return terms
 
@@ -750,8 +772,9 @@ def mueller_brdf(
       directions' batch shape).
     - `terms`: names from ``"single"``, ``"double"``, ``"multiple"`` (default: all implemented),
       or ``"auto"``; ``"double:backscatter"`` is the double term from the exact-backscatter
-      table only (bistatic angle <= ``ppr.BACKSCATTER_PSI_MAX`` = 1e-3 rad, else an error;
-      :data:`TERMS`).
+      table only (bistatic angle <= ``ppr.BACKSCATTER_PSI_MAX`` = 1e-3 rad, else an error),
+      ``"double:quadrature"`` from the quadrature only (any geometry; a traced call then
+      compiles no table branch; :data:`TERMS`).
       ``"multiple"`` is always the remainder of the model's full set of explicit terms.
     - `frame_in`: x axis of the incident beam's Stokes frame (beam along ``-k_in``); default
       :func:`ppr.optics._frames.default_frame` (the s direction ``normal x d``).

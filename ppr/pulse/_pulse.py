@@ -410,17 +410,23 @@ def near_backscatter(laser_dir: Array, receiver_dir: Array) -> Array:
 
 def sensor_terms(brdf: Callable, terms, sensor: Sensor):
     """``terms`` for a *concrete* sensor: :func:`backscatter_terms` when its bistatic angle is
-    within the backscatter table's ``PSI_MAX`` (monostatic PPR), else ``terms`` unchanged.
-    Callers that jit over the sensor (:class:`inversion.SimulatorModel`, the database's
-    signature function) call it once outside, so that their compiled programs hold no
-    double-bounce quadrature."""
+    within the backscatter table's ``PSI_MAX`` (monostatic PPR), else the double term by
+    quadrature only (``"double:quadrature"``), ``terms`` unchanged for a traced sensor or
+    another BRDF. Callers that jit over the sensor (:class:`inversion.SimulatorModel`, the
+    database's signature function) call it once outside, so that their compiled programs hold
+    one branch of the double term, not a ``lax.cond`` of the table and the quadrature (both
+    compiled and, under a Jacobian, both differentiated). Either choice is valid at any
+    geometry of the traced sensor: the quadrature everywhere, the table where the sensor was
+    concrete-checked to be within ``PSI_MAX``."""
     bs = backscatter_terms(brdf, terms)
     dirs = (sensor.laser_dir, sensor.receiver_dir)
     if bs is not None and sensor.monostatic:
         return bs
     if bs is None or any(isinstance(a, jax.core.Tracer) for a in dirs):
         return terms
-    return bs if _near_np(*dirs) else terms
+    if _near_np(*dirs):
+        return bs
+    return tuple("double:quadrature" if t == "double:backscatter" else t for t in bs)
 
 
 def _near_np(laser_dir, receiver_dir) -> bool:
