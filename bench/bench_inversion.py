@@ -440,7 +440,8 @@ def summarize(records, meta) -> str:
         f"{len(MATERIALS)} materials x {len(FINISHES)} finishes {FINISHES}); truths: uniform "
         f"attitude, material from {MATERIALS}, m log-uniform in {list(M_RANGE)}, range offset "
         f"within +-3 bins of {BIN_WIDTH * 100:.0f} cm; Poisson counts, SNR = sqrt(total counts). "
-        f"MCMC {meta['mcmc_walkers']} walkers x {meta['mcmc_steps']} steps per sampled mode. "
+        f"MCMC {meta['mcmc_walkers']} walkers x {meta['mcmc_steps']} steps per sampled mode "
+        f"(moves: {meta.get('mcmc_moves', 'stretch')}). "
         f"Out-of-bank meshes: {list(OUT_OF_BANK)}. Warm-up (compilation) {meta['compile_s']:.0f} "
         f"s once; total run {meta['total_s']:.0f} s; load average {meta['load']}.",
         "",
@@ -602,6 +603,10 @@ def main(argv=None):
     ap.add_argument("--snrs", type=float, nargs="+", default=[30.0, 100.0, 1000.0])
     ap.add_argument("--grid", type=int, default=2, help="Hopf nside of the bank")
     ap.add_argument("--mcmc-steps", type=int, default=300)
+    ap.add_argument(
+        "--moves", choices=["stretch", "de_snooker"], default=None,
+        help="emcee moves of the sampler (default: the MCMC config's)",
+    )
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument("--tag", default="", help="suffix of the output files")
     ap.add_argument(
@@ -644,6 +649,7 @@ def main(argv=None):
                 "n_steps": args.mcmc_steps,
                 "burn_in": args.mcmc_steps // 3,
                 "progress": False,
+                **({} if args.moves is None else {"moves": args.moves}),
             }
         },
     )
@@ -695,6 +701,7 @@ def main(argv=None):
         resolution_deg=[round(r, 1) for r in bank.resolution_deg],
         mcmc_walkers=walkers,
         mcmc_steps=args.mcmc_steps,
+        mcmc_moves=args.moves or "stretch",
         compile_s=t_compile,
         bank_s=t_bank,
         total_s=time.perf_counter() - t_all,
