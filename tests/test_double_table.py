@@ -227,6 +227,7 @@ def test_quadrature_term_is_the_double_term_without_the_table_branch():
     mono = ppr.Sensor.make((0.0, 0.0, -1.0))
     assert sensor_terms(mueller_brdf, None, bi) == ("single", "double:quadrature", "multiple")
     assert sensor_terms(mueller_brdf, None, mono) == ("single", "double:backscatter", "multiple")
+    assert sensor_terms(mueller_brdf, "auto", bi) == "auto"  # its run-time skip is kept
     with pytest.raises(ValueError, match="same term"):
         mueller_brdf(k, kp, nrm, mat, terms=("double", "double:quadrature"))
 

@@ -264,13 +264,13 @@ def evaluate_mueller(
 def _host_terms(terms, k_in: np.ndarray, k_out: np.ndarray):
     """``terms`` with the double term taken from the exact-backscatter table when every row
     is within its ``PSI_MAX`` of backscatter (a monostatic sensor), else from its quadrature
-    (``"double:quadrature"``), decided here on the host as
+    (``"double:quadrature"``; ``"auto"`` unchanged), decided here on the host as
     :func:`ppr.pulse._pulse.sensor_terms` does for ``ppr.render``: the run-time dispatch would
     pick the same branch, but its compiled program also holds the other one (the table with
     the quadrature: about 3x the compilation time)."""
     from ..brdf._brdf import mueller_brdf  # noqa: PLC0415
     from ..brdf.double_table import PSI_MAX  # noqa: PLC0415
-    from ..pulse._pulse import backscatter_terms  # noqa: PLC0415
+    from ..pulse._pulse import _quadrature_terms, backscatter_terms  # noqa: PLC0415
 
     bs = backscatter_terms(mueller_brdf, terms)
     if bs is None:
@@ -278,7 +278,7 @@ def _host_terms(terms, k_in: np.ndarray, k_out: np.ndarray):
     dk = k_out - k_in
     if np.all(np.sum(dk * dk, axis=-1) <= (2.0 * np.sin(0.5 * PSI_MAX)) ** 2):
         return bs
-    return tuple("double:quadrature" if t == "double:backscatter" else t for t in bs)
+    return _quadrature_terms(terms, bs)
 
 
 def _host_mesh(mesh, smooth: bool):

@@ -411,13 +411,13 @@ def near_backscatter(laser_dir: Array, receiver_dir: Array) -> Array:
 def sensor_terms(brdf: Callable, terms, sensor: Sensor):
     """``terms`` for a *concrete* sensor: :func:`backscatter_terms` when its bistatic angle is
     within the backscatter table's ``PSI_MAX`` (monostatic PPR), else the double term by
-    quadrature only (``"double:quadrature"``), ``terms`` unchanged for a traced sensor or
-    another BRDF. Callers that jit over the sensor (:class:`inversion.SimulatorModel`, the
-    database's signature function) call it once outside, so that their compiled programs hold
-    one branch of the double term, not a ``lax.cond`` of the table and the quadrature (both
-    compiled and, under a Jacobian, both differentiated). Either choice is valid at any
-    geometry of the traced sensor: the quadrature everywhere, the table where the sensor was
-    concrete-checked to be within ``PSI_MAX``."""
+    quadrature only (``"double:quadrature"``), ``terms`` unchanged for a traced sensor,
+    another BRDF or ``"auto"`` beyond ``PSI_MAX``. Callers that jit over the sensor
+    (:class:`inversion.SimulatorModel`, the database's signature function) call it once
+    outside, so that their compiled programs hold one branch of the double term, not a
+    ``lax.cond`` of the table and the quadrature (both compiled and, under a Jacobian, both
+    differentiated). The quadrature is valid at any geometry; the table within ``PSI_MAX``,
+    where the concrete sensor was checked to be."""
     bs = backscatter_terms(brdf, terms)
     dirs = (sensor.laser_dir, sensor.receiver_dir)
     if bs is not None and sensor.monostatic:
@@ -426,6 +426,15 @@ def sensor_terms(brdf: Callable, terms, sensor: Sensor):
         return terms
     if _near_np(*dirs):
         return bs
+    return _quadrature_terms(terms, bs)
+
+
+def _quadrature_terms(terms, bs: tuple[str, ...]):
+    """``bs`` (:func:`backscatter_terms` of ``terms``) with the double term by quadrature, for
+    a geometry beyond ``PSI_MAX``; ``terms`` unchanged when it is ``"auto"`` (whose double
+    term is dropped at run time where it cannot matter: that saving is kept)."""
+    if terms == "auto":
+        return terms
     return tuple("double:quadrature" if t == "double:backscatter" else t for t in bs)
 
 
