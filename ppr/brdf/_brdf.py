@@ -517,19 +517,8 @@ def _double_backscatter_term(
     )
 
 
-def _double_quadrature_term(
-    k_in, k_out, normal, material, frame_in, frame_out, *, wavelength=DEFAULT_WAVELENGTH_M
-):
-    return double_term_dispatch(
-        k_in,
-        k_out,
-        normal,
-        material,
-        frame_in,
-        frame_out,
-        wavelength=wavelength,
-        branch="quadrature",
-    )
+# the quadrature branch of the dispatch, decided when the term is named
+_double_quadrature_term = functools.partial(double_term_dispatch, branch="quadrature")
 
 
 def _double_auto_term(
