@@ -24,6 +24,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from _timing import load_average, write_result
 
 HERE = Path(__file__).resolve().parent
 
@@ -87,14 +88,13 @@ def main() -> None:
         }
         rows.append((names, med))
         print(names, json.dumps(med), flush=True)
-    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
     lines = [
         "# Double term: run-time dispatch (`lax.cond`) against the quadrature alone",
         "",
         f"Command: `.venv/bin/python bench/bench_double_branch.py --repeats {args.repeats} "
         f"--n {args.n}` (fresh interpreter per variant, x64, default optimization, "
         f"bistatic batch of {args.n}, bistatic angle 0.3 rad; medians of {args.repeats}; "
-        f"load average {load} on 2 cores).",
+        f"load average {load_average()} on 2 cores).",
         "",
         "| terms | value: trace / lower / compile s | gradient: trace / lower / compile s "
         "| gradient run ms |",
@@ -113,10 +113,7 @@ def main() -> None:
         "monostatic one.",
         "",
     ]
-    out = HERE / "results" / "double_branch_compile.md"
-    out.write_text("\n".join(lines))
-    print("\n".join(lines))
-    print(f"wrote {out}")
+    write_result("double_branch_compile", lines)
 
 
 if __name__ == "__main__":

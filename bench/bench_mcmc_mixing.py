@@ -21,7 +21,6 @@ Writes ``bench/results/mcmc_mixing.md`` (~4 min on 2 cores).
 from __future__ import annotations
 
 import dataclasses
-import os
 import sys
 import time
 import warnings
@@ -34,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import arviz as az  # noqa: E402
 import bench_inversion as B  # noqa: E402
 import jax  # noqa: E402
+from _timing import load_average, write_result  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 import inversion  # noqa: E402
@@ -100,14 +100,13 @@ def main() -> None:
                    f"{int(inside.sum())}/{inside.size}", fit.success)
             rows.append(row)
             print(row, flush=True)
-    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
     lines = [
         "# Sampler mixing: R-hat and ESS across walkers against start ball, moves, length",
         "",
         f"Command: `.venv/bin/python bench/bench_mcmc_mixing.py` (x64, 24 walkers; refit "
-        f"from the truth; load average {load} on 2 cores). R-hat and bulk ESS: ArviZ over "
-        "the parameters, walkers as chains; tau: largest integrated autocorrelation time "
-        "(steps); in 68 %: parameters whose 68 % interval holds the truth.",
+        f"from the truth; load average {load_average()} on 2 cores). R-hat and bulk ESS: "
+        "ArviZ over the parameters, walkers as chains; tau: largest integrated "
+        "autocorrelation time (steps); in 68 %: parameters whose 68 % interval holds the truth.",
         "",
         "| observation | init_scale | moves | steps / burn-in | s | max tau | worst R-hat "
         "| min bulk ESS | in 68 % |",
@@ -122,11 +121,7 @@ def main() -> None:
     lines += ["", f"Deviance along the range offset at the fit of {scan[0]} (others fixed):",
               "", "| offset (mm) | deviance - min |", "|---|---|"]
     lines += [f"| {d * 1e3:+.1f} | {v:.1f} |" for d, v in scan[1]]
-    lines.append("")
-    out = Path(__file__).resolve().parent / "results" / "mcmc_mixing.md"
-    out.write_text("\n".join(lines))
-    print("\n".join(lines))
-    print(f"wrote {out}")
+    write_result("mcmc_mixing", lines)
 
 
 if __name__ == "__main__":

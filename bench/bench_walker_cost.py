@@ -15,11 +15,10 @@ Writes ``bench/results/walker_cost.md``.
 from __future__ import annotations
 
 import argparse
-import os
-import time
 from pathlib import Path
 
 import jax
+from _timing import first_and_median_time, load_average, write_result
 
 jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
@@ -28,18 +27,6 @@ import inversion  # noqa: E402
 import ppr  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def timed(fn, arg, repeats):
-    t = time.perf_counter()
-    jax.block_until_ready(fn(arg))
-    first = time.perf_counter() - t
-    ts = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(arg))
-        ts.append(time.perf_counter() - t)
-    return first, float(np.median(ts))
 
 
 def main() -> None:
@@ -63,18 +50,18 @@ def main() -> None:
     caps = model.subset_capacities()
     rows = []
     for name, a in (("facet sum + macro pairs", aux), ("facet sum only", subset)):
-        first, med = timed(jax.jit(lambda p, a=a: model.expected(p, a)), truth, args.repeats)
+        fn = jax.jit(lambda p, a=a: model.expected(p, a))
+        first, med = first_and_median_time(fn, truth, repeats=args.repeats)
         rows.append((name, first, med))
         print(name, f"first {first:.2f} s, steady {1e3 * med:.2f} ms", flush=True)
     n_pairs = None if macro is None else int(np.asarray(macro.g_i).shape[0])
-    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
     lines = [
         "# One model evaluation of the shipped `ppr invert` example",
         "",
         f"Command: `.venv/bin/python bench/bench_walker_cost.py --repeats {args.repeats}` (x64; "
         f"configs/scenes/cubesat3u_panels.toml, {scene.mesh.n_faces} faces, copol channels; "
         f"`prepare` at the truth: face subset capacity {caps[0]}, group capacity {caps[1]}, "
-        f"{n_pairs} macro pair slots; load average {load} on 2 cores).",
+        f"{n_pairs} macro pair slots; load average {load_average()} on 2 cores).",
         "",
         "| evaluation | first call (compile + run) s | steady ms (median) |",
         "|---|---|---|",
@@ -88,9 +75,7 @@ def main() -> None:
         "scene; the facet sum alone is a small fraction of it.",
         "",
     ]
-    out = ROOT / "bench" / "results" / "walker_cost.md"
-    out.write_text("\n".join(lines))
-    print("\n".join(lines))
+    write_result("walker_cost", lines)
 
 
 if __name__ == "__main__":
