@@ -358,6 +358,32 @@ def test_cubesat_panels_gain_the_dihedral_return_at_the_fold_range():
     np.testing.assert_allclose(got.sum(-1), area * lobe, rtol=0, atol=2e-3 * area * lobe[0, 0])
 
 
+def test_compacted_pairs_give_the_same_profile():
+    """``MacroPairs.compact`` (the sampler's fixed pairs) drops only dead padding: on the
+    CubeSat with panels (a random view, all polished aluminium: glossy pairs only; aluminium
+    with matte paint on the panels' backs: glossy-broad pairs, whose broad side takes the full
+    BRDF) the profile through the compacted pairs equals the padded one to float64 rounding,
+    the dead broad slots are gone, and the full-BRDF path is kept exactly when a live pair
+    has a broad side. All-matte parts: broad pairs only, the glossy slots go."""
+    u = np.array([-0.94988454, -0.31244442, 0.00989135])
+    mesh = shapes.cubesat_with_panels(3, panel_span=0.3)
+    al, paint = ppr.Material(AL, 1e4), ppr.Material(2.668, 2.0)
+    for mats, mixed in (([al] * 3, False), ([al, al, paint], True)):
+        sc = _scene(mesh, u, mats)
+        pairs, _ = _pairs(sc)
+        small = pairs.compact()
+        assert pairs.n_glossy == small.n_glossy == 8 and pairs.n_broad == 0
+        assert small.g_i.shape == (8,) and small.r_i.shape == (0,) and small.mixed is mixed
+        a = np.asarray(ppr.double_bounce(sc, pairs=pairs).data)
+        b = np.asarray(ppr.double_bounce(sc, pairs=small).data)
+        assert a.max() > 0
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-14 * a.max())
+    pairs, _ = _pairs(_scene(mesh, u, [paint] * 3))
+    small = pairs.compact()
+    assert pairs.n_broad == small.n_broad == 8 and small.g_i.shape == (0,)
+    np.testing.assert_array_equal(np.asarray(small.r_w), np.asarray(pairs.r_w))
+
+
 # ----------------------------------------------------------------------------- gradients, dtype
 
 

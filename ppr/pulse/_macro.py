@@ -716,6 +716,42 @@ class MacroPairs(eqx.Module):
     def n_broad(self) -> int:
         return int(np.sum(np.any(np.asarray(self.r_w) > 0, axis=(-1, -2))))
 
+    def compact(self) -> MacroPairs:
+        """Host: the same pairs with the padding no live entry needs dropped, for a program
+        that will only ever see these pairs (a sampler's fixed pairs): the glossy and the broad
+        slots cut to the capacity of their live count (0 when none is live: the kernel then
+        leaves that path out), and `mixed` recomputed from the live glossy pairs. The profile
+        is unchanged (padding carries zero weight); its cost is not: dead broad slots still
+        cost their BRDF evaluations (bench/results/walker_cost.md). Works on one pose or a
+        stacked batch (cut to the largest live count of its rows)."""
+        g_live = np.asarray(self.g_vis) > 0
+        r_live = np.any(np.asarray(self.r_w) > 0, axis=(-1, -2))
+
+        def keep(live):
+            counts = np.sum(live.reshape(-1, live.shape[-1]), axis=-1)
+            n = int(counts.max()) if counts.size else 0
+            # live slots come first (_pack); anything live beyond the cut would be lost
+            if np.any(live[..., n:]):
+                raise ValueError("MacroPairs.compact: live slots are not a prefix (not packed)")
+            return min(_pair_capacity(n), live.shape[-1])
+
+        cg, cr = keep(g_live), keep(r_live)
+        kinds = np.asarray(self.g_kind)[g_live]
+        return dataclasses.replace(
+            self,
+            g_i=self.g_i[..., :cg],
+            g_j=self.g_j[..., :cg],
+            g_kind=self.g_kind[..., :cg],
+            g_vis=self.g_vis[..., :cg],
+            r_i=self.r_i[..., :cr],
+            r_j=self.r_j[..., :cr],
+            r_x=self.r_x[..., :cr, :, :],
+            r_k=self.r_k[..., :cr, :, :, :],
+            r_w=self.r_w[..., :cr, :, :],
+            r_t=self.r_t[..., :cr, :, :],
+            mixed=bool(self.mixed and np.any(kinds != KIND_GG)),
+        )
+
 
 def _pair_capacity(n: int) -> int:
     """Padded count: 0 for none (the kernel then leaves that path out), else the next power
