@@ -1802,8 +1802,10 @@ class SimulatorModel:
       (``ppr.simulate``'s switch; ``"auto"``: included when some surfaces face each other).
       :meth:`prepare` then returns ``(visibility, ppr.MacroPairs)``: the pairs, their
       visibility and glossy/broad kinds are held fixed over a round like the visibility,
-      at padded counts (at least 8 of each kind, so that poses with and without broad pairs
-      share one program) that grow (one more compilation) only when a pose needs more.
+      each kind padded to the capacity of the pose's own count (0 when it has none, else
+      8, 16, ...): a pose pays only for the paths it has (a dead slot costs as much as a
+      live one), at the price of one program per combination met (glossy pairs only,
+      broad pairs only, both).
     - `prune`: :meth:`prepare` returns a :class:`ppr.FaceSubset` of the facets lit and
       visible at the given pose instead of the whole mesh's fractions: the facets it leaves
       out contribute exactly zero at that visibility, so every result is the same (to the
@@ -1869,10 +1871,8 @@ class SimulatorModel:
         self.macro_options = macro_options or ppr.MacroOptions()
         geom = ppr.macro_geometry(mesh, plates=self.macro_options.plates)
         self.multibounce = multibounce is True or (multibounce == "auto" and not geom.convex)
-        # glossy and broad pair counts padded to at least 8 from the first pose: a pose with
-        # none of one kind (the simulated truth's smooth faces, while the rough screening
-        # templates have broad pairs) then shares the programs of those that have some
-        self._macro_caps = (geom.n_macro, 8, 8) if self.multibounce else (geom.n_macro, 0, 0)
+        # macro triangles padded once; the glossy and broad pair counts per pose (macro_pairs)
+        self._macro_caps = (geom.n_macro, 0, 0)
         self.pure_model = SimulatorKernel(
             arrays=arrays,
             sensor=cast(sensor),
@@ -2000,11 +2000,7 @@ class SimulatorModel:
             mixed=True,
             dtype=pm.arrays.tri.dtype,
         )
-        self._macro_caps = (
-            pairs.tri.shape[1],
-            max(self._macro_caps[1], pairs.g_i.shape[1]),
-            max(self._macro_caps[2], pairs.r_i.shape[1]),
-        )
+        self._macro_caps = (pairs.tri.shape[1], 0, 0)
         return jax.tree_util.tree_map(lambda a: a[0], pairs)  # the one row
 
     def subset_capacities(self, n_poses: int = 256) -> tuple[int, int]:
