@@ -373,14 +373,6 @@ def _jitted_vmap(static, method: str = "single"):
     return fn
 
 
-def _fixed_aux(model, phys):
-    """The sampler's ``aux`` at its reference point: ``model.prepare_fixed`` when the model
-    has one (an ``aux`` without the padding a refiner keeps for other poses), else
-    ``model.prepare``."""
-    fixed = getattr(model, "prepare_fixed", None)
-    return model.prepare(phys) if fixed is None else fixed(phys)
-
-
 def _make_counts_log_prob(
     model, data, param: Parametrisation, priors: PriorConfig, noise, probe, batch: int
 ):
@@ -388,7 +380,7 @@ def _make_counts_log_prob(
     coordinate of :class:`_CountsLogProb` (the log gain is emcee's blob). ``probe``: a few
     ``theta`` rows at which the model is checked for being affine in the gain; ``batch``:
     smaller batches are padded to it."""
-    aux = _fixed_aux(model, param.reference)
+    aux = model.prepare(param.reference)
     shape = _model_shape(model, param.reference, aux)
     data_j = jnp.asarray(check_observation(data, shape))
     i = param.theta_labels.index("log_gain")
@@ -445,7 +437,7 @@ def make_log_prob(model, data, param: Parametrisation, priors: PriorConfig, nois
             "(jax.config.update('jax_enable_x64', True)); the library never sets it"
         )
     noise = PoissonNoise() if noise is None else noise
-    aux = _fixed_aux(model, param.reference) if aux is None else aux
+    aux = model.prepare(param.reference) if aux is None else aux
     shape = _model_shape(model, param.reference, aux)
     data_np = check_observation(data, shape)
     if hasattr(noise, "check_data"):

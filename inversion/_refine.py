@@ -6,8 +6,6 @@ its arrays, so that jit traces rather than bakes them in) with
 - ``prepare(phys: PhysicalParams) -> aux``: host-side, *not* traced, no gradients. Returns a
   pytree of arrays the pure model needs and that is piecewise constant in the parameters
   (per-face visibility fractions from ray casting). Called between refinement rounds.
-  Optionally ``prepare_fixed(phys) -> aux``: the same for a program that only ever sees this
-  one ``aux`` (the sampler), free to drop padding kept for other poses.
 - ``expected(phys: PhysicalParams, aux) -> Float[Array, "C B"]``: pure, jittable,
   differentiable expected counts per channel and range bin.
 
@@ -1958,18 +1956,6 @@ class SimulatorModel:
             group_capacity=max(g_cap, ppr.geometry.subset_capacity(n_groups)),
         )
         return subset if macro is None else (subset, macro)
-
-    def prepare_fixed(self, phys: PhysicalParams):
-        """Host: :meth:`prepare` for a program that only ever sees this one ``aux`` (the
-        sampler keeps the visibility of its reference point for the whole chain): the macro
-        pairs' padding that no live pair fills is dropped (``ppr.MacroPairs.compact``). The
-        capacities :meth:`prepare` keeps for other poses let the refiner's rounds share one
-        compilation; a fixed ``aux`` does not need them, and their dead slots cost as much
-        to evaluate as live ones (bench/results/walker_cost.md)."""
-        aux = self.prepare(phys)
-        if isinstance(aux, tuple):
-            return (aux[0], aux[1].compact())
-        return aux
 
     def macro_pairs(self, phys: PhysicalParams):
         """Host: the ``ppr.MacroPairs`` at ``phys``'s attitude and exponents (None without the
