@@ -535,6 +535,9 @@ def test_database_signatures_and_inversion_model_include_the_double_bounce():
     phys = PhysicalParams(q, [20.0] * 3, [mat.n] * 3)
     aux = model.prepare(phys)
     assert isinstance(aux, tuple) and aux[1].n_broad > 0  # panel-body pairs at this attitude
+    # every pair broad (Lambertian stand-in): no glossy slots, whose dead padding would be
+    # evaluated like live pairs; the broad slots at the capacity of their own count
+    assert aux[1].g_i.shape == (0,) and aux[1].r_i.shape[0] == _macro._pair_capacity(aux[1].n_broad)
     got = np.asarray(model.expected(phys, aux))
     np.testing.assert_allclose(
         got, np.asarray(measure(mm, jnp.asarray(both))), rtol=1e-9, atol=1e-12 * ref.max()
