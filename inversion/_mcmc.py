@@ -623,6 +623,10 @@ class MCMCResult:
             quantiles=[0.16, 0.5, 0.84],
             show_titles=True,
             title_fmt=".3g",
+            # corner logs "Too few points to create valid contours" for every panel of a
+            # discrete column (a library index sampled over its materials) and draws the
+            # same panel either way: silenced, so the command's output stays readable
+            quiet=True,
         )
         fig.savefig(path, dpi=80)
         plt.close(fig)
