@@ -10,8 +10,10 @@ the data barely constrain. Variants (``[sampler]`` settings of ``InvertConfig.mc
   normal-incidence reflectance, stretch move only (the sampler before this change);
 - ``roll``: ``roll_separation = true`` (attitude as ``exp(phi k) exp(t) q_ref``);
 - ``roll+counts+moves``: and the gain as the log total signal, roll independence moves;
-- ``library`` (the defaults): and the index sampled over the library materials with
-  jumps between the per-material optima.
+- ``library``: and the index sampled over the library materials with jumps between the
+  per-material optima;
+- ``independence`` (the defaults): and, after the burn-in, independence moves from a
+  Student-t fitted to the burn-in's second half (per material, conditional on the roll).
 
 Writes ``bench/results/mcmc_flat.md``. Run:
 ``python bench/bench_mcmc_flat.py [--steps 300] [--walkers 24] [--seeds 0 1]``.
@@ -38,14 +40,25 @@ import bench_inversion as bi  # noqa: E402
 import inversion  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "results"
-OLD = dict(index="continuous", gain_coordinate="reflectance", material_move=0.0, roll_move=0.0)
+OLD = dict(
+    index="continuous",
+    gain_coordinate="reflectance",
+    material_move=0.0,
+    roll_move=0.0,
+    independence_move=0.0,
+)
 VARIANTS = {
     "plain": dict(OLD, roll_separation=False),
     "roll": dict(OLD, roll_separation=True),
     "roll+counts+moves": dict(
-        roll_separation=True, index="continuous", gain_coordinate="total_counts", roll_move=0.1
+        roll_separation=True,
+        index="continuous",
+        gain_coordinate="total_counts",
+        roll_move=0.1,
+        independence_move=0.0,
     ),
-    "library": {},
+    "library": dict(independence_move=0.0),
+    "independence": {},
 }
 
 
@@ -96,6 +109,7 @@ def main(argv=None):
                     shape=inv.shape,
                     rhat={k: v["r_hat"] for k, v in d.items()},
                     ess={k: v["ess_bulk"] for k, v in d.items()},
+                    los=inversion.line_of_sight_rhat(post, inv.line_of_sight_world),
                     acc=float(np.mean(post.acceptance_fraction)),
                     sample_s=inv.timings.get("sample", float("nan")),
                     wall_s=wall,
@@ -119,23 +133,33 @@ def main(argv=None):
         f"{args.steps} steps (burn-in {args.steps // 3}), best mode only. Load average "
         f"{open('/proc/loadavg').read().split()[:3]}.",
         "",
-        "| variant | seed | acceptance | sample [s] | max R-hat | min bulk ESS | "
+        "| variant | seed | acceptance | sample [s] | max R-hat | min bulk ESS | LOS R-hat | "
         + " | ".join(labels)
         + " |",
-        "|---|---|---|---|---|---|" + "---|" * len(labels),
+        "|---|---|---|---|---|---|---|" + "---|" * len(labels),
     ]
     for r in rows:
         rh = [v for v in r["rhat"].values() if v is not None]
         es = [v for v in r["ess"].values() if v is not None]
+        lv = [v for v in r["los"].values() if v is not None]
+        los = f"{max(lv):.2f}" if lv else "-"
         cells = [
             "-" if r["rhat"][k] is None else f"{r['rhat'][k]:.2f} / {r['ess'][k]:.0f}"
             for k in labels
         ]
         lines.append(
             f"| {r['variant']} | {r['seed']} | {r['acc']:.2f} | {r['sample_s']:.1f} | "
-            f"{max(rh):.2f} | {min(es):.0f} | " + " | ".join(cells) + " |"
+            f"{max(rh):.2f} | {min(es):.0f} | {los} | " + " | ".join(cells) + " |"
         )
-    lines += ["", "Cells: R-hat / bulk ESS per parameter (physical units)."]
+    lines += [
+        "",
+        "Cells: R-hat / bulk ESS per parameter (physical units). LOS R-hat: the largest of the "
+        "body-frame line of sight's unit-vector components (`inversion.line_of_sight_rhat`), "
+        "what `inversion.invert` judges instead of `rot_x/y/z` when the roll about the line "
+        "of sight is unobservable (this observation's is); `n_re`/`n_im` are library "
+        "materials (discrete) in the `library` and `independence` rows: read the material "
+        "probabilities, not their R-hat.",
+    ]
     OUT.mkdir(exist_ok=True)
     (OUT / f"mcmc_flat{args.tag}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -98,7 +98,13 @@ from ._observability import (
     observability_from_fisher,
 )
 from ._params import GAIN_RANGE, Parametrisation, PhysicalParams
-from ._posterior import GAIN_UNIT, posterior_diagnostics, to_inference_data, write_posterior
+from ._posterior import (
+    GAIN_UNIT,
+    line_of_sight_rhat,
+    posterior_diagnostics,
+    to_inference_data,
+    write_posterior,
+)
 from ._refine import (
     CramerRao,
     GaussianNoise,
@@ -216,6 +222,7 @@ __all__ = [
     "to_inference_data",
     "write_posterior",
     "posterior_diagnostics",
+    "line_of_sight_rhat",
     "INVERT_FILES",
     "Candidate",
     "InvertConfig",

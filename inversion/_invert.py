@@ -94,6 +94,7 @@ from ._mcmc import (
 from ._noise import Observation
 from ._observability import Observability, line_of_sight_of, observability, observable_inverse
 from ._params import GROUPS, PhysicalParams, lift_start
+from ._posterior import line_of_sight_rhat
 from ._refine import (
     PhysicalBounds,
     PoissonCounts,
@@ -216,7 +217,10 @@ class InvertConfig(StrictModel):
     - `mismatch_p`: p-value below which the goodness of fit reports a model mismatch.
     - `mcmc`: priors and sampler (:class:`~inversion.MCMCConfig`) or None (no sampling);
       `mcmc_min_weight`: modes sampled above this weight (at most `max_sampled_modes`);
-      `rhat_max`: largest ArviZ R-hat of a converged chain.
+      `rhat_max`: largest ArviZ R-hat of a converged chain (of the parameters the answer
+      reports: the library-index columns and, when the roll about the line of sight is
+      unobservable, the rotation-vector components are judged by the material
+      probabilities and the body-frame line of sight instead; ``_judged_rhat``).
     - `progress`: tqdm bars (they start after the first, compiling, item).
     """
 
@@ -1823,7 +1827,8 @@ def invert(
                         )
                     warns = tuple(str(x.message) for x in caught)
                     diag = post.diagnostics()
-                    rh = [d["r_hat"] for d in diag.values() if d["r_hat"] is not None]
+                    judged = _judged_rhat(post, diag, los_world, ob, lib_n is not None)
+                    rh = [v for v in judged.values() if v is not None]
                     max_rhat = max(rh, default=math.inf)
                     conv = bool(post.converged and max_rhat <= cfg.rhat_max)
                     if not conv:
@@ -1934,6 +1939,32 @@ def _pick_rows(cls: Classification, bank: TemplateBank, top_k: int, per_shape: i
     for s in np.unique(bank.shape_id):
         cols += [int(c) for c in first[sid == s][:per_shape] if c not in cols]
     return sorted(int(c) for c in cols)
+
+
+def _judged_rhat(post, diag, los_world, ob, library: bool) -> dict[str, float | None]:
+    """The R-hat values the ``rhat_max`` verdict judges, by label: every sampled parameter,
+    except
+    - with the index sampled over the library materials, ``n_re``/``n_im`` (discrete: their
+      posterior is the material probabilities, whose R-hat means nothing);
+    - when the data leave the roll about the line of sight free (named by
+      :func:`inversion.observability`), ``rot_x/y/z``, replaced by the body-frame line of
+      sight's components (:func:`inversion.line_of_sight_rhat`): those rotation-vector
+      components then move with the flat roll, which each walker samples within its
+      half-circle (the half turn is a mode of its own), so their R-hat measures how the
+      walkers split between the halves, not the answer.
+    """
+    roll_free = any(n.startswith("roll about the line of sight") for n in ob.names)
+    out = {}
+    for lab, d in diag.items():
+        name = lab.split(" [")[0].split("[")[0]
+        if library and name in ("n_re", "n_im"):
+            continue
+        if roll_free and name in ("rot_x", "rot_y", "rot_z"):
+            continue
+        out[lab] = d["r_hat"]
+    if roll_free:
+        out.update(line_of_sight_rhat(post, los_world))
+    return out
 
 
 def _sampler_progress(cfg: InvertConfig) -> MCMCConfig:

@@ -25,7 +25,11 @@ with a uniform prior on the library). Besides emcee's moves, independence moves 
 roll (:class:`_RollMove`) and jump between materials, translated between the per-material
 optima (:class:`_MaterialMove`); each satisfies detailed balance on its own. These make the
 directions a glossy target leaves flat (the roll, the index the gain absorbs) mix in a few
-steps instead of diffusing across the prior (``bench/results/mcmc_flat.md``).
+steps instead of diffusing across the prior (``bench/results/mcmc_flat.md``). From the middle
+of the burn-in on, independence moves redraw the continuous coordinates from a Student-t
+fitted to the walkers' recent positions (:class:`_IndependenceMove`, refitted at the end of
+the burn-in and fixed after it), so that the walkers decorrelate in a few steps instead of
+the stretch move's tens.
 
 The log-probability is one ``jax.jit(jax.vmap(...))`` over walkers, called by
 ``emcee.EnsembleSampler(..., vectorize=True)``; float64 is required (x64 on). Chains can be
@@ -214,6 +218,12 @@ class SamplerConfig(StrictModel):
     # +-90 deg (needs roll_separation; _RollMove): a roll the data do not fix mixes in a few
     # steps
     roll_move: float = pydantic.Field(0.1, ge=0.0, lt=1.0)
+    # fraction of the steps in the burn-in's second half and after it that redraw each
+    # walker's continuous coordinates from a multivariate Student-t fitted to the walkers'
+    # recent positions (per library material; _IndependenceMove; refitted once, at the end
+    # of the burn-in): a posterior close to that t mixes in a few steps instead of the
+    # stretch move's tens. Needs burn_in >= 20; 0 turns it off
+    independence_move: float = pydantic.Field(0.4, ge=0.0, lt=1.0)
     # the sampler's gain coordinate: "total_counts" (log of the total expected signal,
     # _CountsLogProb), "reflectance" (log gain + log normal-incidence reflectance,
     # _ReflectanceShear) or "log_gain"; all have unit Jacobian (same posterior)
@@ -221,10 +231,12 @@ class SamplerConfig(StrictModel):
 
     @pydantic.model_validator(mode="after")
     def _moves_sum(self):
-        if self.material_move + self.roll_move >= 1.0:
+        total = self.material_move + self.roll_move + self.independence_move
+        if total >= 1.0:
             raise ValueError(
-                f"material_move + roll_move must be < 1 (the rest are emcee's moves), got "
-                f"{self.material_move} + {self.roll_move}"
+                "material_move + roll_move + independence_move must be < 1 (the rest are "
+                f"emcee's moves), got {self.material_move} + {self.roll_move} + "
+                f"{self.independence_move}"
             )
         return self
 
@@ -872,25 +884,49 @@ def sample_posterior(
     if sc.roll_move > 0 and rs is not None:
         col = rs.i[2] if lib is None else lib.position(rs.i[2])
         extra.append((_RollMove(col), sc.roll_move))
+    base = moves if isinstance(moves, list) else [(moves, 1.0)]  # emcee's own moves
     if extra:
-        own = moves if isinstance(moves, list) else [(moves, 1.0)]
         rest = 1.0 - sum(w for _, w in extra)
-        moves = [(mv, w * rest) for mv, w in own] + extra
+        moves = [(mv, w * rest) for mv, w in base] + extra
+    adapt = sc.independence_move > 0 and sc.burn_in >= _MIN_ADAPT_STEPS
+    if adapt and backend is None:
+        backend = emcee.backends.Backend()  # the production run continues in it
     sampler = emcee.EnsembleSampler(
         sc.n_walkers, ndim_s, target, vectorize=True, backend=backend, moves=moves
     )
     sampler.random_state = np.random.RandomState(sc.seed).get_state()
-    sampler.run_mcmc(
-        p_start,
-        sc.n_steps,
-        progress=sc.progress,
-        progress_kwargs=None if progress_desc is None else {"desc": progress_desc},
-    )
+    pkw = None if progress_desc is None else {"desc": progress_desc}
+    if adapt:
+        # the burn-in in quarters: the first with the moves above, each later one (and the
+        # production run) with an independence move fitted to the quarter before it (each
+        # proposal fixed while it runs: detailed balance holds; the walkers mix faster with
+        # every refit, so the next fit is closer to the posterior)
+        roll = None
+        if rs is not None:  # each walker keeps its half-circle of roll, as in the roll move
+            roll = rs.i[2] if lib is None else lib.position(rs.i[2])
+        fixed = [] if lib is None else list(lib.z_columns())
+        # the independence move's share comes out of emcee's moves' (the material and roll
+        # moves keep theirs)
+        rest = 1.0 - sum(w for _, w in extra)
+        with_ind = [(m, w * (rest - sc.independence_move)) for m, w in base] + extra
+        ends = [sc.burn_in * k // _ADAPT_STAGES for k in range(1, _ADAPT_STAGES + 1)]
+        sampler.run_mcmc(p_start, ends[0], progress=sc.progress, progress_kwargs=pkw)
+        for k in range(1, _ADAPT_STAGES + 1):
+            start = ends[k - 2] if k >= 2 else ends[0] // 2
+            steps = (ends[k] - ends[k - 1]) if k < _ADAPT_STAGES else sc.n_steps - sc.burn_in
+            ind = _IndependenceMove.fit(sampler.get_chain()[start:], fixed=fixed, roll=roll)
+            mv = moves if ind is None else with_ind + [(ind, sc.independence_move)]
+            sampler = emcee.EnsembleSampler(
+                sc.n_walkers, ndim_s, target, vectorize=True, backend=backend, moves=mv
+            )
+            sampler.run_mcmc(None, steps, progress=sc.progress, progress_kwargs=pkw)
+    else:
+        sampler.run_mcmc(p_start, sc.n_steps, progress=sc.progress, progress_kwargs=pkw)
 
     chain = sampler.get_chain()
     if counts is not None or sh is not None or rs is not None or lib is not None:
         chain = to_theta(chain, None if counts is None else sampler.get_blobs())
-        if backend is not None:  # the file holds theta too, like the returned chain
+        if path is not None:  # the file holds theta too, like the returned chain
             import h5py
 
             with h5py.File(path, "r+") as f:
@@ -1175,18 +1211,143 @@ class _MaterialMove(emcee.moves.MHMove):
         return new, np.zeros(w)
 
 
+# burn-in steps below which no independence proposal is fitted (too few, too correlated),
+# and the burn-in's stages, each with a proposal fitted to the stage before
+_MIN_ADAPT_STEPS = 20
+_ADAPT_STAGES = 4
+
+
+class _IndependenceMove(emcee.moves.MHMove):
+    r"""Independence Metropolis move from a multivariate Student-t fitted to the burn-in.
+
+    Each walker redraws its continuous sampler coordinates ``A`` (all but the library
+    coordinates ``z``, which :class:`_MaterialMove` samples) from ``t_nu(mu_k, c^2
+    Sigma_k)``, ``k`` the walker's library material (``floor(z)``; one component without a
+    library); ``mu_k, Sigma_k`` are the mean and covariance of the burn-in's second half
+    among the samples with material ``k`` (all samples when there are fewer than
+    ``4 dim + 10``), ``c = 1.25``, ``nu = 5``. The proposal does not depend on the current
+    ``y_A``, so the Hastings factor is ``log q_k(y_A) - log q_k(y'_A)`` (the normalization,
+    the same for both, cancels) and the move is exact for any target. With ``roll`` (the
+    column of the roll ``phi`` about the line of sight) the move keeps each walker in its
+    half-circle, as :class:`_RollMove` does (the half turn of monostatic data is a mode of
+    its own when the roll is observable): the fit and ``q`` see the roll folded into
+    ``(-pi/2, pi/2]`` by the half turn (:func:`_fold_roll`), a draw with ``|phi'| >= pi/2``
+    is rejected and the proposal is unfolded into the walker's half; within either half the
+    move is the same exact independence sampler.
+
+    Where the posterior is close to the fitted t (the Laplace picture with heavier tails),
+    a proposal is accepted with probability of order one wherever the walker is: the chain
+    forgets its state in a few steps, against tens for the stretch move in 8-10 dimensions,
+    whose ensemble drifts collectively (which inflates R-hat across walkers). The stretch
+    move keeps running alongside (``1 - independence_move`` of the steps) for what the t
+    does not describe.
+    """
+
+    def __init__(self, cols_a, z_cols, comps: dict, pooled, nu: float, roll=None):
+        self.a = np.asarray(cols_a, int)
+        self.z = np.asarray(z_cols, int)
+        self.comps = comps
+        self.pooled = pooled
+        self.nu = float(nu)
+        self.roll = roll
+        super().__init__(self._propose)
+
+    @classmethod
+    def fit(cls, chain, fixed=(), roll=None, nu: float = 5.0, scale: float = 1.25):
+        """From burn-in samples ``(steps, walkers, dim)``; None when no component can be
+        fitted (too few samples or a singular covariance)."""
+        x = np.array(chain, np.float64).reshape(-1, chain.shape[-1])
+        x = x[np.all(np.isfinite(x), axis=1)]
+        if roll is not None:
+            x[:, roll] = _fold_roll(x[:, roll])[0]
+        z = np.asarray(list(fixed), int)
+        a = np.array([i for i in range(x.shape[1]) if i not in set(z.tolist())], int)
+        if a.size == 0:
+            return None
+
+        def component(rows):
+            if rows.shape[0] < 4 * a.size + 10:
+                return None
+            y = rows[:, a]
+            cov = np.atleast_2d(np.cov(y, rowvar=False)) * scale**2
+            try:
+                chol = np.linalg.cholesky(0.5 * (cov + cov.T))
+            except np.linalg.LinAlgError:
+                return None
+            return y.mean(axis=0), chol
+
+        pooled = component(x)
+        if pooled is None:
+            return None
+        comps = {}
+        if z.size:
+            keys = np.floor(x[:, z]).astype(int)
+            for key in {tuple(k) for k in keys.tolist()}:
+                comp = component(x[np.all(keys == np.asarray(key), axis=1)])
+                if comp is not None:
+                    comps[key] = comp
+        return cls(a, z, comps, pooled, nu, roll)
+
+    def _log_q(self, y, mu, chol):
+        u = np.linalg.solve(chol, (y - mu).T).T
+        return -0.5 * (self.nu + self.a.size) * np.log1p(np.sum(u * u, axis=-1) / self.nu)
+
+    def _propose(self, coords: np.ndarray, random):
+        w = coords.shape[0]
+        keys = np.floor(coords[:, self.z]).astype(int) if self.z.size else np.zeros((w, 0), int)
+        coords = np.array(coords, np.float64, copy=True)
+        if self.roll is not None:
+            coords[:, self.roll], half = _fold_roll(coords[:, self.roll])
+        new = coords.copy()
+        g = random.standard_normal((w, self.a.size))
+        r = np.sqrt(self.nu / random.chisquare(self.nu, size=w))
+        factors = np.zeros(w)
+        for key in {tuple(k) for k in keys.tolist()}:
+            rows = np.flatnonzero(np.all(keys == np.asarray(key, int), axis=1))
+            mu, chol = self.comps.get(key, self.pooled)
+            y_new = mu + r[rows, None] * (g[rows] @ chol.T)
+            new[np.ix_(rows, self.a)] = y_new
+            factors[rows] = self._log_q(coords[np.ix_(rows, self.a)], mu, chol) - self._log_q(
+                y_new, mu, chol
+            )
+        if self.roll is not None:
+            u = new[:, self.roll]
+            factors = np.where(np.abs(u) < 0.5 * math.pi, factors, -np.inf)
+            new[:, self.roll] = _unfold_roll(u, half)
+        return new, factors
+
+
+def _fold_roll(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Roll ``phi`` in ``[-pi, pi]`` -> its image in ``(-pi/2, pi/2]`` under the half turn
+    about the line of sight, and whether it was in the outer half (``|phi| >= pi/2``)."""
+    phi = np.asarray(phi, np.float64)
+    half = np.abs(phi) >= 0.5 * math.pi
+    return np.where(half, phi - np.copysign(math.pi, phi), phi), half
+
+
+def _unfold_roll(u: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`_fold_roll` for ``|u| < pi/2``: ``u`` carried into the outer half
+    by the half turn where ``half``."""
+    u = np.asarray(u, np.float64)
+    return np.where(half, np.where(u <= 0.0, u + math.pi, u - math.pi), u)
+
+
 class _RollMove(emcee.moves.MHMove):
     """Independence move of the roll ``phi`` about the line of sight (the roll-separated
-    coordinate of :class:`_RollSeparation`): a walker with ``|phi| < pi/2`` proposes
-    ``phi' ~ U(-pi/2, pi/2)`` and keeps its other coordinates; a walker outside that
-    half-circle proposes nothing it may accept (the proposal density is 0 at its current
-    point: Hastings factor ``-inf``). Inside, the proposal density is constant, so the
-    factor is 0 and the move is exact for any target; for the uniform (Haar) attitude prior,
-    whose density in ``(t, phi)`` does not depend on ``phi`` (left invariance), the
-    acceptance is the likelihood ratio: ~1 for a roll the data do not fix. The half-circle
-    keeps the walkers away from the half turn about the line of sight, an exact mode of
-    monostatic data that :func:`inversion.invert` samples as a mode of its own: a walker
-    carried there alone could not come back (the stretch move needs company)."""
+    coordinate of :class:`_RollSeparation`) within the walker's half-circle: a walker with
+    ``|phi| < pi/2`` proposes ``phi' ~ U(-pi/2, pi/2)``, one with ``|phi| >= pi/2`` the
+    half turn's image of such a draw (:func:`_unfold_roll`), and keeps its other
+    coordinates. Within either half the proposal density is constant, so the factor is 0 and
+    the move is exact for any target; for the uniform (Haar) attitude prior, whose density
+    in ``(t, phi)`` does not depend on ``phi`` (left invariance), the acceptance is the
+    likelihood ratio: ~1 for a roll the data do not fix. No walker is carried across the
+    half-circles: the half turn about the line of sight is an exact mode of monostatic data
+    that :func:`inversion.invert` samples as a mode of its own, and a walker carried there
+    alone could not come back (the stretch move needs company). A roll the data do not fix
+    at all spreads over both halves through the stretch move, and walkers in the outer half
+    are redrawn there too (measured: on a glossy cubesat with a free roll half the walkers
+    sat in the outer half, where the earlier rule, proposals only from the inner half, never
+    moved them)."""
 
     def __init__(self, i_phi: int):
         self.i_phi = int(i_phi)
@@ -1195,9 +1356,10 @@ class _RollMove(emcee.moves.MHMove):
     def _propose(self, coords: np.ndarray, random):
         w = coords.shape[0]
         new = np.array(coords, np.float64, copy=True)
-        new[:, self.i_phi] = random.uniform(-0.5 * math.pi, 0.5 * math.pi, size=w)
-        inside = np.abs(coords[:, self.i_phi]) < 0.5 * math.pi
-        return new, np.where(inside, 0.0, -np.inf)
+        half = _fold_roll(coords[:, self.i_phi])[1]
+        u = random.uniform(-0.5 * math.pi, 0.5 * math.pi, size=w)
+        new[:, self.i_phi] = _unfold_roll(u, half)
+        return new, np.zeros(w)
 
 
 def _rotvec_host(q: np.ndarray) -> np.ndarray:

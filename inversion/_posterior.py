@@ -253,6 +253,36 @@ def posterior_diagnostics(idata, labels=None) -> dict[str, dict[str, float]]:
     return out
 
 
+def line_of_sight_rhat(result, line_of_sight=(0.0, 0.0, 1.0)) -> dict[str, float | None]:
+    """ArviZ's R-hat (walkers as chains, kept draws) of the body-frame line of sight's
+    unit-vector components ``los_x``, ``los_y``, ``los_z`` of an
+    :class:`~inversion.MCMCResult` with the attitude free (empty dict otherwise).
+
+    The attitude that a monostatic measurement sees is the line of sight in the body frame
+    plus, through the polarization, the roll about it. When the data leave the roll free,
+    the rotation-vector components ``rot_x/y/z`` wander with the roll, and their R-hat says
+    how the walkers share the flat roll circle between its two halves (each walker keeps its
+    half: the half turn is a mode of its own), not whether the answer has converged; the
+    line of sight's components do not depend on the roll."""
+    if "rot_x [deg]" not in result.labels or result.physical_chain is None:
+        return {}
+    from ppr.geometry import quat_from_rotvec_host, quat_multiply_host
+
+    az = _arviz()
+    i = result.labels.index("rot_x [deg]")
+    kept = result.physical_chain[result.burn_in :: result.thin]  # (draw, walker, P)
+    rv = np.radians(kept[..., i : i + 3])
+    q_ref = np.asarray(result.parametrisation.reference.unit_quaternion(), np.float64)
+    q = quat_multiply_host(quat_from_rotvec_host(rv), np.broadcast_to(q_ref, rv.shape[:-1] + (4,)))
+    los = np.asarray(line_of_sight, np.float64)
+    v = np.swapaxes(_body_los(q, los / np.linalg.norm(los)), 0, 1)  # (walker, draw, 3)
+    out = {}
+    for j, name in enumerate(("los_x", "los_y", "los_z")):
+        r = float(az.rhat(np.ascontiguousarray(v[..., j])))
+        out[name] = r if math.isfinite(r) else None
+    return out
+
+
 def write_posterior(path, result, **kwargs) -> Path:
     """Write :func:`to_inference_data` of ``result`` to a netCDF file (h5netcdf) at ``path``,
     atomically: a failed write leaves any previous file in place. ``kwargs`` go to
