@@ -94,7 +94,7 @@ from ._mcmc import (
 from ._noise import Observation
 from ._observability import Observability, line_of_sight_of, observability, observable_inverse
 from ._params import GROUPS, PhysicalParams, lift_start
-from ._posterior import line_of_sight_rhat
+from ._posterior import _arviz, line_of_sight_rhat
 from ._refine import (
     PhysicalBounds,
     PoissonCounts,
@@ -219,8 +219,8 @@ class InvertConfig(StrictModel):
       `mcmc_min_weight`: modes sampled above this weight (at most `max_sampled_modes`);
       `rhat_max`: largest ArviZ R-hat of a converged chain (of the parameters the answer
       reports: the library-index columns and, when the roll about the line of sight is
-      unobservable, the rotation-vector components are judged by the material
-      probabilities and the body-frame line of sight instead; ``_judged_rhat``).
+      unobservable, the rotation-vector components are judged by each material's indicator
+      and the body-frame line of sight instead; ``_judged_rhat``).
     - `progress`: tqdm bars (they start after the first, compiling, item).
     """
 
@@ -1827,7 +1827,10 @@ def invert(
                         )
                     warns = tuple(str(x.message) for x in caught)
                     diag = post.diagnostics()
-                    judged = _judged_rhat(post, diag, los_world, ob, lib_n is not None)
+                    library = None
+                    if lib_n is not None and cfg.mcmc.sampler.index == "library":
+                        library = dict(zip(names, lib_n, strict=True))
+                    judged = _judged_rhat(post, diag, los_world, ob, library)
                     rh = [v for v in judged.values() if v is not None]
                     max_rhat = max(rh, default=math.inf)
                     conv = bool(post.converged and max_rhat <= cfg.rhat_max)
@@ -1941,11 +1944,13 @@ def _pick_rows(cls: Classification, bank: TemplateBank, top_k: int, per_shape: i
     return sorted(int(c) for c in cols)
 
 
-def _judged_rhat(post, diag, los_world, ob, library: bool) -> dict[str, float | None]:
+def _judged_rhat(post, diag, los_world, ob, library=None) -> dict[str, float | None]:
     """The R-hat values the ``rhat_max`` verdict judges, by label: every sampled parameter,
     except
-    - with the index sampled over the library materials, ``n_re``/``n_im`` (discrete: their
-      posterior is the material probabilities, whose R-hat means nothing);
+    - with the index sampled over the library materials (``library``: name -> index), the
+      ``n_re``/``n_im`` columns (discrete values), replaced by the R-hat of each material's
+      indicator per part (``material[k] = name``, for the materials holding at least 5 % of
+      the draws): walkers that do not share the materials show there;
     - when the data leave the roll about the line of sight free (named by
       :func:`inversion.observability`), ``rot_x/y/z``, replaced by the body-frame line of
       sight's components (:func:`inversion.line_of_sight_rhat`): those rotation-vector
@@ -1957,13 +1962,41 @@ def _judged_rhat(post, diag, los_world, ob, library: bool) -> dict[str, float | 
     out = {}
     for lab, d in diag.items():
         name = lab.split(" [")[0].split("[")[0]
-        if library and name in ("n_re", "n_im"):
+        if library is not None and name in ("n_re", "n_im"):
             continue
         if roll_free and name in ("rot_x", "rot_y", "rot_z"):
             continue
         out[lab] = d["r_hat"]
     if roll_free:
         out.update(line_of_sight_rhat(post, los_world))
+    if library is not None:
+        out.update(_material_rhat(post, library))
+    return out
+
+
+def _material_rhat(post, library: dict) -> dict[str, float | None]:
+    """ArviZ R-hat (walkers as chains, kept draws) of the indicator of each library material
+    holding >= 5 % of a part's draws."""
+    az = _arviz()
+    names = list(library)
+    n_lib = np.asarray([library[nm] for nm in names], np.complex128)
+    kept = post.physical_chain[post.burn_in :: post.thin]  # (draw, walker, P)
+    out = {}
+    for k, lab in enumerate(post.labels):
+        if not lab.startswith("n_re["):
+            continue
+        slot = lab[len("n_re[") : lab.index("]")]
+        j_im = post.labels.index(f"n_im[{slot}]")
+        n = kept[..., k] + 1j * kept[..., j_im]
+        which = np.argmin(np.abs(n[..., None] - n_lib), axis=-1)  # (draw, walker)
+        for m, nm in enumerate(names):
+            ind = (which == m).astype(np.float64)
+            if ind.mean() < 0.05:
+                continue
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                r = float(az.rhat(np.ascontiguousarray(ind.T)))
+            out[f"material[{slot}] = {nm}"] = r if math.isfinite(r) else None
     return out
 
 

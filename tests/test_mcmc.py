@@ -573,7 +573,7 @@ def test_independence_and_roll_moves_are_exact_with_a_misfitted_proposal():
     )
     _, tau = run(exact[:, None, :], None, 1200)
     assert np.max(tau[:3]) < 8, tau
-    s, _ = run(fake, 2, 8000)
+    s, _ = run(fake, 2, 12000)
     key = np.floor(s[:, 3]).astype(int)
     assert abs(np.mean(key) - 0.5) < 0.05
     assert 0.06 < np.mean(np.abs(s[:, 2]) >= np.pi / 2) < 0.18

@@ -113,8 +113,10 @@ def test_line_of_sight_rhat_ignores_a_roll_split_between_walkers():
     """A monostatic posterior with a free roll: every walker holds its own roll about the
     line of sight (uniform over the circle, fixed per walker: the walkers never mix it) and
     shares the small tilt noise. The body-frame line of sight ``R^T k = exp(-t) k`` does not
-    depend on the roll, so its R-hat is that of i.i.d. draws (< 1.02), while the
-    rotation-vector components, which carry the roll, have R-hat >> 1.1."""
+    depend on the roll (``R = exp(phi k) exp(t) R_ref``: ``R^T k = R_ref^T exp(-t) k``), so
+    its R-hat is that of i.i.d. draws (< 1.02), while the rotation-vector components, which
+    carry the roll, have R-hat >> 1.1; the components are those of the posterior file's
+    ``los_polar``/``los_azimuth`` (the same line of sight)."""
     from inversion import line_of_sight_rhat
     from inversion._mcmc import _rotvec_host
     from ppr.geometry import quat_from_rotvec_host, quat_multiply_host
@@ -137,3 +139,36 @@ def test_line_of_sight_rhat_ignores_a_roll_split_between_walkers():
     assert max(los.values()) < 1.02, los
     rot = [float(az.rhat(np.ascontiguousarray(phys[..., i + j].T))) for j in range(3)]
     assert min(rot) > 1.5, rot
+    post = res.to_inference_data(line_of_sight=k).posterior
+    th, ph = np.radians(post["los_polar"].values), np.radians(post["los_azimuth"].values)
+    v = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
+    ref = {f"los_{c}": float(az.rhat(np.ascontiguousarray(v[..., j]))) for j, c in enumerate("xyz")}
+    assert los == pytest.approx(ref, rel=1e-9)
+
+
+def test_material_indicator_rhat_shows_walkers_that_do_not_share_the_materials():
+    """``invert`` judges a library-sampled index by each material's indicator R-hat: walkers
+    each stuck in their own material (half in one, half in another) give R-hat >> 1.1;
+    walkers drawing the material independently at every step give ~1; a material below 5 %
+    of the draws is not judged."""
+    from inversion._invert import _material_rhat
+
+    res = _result(n_steps=400, n_walkers=16, burn_in=0, thin=1)
+    lib = {"aluminium": 0.94 + 6.42j, "silver": 0.054 + 3.43j, "gold": 0.47 + 2.4j}
+    n = np.array(list(lib.values()))
+    i_re, i_im = res.labels.index("n_re[0]"), res.labels.index("n_im[0]")
+    rng = np.random.default_rng(2)
+
+    def with_materials(which):
+        phys = np.array(res.physical_chain, copy=True)
+        phys[..., i_re], phys[..., i_im] = n[which].real, n[which].imag
+        return dataclasses.replace(res, physical_chain=phys)
+
+    stuck = np.broadcast_to(np.arange(16) % 2, (400, 16))
+    r = _material_rhat(with_materials(stuck), lib)
+    assert set(r) == {"material[0] = aluminium", "material[0] = silver"}
+    assert min(r.values()) > 2.0, r
+    mixed = rng.choice(3, p=[0.6, 0.38, 0.02], size=(400, 16))
+    r = _material_rhat(with_materials(mixed), lib)
+    assert set(r) == {"material[0] = aluminium", "material[0] = silver"}
+    assert max(r.values()) < 1.02, r
