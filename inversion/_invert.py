@@ -1831,15 +1831,16 @@ def invert(
                     if lib_n is not None and cfg.mcmc.sampler.index == "library":
                         library = dict(zip(names, lib_n, strict=True))
                     judged = _judged_rhat(post, diag, los_world, ob, library)
-                    rh = [v for v in judged.values() if v is not None]
-                    max_rhat = max(rh, default=math.inf)
+                    rh = {k: v for k, v in judged.items() if v is not None}
+                    worst = max(rh, key=rh.get, default=None)
+                    max_rhat = math.inf if worst is None else rh[worst]
                     conv = bool(post.converged and max_rhat <= cfg.rhat_max)
                     if not conv:
                         why = []
                         if not post.converged:
                             why.append("chain shorter than autocorr_tol x tau")
                         if not max_rhat <= cfg.rhat_max:
-                            why.append(f"max R-hat {max_rhat:.3g} > {cfg.rhat_max:g}")
+                            why.append(f"max R-hat {max_rhat:.3g} ({worst}) > {cfg.rhat_max:g}")
                         mcmc_reasons.append(
                             f"posterior of mode {j} ({row['label']}) not converged: "
                             + ", ".join(why)

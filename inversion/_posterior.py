@@ -278,7 +278,9 @@ def line_of_sight_rhat(result, line_of_sight=(0.0, 0.0, 1.0)) -> dict[str, float
     v = np.swapaxes(_body_los(q, los / np.linalg.norm(los)), 0, 1)  # (walker, draw, 3)
     out = {}
     for j, name in enumerate(("los_x", "los_y", "los_z")):
-        r = float(az.rhat(np.ascontiguousarray(v[..., j])))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a constant component: NaN (None below)
+            r = float(az.rhat(np.ascontiguousarray(v[..., j])))
         out[name] = r if math.isfinite(r) else None
     return out
 
