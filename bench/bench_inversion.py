@@ -607,7 +607,7 @@ def summarize(records, meta) -> str:
             m.group(1)
             for r in records
             for reason in r["reasons"]
-            for m in [re.search(r"max R-hat [\d.]+ \(([^)]*)\) >", reason)]
+            for m in [re.search(r"max R-hat [\d.eE+-]+ \(([^)]*)\) >", reason)]
             if m
         ),
     )
@@ -633,7 +633,7 @@ def reason_kind(reason: str) -> str:
     head = re.sub(r"mode \d+ \([^)]*\)", "a mode", head)
     head = re.sub(r"mode \d+", "a mode", head)
     if head.startswith("posterior of a mode not converged"):
-        tail = re.sub(r"R-hat [\d.]+ \([^)]*\) >", "R-hat >", tail)
+        tail = re.sub(r"R-hat [\d.eE+-]+ \([^)]*\) >", "R-hat >", tail)
         tail = re.sub(r"[\d.]+ >", ">", tail).strip()
         return f"{head}: {tail}"
     return head
