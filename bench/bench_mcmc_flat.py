@@ -109,7 +109,11 @@ def main(argv=None):
                     shape=inv.shape,
                     rhat={k: v["r_hat"] for k, v in d.items()},
                     ess={k: v["ess_bulk"] for k, v in d.items()},
-                    los=inversion.line_of_sight_rhat(post, inv.line_of_sight_world),
+                    los={
+                        k: v
+                        for k, v in inversion.attitude_rhat(post, inv.line_of_sight_world).items()
+                        if k.startswith("los_")
+                    },
                     acc=float(np.mean(post.acceptance_fraction)),
                     sample_s=inv.timings.get("sample", float("nan")),
                     wall_s=wall,
@@ -154,9 +158,9 @@ def main(argv=None):
     lines += [
         "",
         "Cells: R-hat / bulk ESS per parameter (physical units). LOS R-hat: the largest of the "
-        "body-frame line of sight's unit-vector components (`inversion.line_of_sight_rhat`), "
-        "what `inversion.invert` judges instead of `rot_x/y/z` when the roll about the line "
-        "of sight is unobservable (this observation's is); `n_re`/`n_im` are library "
+        "body-frame line of sight's unit-vector components (`inversion.attitude_rhat`), "
+        "with the doubled roll, what `inversion.invert` judges instead of `rot_x/y/z` "
+        "(the half turn about the line of sight is a mode of its own); `n_re`/`n_im` are library "
         "materials (discrete) in the `library` and `independence` rows: read the material "
         "probabilities, not their R-hat.",
     ]

@@ -100,7 +100,7 @@ from ._observability import (
 from ._params import GAIN_RANGE, Parametrisation, PhysicalParams
 from ._posterior import (
     GAIN_UNIT,
-    line_of_sight_rhat,
+    attitude_rhat,
     posterior_diagnostics,
     to_inference_data,
     write_posterior,
@@ -222,7 +222,7 @@ __all__ = [
     "to_inference_data",
     "write_posterior",
     "posterior_diagnostics",
-    "line_of_sight_rhat",
+    "attitude_rhat",
     "INVERT_FILES",
     "Candidate",
     "InvertConfig",

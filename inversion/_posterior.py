@@ -253,17 +253,22 @@ def posterior_diagnostics(idata, labels=None) -> dict[str, dict[str, float]]:
     return out
 
 
-def line_of_sight_rhat(result, line_of_sight=(0.0, 0.0, 1.0)) -> dict[str, float | None]:
-    """ArviZ's R-hat (walkers as chains, kept draws) of the body-frame line of sight's
-    unit-vector components ``los_x``, ``los_y``, ``los_z`` of an
-    :class:`~inversion.MCMCResult` with the attitude free (empty dict otherwise).
+def attitude_rhat(result, line_of_sight=(0.0, 0.0, 1.0)) -> dict[str, float | None]:
+    """ArviZ's R-hat (walkers as chains, kept draws) of the attitude modulo the half turn
+    about the line of sight, for an :class:`~inversion.MCMCResult` with the attitude free
+    (empty dict otherwise): the body-frame line of sight's unit-vector components
+    ``los_x``, ``los_y``, ``los_z`` and the doubled roll about it, ``roll_cos2``,
+    ``roll_sin2`` (``cos 2 phi``, ``sin 2 phi``; ``phi`` the twist about the sensor-frame
+    line of sight of the rotation from the reference attitude).
 
-    The attitude that a monostatic measurement sees is the line of sight in the body frame
-    plus, through the polarization, the roll about it. When the data leave the roll free,
-    the rotation-vector components ``rot_x/y/z`` wander with the roll, and their R-hat says
-    how the walkers share the flat roll circle between its two halves (each walker keeps its
-    half: the half turn is a mode of its own), not whether the answer has converged; the
-    line of sight's components do not depend on the roll."""
+    A monostatic measurement is unchanged by the half turn about the line of sight (its
+    Mueller matrices are), and :func:`inversion.invert` samples the half turn as a mode of
+    its own; the sampler keeps each walker in its half-circle of roll. The rotation-vector
+    components ``rot_x/y/z`` jump by the half turn between walkers in the two halves, and
+    their R-hat then says how the walkers share the halves, not whether the answer has
+    converged. These five quantities do not see the half turn (``R -> C2(k) R`` leaves
+    ``R^T k`` and ``2 phi mod 2 pi`` unchanged) and see everything else of the attitude:
+    walkers that do not share the roll show in ``roll_cos2``/``roll_sin2``."""
     if "rot_x [deg]" not in result.labels or result.physical_chain is None:
         return {}
     from ppr.geometry import quat_from_rotvec_host, quat_multiply_host
@@ -272,15 +277,26 @@ def line_of_sight_rhat(result, line_of_sight=(0.0, 0.0, 1.0)) -> dict[str, float
     i = result.labels.index("rot_x [deg]")
     kept = result.physical_chain[result.burn_in :: result.thin]  # (draw, walker, P)
     rv = np.radians(kept[..., i : i + 3])
+    dq = quat_from_rotvec_host(rv)
     q_ref = np.asarray(result.parametrisation.reference.unit_quaternion(), np.float64)
-    q = quat_multiply_host(quat_from_rotvec_host(rv), np.broadcast_to(q_ref, rv.shape[:-1] + (4,)))
+    q = quat_multiply_host(dq, np.broadcast_to(q_ref, rv.shape[:-1] + (4,)))
     los = np.asarray(line_of_sight, np.float64)
-    v = np.swapaxes(_body_los(q, los / np.linalg.norm(los)), 0, 1)  # (walker, draw, 3)
+    los = los / np.linalg.norm(los)
+    v = _body_los(q, los)
+    dq = np.where(dq[..., :1] < 0, -dq, dq)
+    phi = 2.0 * np.arctan2(dq[..., 1:] @ los, dq[..., 0])  # swing-twist: twist about los
+    parts = {
+        "los_x": v[..., 0],
+        "los_y": v[..., 1],
+        "los_z": v[..., 2],
+        "roll_cos2": np.cos(2.0 * phi),
+        "roll_sin2": np.sin(2.0 * phi),
+    }
     out = {}
-    for j, name in enumerate(("los_x", "los_y", "los_z")):
+    for name, x in parts.items():
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # a constant component: NaN (None below)
-            r = float(az.rhat(np.ascontiguousarray(v[..., j])))
+            warnings.simplefilter("ignore")  # a constant quantity: NaN (None below)
+            r = float(az.rhat(np.ascontiguousarray(np.swapaxes(x, 0, 1))))
         out[name] = r if math.isfinite(r) else None
     return out
 

@@ -109,15 +109,17 @@ def test_saved_posterior_is_in_physical_units_and_diagnostics_are_arviz(tmp_path
         assert diag[lab][key] == float(val if val.ndim == 0 else val[0])
 
 
-def test_line_of_sight_rhat_ignores_a_roll_split_between_walkers():
-    """A monostatic posterior with a free roll: every walker holds its own roll about the
-    line of sight (uniform over the circle, fixed per walker: the walkers never mix it) and
-    shares the small tilt noise. The body-frame line of sight ``R^T k = exp(-t) k`` does not
-    depend on the roll (``R = exp(phi k) exp(t) R_ref``: ``R^T k = R_ref^T exp(-t) k``), so
-    its R-hat is that of i.i.d. draws (< 1.02), while the rotation-vector components, which
-    carry the roll, have R-hat >> 1.1; the components are those of the posterior file's
-    ``los_polar``/``los_azimuth`` (the same line of sight)."""
-    from inversion import line_of_sight_rhat
+def test_attitude_rhat_ignores_the_half_turn_and_sees_an_unmixed_roll():
+    """``invert`` judges the attitude modulo the half turn about the line of sight ``k``:
+    the body-frame line of sight and the doubled roll. Walkers hold a roll of 20 deg
+    (+-3 deg per draw) or its half turn, 200 deg, and share the tilt noise: the
+    rotation-vector components jump by the half turn between walkers (R-hat >> 1.1), the
+    five judged quantities are i.i.d. across walkers (R-hat < 1.02; ``R = exp(phi k) exp(t)
+    R_ref``: ``R^T k = R_ref^T exp(-t) k``, ``2 phi`` unchanged by ``phi -> phi + pi``).
+    Walkers each stuck at their own roll (uniform over the circle) are not mixed: the
+    doubled roll's R-hat shows it, the line of sight's does not care. The line of sight is
+    the posterior file's ``los_polar``/``los_azimuth``."""
+    from inversion import attitude_rhat
     from inversion._mcmc import _rotvec_host
     from ppr.geometry import quat_from_rotvec_host, quat_multiply_host
 
@@ -125,25 +127,34 @@ def test_line_of_sight_rhat_ignores_a_roll_split_between_walkers():
     rng = np.random.default_rng(4)
     k = np.array([0.3, -0.2, 0.93])
     k /= np.linalg.norm(k)
-    phi = rng.uniform(-np.pi, np.pi, size=(1, 16, 1))
-    tilt = 0.01 * rng.normal(size=(400, 16, 3))
-    tilt -= (tilt @ k)[..., None] * k  # perpendicular to the line of sight
-    q = quat_multiply_host(quat_from_rotvec_host(phi * k), quat_from_rotvec_host(tilt))
-    phys = np.array(res.physical_chain, copy=True)
     i = res.labels.index("rot_x [deg]")
-    # rotation vectors about the reference: R = exp(w) R_ref with exp(w) = exp(phi k) exp(t)
-    phys[..., i : i + 3] = np.degrees(_rotvec_host(q))
-    res = dataclasses.replace(res, physical_chain=phys)
-    los = line_of_sight_rhat(res, k)
-    assert set(los) == {"los_x", "los_y", "los_z"}
-    assert max(los.values()) < 1.02, los
+
+    def with_roll(phi):
+        tilt = 0.01 * rng.normal(size=(400, 16, 3))
+        tilt -= (tilt @ k)[..., None] * k  # perpendicular to the line of sight
+        q = quat_multiply_host(quat_from_rotvec_host(phi * k), quat_from_rotvec_host(tilt))
+        phys = np.array(res.physical_chain, copy=True)
+        # rotation vectors about the reference: R = exp(w) R_ref, exp(w) = exp(phi k) exp(t)
+        phys[..., i : i + 3] = np.degrees(_rotvec_host(q))
+        return dataclasses.replace(res, physical_chain=phys)
+
+    half = np.radians(20.0 + 180.0 * (np.arange(16) % 2))[None, :, None]
+    split = with_roll(half + np.radians(3.0) * rng.normal(size=(400, 16, 1)))
+    judged = attitude_rhat(split, k)
+    assert set(judged) == {"los_x", "los_y", "los_z", "roll_cos2", "roll_sin2"}
+    assert max(judged.values()) < 1.02, judged
+    phys = split.physical_chain
     rot = [float(az.rhat(np.ascontiguousarray(phys[..., i + j].T))) for j in range(3)]
-    assert min(rot) > 1.5, rot
-    post = res.to_inference_data(line_of_sight=k).posterior
+    assert max(rot) > 1.5, rot
+    post = split.to_inference_data(line_of_sight=k).posterior
     th, ph = np.radians(post["los_polar"].values), np.radians(post["los_azimuth"].values)
     v = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
     ref = {f"los_{c}": float(az.rhat(np.ascontiguousarray(v[..., j]))) for j, c in enumerate("xyz")}
-    assert los == pytest.approx(ref, rel=1e-9)
+    assert {c: judged[c] for c in ref} == pytest.approx(ref, rel=1e-5)
+
+    stuck = attitude_rhat(with_roll(rng.uniform(-np.pi, np.pi, size=(1, 16, 1))), k)
+    assert max(stuck["los_x"], stuck["los_y"], stuck["los_z"]) < 1.02, stuck
+    assert max(stuck["roll_cos2"], stuck["roll_sin2"]) > 1.5, stuck
 
 
 def test_material_indicator_rhat_shows_walkers_that_do_not_share_the_materials():
