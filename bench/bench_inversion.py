@@ -459,7 +459,9 @@ def summarize(records, meta) -> str:
         f"attitude, material from {MATERIALS}, m log-uniform in {list(M_RANGE)}, range offset "
         f"within +-3 bins of {BIN_WIDTH * 100:.0f} cm; Poisson counts, SNR = sqrt(total counts). "
         f"MCMC {meta['mcmc_walkers']} walkers x {meta['mcmc_steps']} steps per sampled mode "
-        f"(moves: {meta.get('mcmc_moves', 'stretch')}). "
+        f"(moves: {meta.get('mcmc_moves', 'stretch')}"
+        + (f"; sampler settings {meta['sampler_set']}" if meta.get("sampler_set") else "")
+        + "). "
         f"Out-of-bank meshes: {list(OUT_OF_BANK)}. Warm-up (compilation) {meta['compile_s']:.0f} "
         f"s once; total run {meta['total_s']:.0f} s; load average {meta['load']}.",
         "",
@@ -653,6 +655,13 @@ def main(argv=None):
         default=None,
         help="emcee moves of the sampler (default: the MCMC config's)",
     )
+    ap.add_argument(
+        "--sampler-set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="sampler settings over the MCMC config's (values as JSON), e.g. independence_jump=0",
+    )
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument("--tag", default="", help="suffix of the output files")
     ap.add_argument(
@@ -685,6 +694,13 @@ def main(argv=None):
     t_bank = time.perf_counter() - t0
     print(f"bank: {len(bank)} templates in {t_bank:.1f} s", flush=True)
     walkers = 24
+    sampler_set = {}
+    for item in args.sampler_set:
+        key, _, val = item.partition("=")
+        try:
+            sampler_set[key] = json.loads(val)
+        except json.JSONDecodeError:
+            sampler_set[key] = val
     cfg = inversion.InvertConfig(
         materials=MATERIALS,
         finishes=FINISHES,
@@ -696,6 +712,7 @@ def main(argv=None):
                 "burn_in": args.mcmc_steps // 3,
                 "progress": False,
                 **({} if args.moves is None else {"moves": args.moves}),
+                **sampler_set,
             }
         },
     )
@@ -748,6 +765,7 @@ def main(argv=None):
         mcmc_walkers=walkers,
         mcmc_steps=args.mcmc_steps,
         mcmc_moves=args.moves or "stretch",
+        sampler_set=sampler_set,
         compile_s=t_compile,
         bank_s=t_bank,
         total_s=time.perf_counter() - t_all,

@@ -518,11 +518,14 @@ def test_independence_and_roll_moves_are_exact_with_a_misfitted_proposal():
     in ``(a0, a1, phi)`` whose mean moves with the key, ``phi`` a roll on ``[-pi, pi]``
     (12 % of its mass in the outer half ``|phi| >= pi/2``, where both moves propose the half
     turn's image of their draws). The independence move is fitted to samples with the wrong
-    mean (+0.7 sd) and a too-narrow scale (0.6 sd) and carries 50 % of the steps (roll
-    moves 10 %, jumps between the keys translated by the keys' means 20 %, the stretch move
-    20 %); the chain's 5/50/95 % quantiles of every coordinate per key must match the closed
-    form to 0.1 sd: with a wrong Hastings factor or half-circle rule the chain would lean
-    toward the misfitted proposal. Fitted to the target itself, the continuous coordinates
+    mean (+0.7 sd) and scales 0.6 sd (key 0) and 1.22 sd (key 1); it carries 30 % of the
+    steps and its jumping variant, which also draws a new key and lands in that key's
+    component, another 30 % (roll moves 10 %, jumps translated by the keys' means 10 %,
+    the stretch move 20 %). The keys must be equally likely and the chain's 5/50/95 %
+    quantiles of every coordinate per key must match the closed form to 0.1 sd: with a
+    wrong Hastings factor (e.g. without the components' normalizations, which differ by
+    the scales' determinants), confinement or half-circle rule the chain would lean toward
+    the misfitted proposal. Fitted to the target itself, the continuous coordinates
     forget their state in a few steps (tau < 8)."""
     from inversion._mcmc import _IndependenceMove, _MaterialMove, _RollMove
 
@@ -541,8 +544,8 @@ def test_independence_and_roll_moves_are_exact_with_a_misfitted_proposal():
 
     rng = np.random.default_rng(3)
     fake = []
-    for k in (0, 1):
-        g = rng.multivariate_normal(means[k] + 0.7 * np.sqrt(np.diag(cov)), 0.36 * cov, 400)
+    for k, c2 in ((0, 0.36), (1, 1.5)):
+        g = rng.multivariate_normal(means[k] + 0.7 * np.sqrt(np.diag(cov)), c2 * cov, 400)
         fake.append(np.column_stack([g, k + rng.uniform(0, 1, 400)]))
     fake = np.concatenate(fake)[:, None, :]
     # the key jumps like a library material, translated between the keys' means
@@ -556,7 +559,11 @@ def test_independence_and_roll_moves_are_exact_with_a_misfitted_proposal():
         nw = 16
         p0 = np.column_stack([rng.normal(size=(nw, 3)), rng.uniform(0, 2, nw)])
         moves = [(jump, 0.2), (emcee.moves.StretchMove(), 0.2)]
-        moves += [(move, 0.6)] if roll is None else [(move, 0.5), (_RollMove(roll), 0.1)]
+        if roll is None:
+            moves += [(move, 0.6)]
+        else:
+            moves = [(jump, 0.1), (emcee.moves.StretchMove(), 0.2), (_RollMove(roll), 0.1)]
+            moves += [(move, 0.3), (move.jumping(2), 0.3)]
         sampler = emcee.EnsembleSampler(nw, 4, log_p, vectorize=True, moves=moves)
         sampler.random_state = np.random.RandomState(1).get_state()
         sampler.run_mcmc(p0, steps)
