@@ -1869,8 +1869,14 @@ class SimulatorModel:
         self.macro_options = macro_options or ppr.MacroOptions()
         geom = ppr.macro_geometry(mesh, plates=self.macro_options.plates)
         self.multibounce = multibounce is True or (multibounce == "auto" and not geom.convex)
-        # macro triangles padded once; the glossy and broad pair counts per pose (macro_pairs)
-        self._macro_caps = (geom.n_macro, 0, 0)
+        # macro triangles padded once; the glossy and broad pair capacities start at 8 each
+        # and only grow (macro_pairs), so that every pose and roughness (a part is glossy or
+        # broad by its m) shares one compiled program; dead broad slots are skipped at run
+        # time (ppr.pulse macro_profile's cond), dead glossy ones are cheap
+        from ppr.pulse import glossy_parts  # noqa: PLC0415
+
+        glossy_ok = self.multibounce and bool(glossy_parts([np.inf], brdf).any())
+        self._macro_caps = (geom.n_macro, 8 * glossy_ok, 8 * self.multibounce)
         self.pure_model = SimulatorKernel(
             arrays=arrays,
             sensor=cast(sensor),
@@ -1986,7 +1992,7 @@ class SimulatorModel:
             mixed=True,
             dtype=pm.arrays.tri.dtype,
         )
-        self._macro_caps = (pairs.tri.shape[1], 0, 0)
+        self._macro_caps = (pairs.tri.shape[1], pairs.g_i.shape[1], pairs.r_i.shape[1])
         return jax.tree_util.tree_map(lambda a: a[0], pairs)  # the one row
 
     def subset_capacities(self, n_poses: int = 256) -> tuple[int, int]:

@@ -542,3 +542,82 @@ def test_database_signatures_and_inversion_model_include_the_double_bounce():
     np.testing.assert_allclose(
         got, np.asarray(measure(mm, jnp.asarray(both))), rtol=1e-9, atol=1e-12 * ref.max()
     )
+
+
+def test_padded_broad_slots_change_nothing_and_dead_ones_are_skipped_exactly():
+    """The inversion model pads its broad pair slots to a fixed capacity (one compiled program
+    for every pose and roughness); the broad block sits under a ``lax.cond`` on any live
+    point. Padded slots (16 instead of 8) and a block whose points are all dead (the cond's
+    skip branch) give the same counts and the same forward-mode Jacobian as the compact
+    layout (no broad slots at all), to float64 round-off, with no NaN."""
+    import dataclasses
+
+    from inversion import PhysicalParams, SimulatorModel
+    from inversion._noise import MeasurementModel
+
+    mesh = shapes.cubesat_with_panels(3)
+    opts = _macro.MacroOptions(order=2, rule=3)
+    q = np.array([0.3, 0.8, 0.4, 0.33])
+    q /= np.linalg.norm(q)
+    mat = ppr.Material(0.94 + 6.42j, 20.0)
+    scene = ppr.Scene(
+        mesh,
+        (mat,) * 3,
+        ppr.Pose(q),
+        ppr.Sensor.make(),
+        ppr.Pulse.gaussian(100e-12),
+        ppr.RangeBins.centred(0.02, 48),
+        vis_samples=4,
+    )
+    chm = MeasurementModel.preset("copol").channel_matrix()
+    model = SimulatorModel(scene, chm, brdf=lambertian_mueller, dense=True, macro_options=opts)
+    phys = PhysicalParams(q, [20.0] * 3, [mat.n] * 3, range_offset=0.001, gain=1.0)
+    vis, pairs = model.prepare(phys)
+    assert pairs.n_broad > 0 and pairs.r_i.shape[0] == 8
+
+    def padded(p, cap):
+        extra = cap - p.r_i.shape[0]
+
+        def pad(a, fill=0.0):
+            widths = [(0, extra)] + [(0, 0)] * (a.ndim - 1)
+            return jnp.pad(a, widths, constant_values=fill)
+
+        return dataclasses.replace(
+            p,
+            r_i=pad(p.r_i, 0),
+            r_j=pad(p.r_j, 0),
+            r_x=pad(p.r_x),
+            r_k=pad(p.r_k, 1.0),
+            r_w=pad(p.r_w),
+            r_t=pad(p.r_t),
+        )
+
+    def counts_and_jac(p):
+        def f(g):
+            return model.expected(dataclasses.replace(phys, gain=g[0], m=g[1:]), (vis, p))
+
+        x = jnp.concatenate([jnp.ones(1), jnp.asarray(phys.m)])
+        return np.asarray(f(x)), np.asarray(jax.jacfwd(f)(x))
+
+    live, live_j = counts_and_jac(pairs)
+    pad, pad_j = counts_and_jac(padded(pairs, 16))
+    np.testing.assert_allclose(pad, live, rtol=1e-12, atol=1e-14 * live.max())
+    np.testing.assert_allclose(pad_j, live_j, rtol=1e-12, atol=1e-14 * np.abs(live_j).max())
+    # every broad point dead: the cond skips the block; equal to no broad slots at all
+    dead = dataclasses.replace(pairs, r_w=jnp.zeros_like(pairs.r_w))
+    none = dataclasses.replace(
+        dead.compact(),
+        g_i=dead.g_i,
+        g_j=dead.g_j,
+        g_kind=dead.g_kind,
+        g_vis=dead.g_vis,
+        mixed=dead.mixed,
+    )
+    assert none.r_i.shape[0] == 0
+    got, got_j = counts_and_jac(dead)
+    ref, ref_j = counts_and_jac(none)
+    assert np.all(np.isfinite(got_j)) and np.all(np.isfinite(got))
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-14 * ref.max())
+    np.testing.assert_allclose(got_j, ref_j, rtol=1e-12, atol=1e-14 * np.abs(ref_j).max())
+    # and the broad pairs mattered where they were live
+    assert np.abs(live - ref).max() > 1e-3 * live.max()

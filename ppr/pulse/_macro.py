@@ -728,7 +728,7 @@ class MacroPairs(eqx.Module):
         r_live = np.any(np.asarray(self.r_w) > 0, axis=(-1, -2))
 
         def keep(live):
-            counts = np.sum(live.reshape(-1, live.shape[-1]), axis=-1)
+            counts = np.sum(live, axis=-1).reshape(-1)  # (zero slots: counts of 0)
             n = int(counts.max()) if counts.size else 0
             # live slots come first (_pack); anything live beyond the cut would be lost
             if np.any(live[..., n:]):
@@ -1395,9 +1395,10 @@ def macro_profile(
 ):
     """Traceable: the macro double bounce ``(C, n_bins)`` (m^2/sr per bin) at the body-to-world
     rotation ``rot`` (module docstring). ``materials``: stacked per part (as
-    :func:`ppr.render`); ``brdf``: the render's BRDF (broad sides). Every BRDF evaluation of
-    the call (broad sides of glossy pairs, both bounces of broad point pairs) goes through
-    one ``brdf`` call, so the program holds one copy of it."""
+    :func:`ppr.render`); ``brdf``: the render's BRDF (broad sides). Two ``brdf`` calls: the
+    broad sides of the glossy pairs, and both bounces of the broad point pairs under a
+    ``lax.cond`` on any live point (padded broad slots cost nothing at run time outside
+    ``vmap``, so a model can pad them to a fixed capacity and compile once)."""
     from ._pulse import _tent_profile  # noqa: PLC0415
 
     dt = pairs.tri.dtype
@@ -1482,33 +1483,6 @@ def macro_profile(
         )
         if pairs.mixed:
             requests.append((*g_args, *g_frames))
-    if n_r:
-        rni, rnj = pairs.normals[pairs.r_i], pairs.normals[pairs.r_j]
-        nq, nd = pairs.r_k.shape[1], pairs.r_k.shape[2]
-        shape = (n_r, nq, nd)
-        k = pairs.r_k.reshape(-1, 3)  # (R Q Q', 3)
-        nib = jnp.broadcast_to(rni[:, None, None, :], shape + (3,)).reshape(-1, 3)
-        njb = jnp.broadcast_to(rnj[:, None, None, :], shape + (3,)).reshape(-1, 3)
-        live_r = (pairs.r_w.reshape(-1) > 0) & (jnp.sum(nib * k, -1) > COS_MIN)
-        live_r &= jnp.sum(njb * k, -1) < -COS_MIN
-        k = jnp.where(live_r[:, None], k, nib)
-        nj_r = jnp.where(live_r[:, None], njb, -nib)
-        xk_r = _perp(jnp, k)
-        cat = lambda a, b: jnp.concatenate([a, b])  # noqa: E731
-        n_pts = k.shape[0]
-        mir = mat(pairs.part[pairs.r_i], shape)
-        mjr = mat(pairs.part[pairs.r_j], shape)
-        m_r = jax.tree_util.tree_map(lambda a, b: cat(a.reshape(-1), b.reshape(-1)), mir, mjr)
-        requests.append(
-            (
-                cat(jnp.broadcast_to(u_in, (n_pts, 3)), -k),
-                cat(k, jnp.broadcast_to(u_out, (n_pts, 3))),
-                cat(nib, nj_r),
-                m_r,
-                cat(jnp.broadcast_to(x_tx, (n_pts, 3)), xk_r),
-                cat(xk_r, jnp.broadcast_to(x_rx, (n_pts, 3))),
-            )
-        )
     full = None
     if requests:
         cat_all = lambda *xs: jnp.concatenate(xs)  # noqa: E731
@@ -1525,12 +1499,10 @@ def macro_profile(
             wavelength=sensor.wavelength,
             terms=pairs.terms,
         )
-    used = 0
     if n_g:
         first, second = spec[:n_gs], spec[n_gs:]
         if pairs.mixed:
             fg = full[: 2 * n_gs]
-            used = 2 * n_gs
             kind_s = jnp.repeat(kind, n_s)
             first = jnp.where((kind_s == KIND_BG)[:, None, None], fg[:n_gs], first)
             second = jnp.where((kind_s == KIND_GB)[:, None, None], fg[n_gs:], second)
@@ -1552,8 +1524,66 @@ def macro_profile(
         )
         wf = (w[:, None, :] * ar[..., None]).reshape(n_g * _FAN, -1)
         pieces.append((wf, depth.reshape(n_g * _FAN, 3), pairs.window))
+    out = None
+    for w, depth, window in pieces:
+        prof = _tent_profile(w, depth, sigma, start, width, n_bins=n_bins, window=window)
+        out = prof if out is None else out + prof
     if n_r:
-        fr = full[used:]
+        # the broad point pairs in their own BRDF call, skipped at run time when no point is
+        # live: a model pads its broad slots to a fixed capacity (one compiled program for
+        # every pose and roughness), and dead slots then cost nothing outside vmap
+        live_r, prof_r = _broad_pairs_profile(
+            pairs, u_in, u_out, x_tx, x_rx, shift, mat, sensor, sigma, start, width,
+            n_bins=n_bins, projection=projection, brdf=brdf, dt=dt,
+        )
+        c = 16 if projection is None else projection.shape[1]
+        prof = jax.lax.cond(
+            jnp.any(live_r), prof_r, lambda: jnp.zeros((c, n_bins), dt)
+        )
+        out = prof if out is None else out + prof
+    if out is None:
+        c = 16 if projection is None else projection.shape[1]
+        out = jnp.zeros((c, n_bins), dt)
+    return out
+
+
+def _broad_pairs_profile(
+    pairs, u_in, u_out, x_tx, x_rx, shift, mat, sensor, sigma, start, width, *, n_bins,
+    projection, brdf, dt,
+):
+    """The broad point pairs of :func:`macro_profile`: ``(live (R Q Q',), profile())``, the
+    profile a thunk (its BRDF call is only traced where the caller's ``cond`` takes it)."""
+    from ._pulse import _tent_profile  # noqa: PLC0415
+
+    n_r = pairs.r_i.shape[0]
+    rni, rnj = pairs.normals[pairs.r_i], pairs.normals[pairs.r_j]
+    nq, nd = pairs.r_k.shape[1], pairs.r_k.shape[2]
+    shape = (n_r, nq, nd)
+    k0 = pairs.r_k.reshape(-1, 3)  # (R Q Q', 3)
+    nib = jnp.broadcast_to(rni[:, None, None, :], shape + (3,)).reshape(-1, 3)
+    njb = jnp.broadcast_to(rnj[:, None, None, :], shape + (3,)).reshape(-1, 3)
+    live_r = (pairs.r_w.reshape(-1) > 0) & (jnp.sum(nib * k0, -1) > COS_MIN)
+    live_r &= jnp.sum(njb * k0, -1) < -COS_MIN
+
+    def profile():
+        k = jnp.where(live_r[:, None], k0, nib)
+        nj_r = jnp.where(live_r[:, None], njb, -nib)
+        xk_r = _perp(jnp, k)
+        cat = lambda a, b: jnp.concatenate([a, b])  # noqa: E731
+        n_pts = k.shape[0]
+        mir = mat(pairs.part[pairs.r_i], shape)
+        mjr = mat(pairs.part[pairs.r_j], shape)
+        m_r = jax.tree_util.tree_map(lambda a, b: cat(a.reshape(-1), b.reshape(-1)), mir, mjr)
+        fr = brdf(
+            cat(jnp.broadcast_to(u_in, (n_pts, 3)), -k),
+            cat(k, jnp.broadcast_to(u_out, (n_pts, 3))),
+            cat(nib, nj_r),
+            m_r,
+            frame_in=cat(jnp.broadcast_to(x_tx, (n_pts, 3)), xk_r),
+            frame_out=cat(xk_r, jnp.broadcast_to(x_rx, (n_pts, 3))),
+            wavelength=sensor.wavelength,
+            terms=pairs.terms,
+        )
         m1, m2 = fr[:n_pts], fr[n_pts:]
         g = (rni @ u_in)[:, None, None] * pairs.r_w
         g = jnp.where(live_r, g.reshape(-1) * jnp.sum(nib * k, -1) * (nj_r @ u_out), 0.0)
@@ -1563,12 +1593,8 @@ def macro_profile(
         y = pairs.r_x[:, :, None, :] + pairs.r_t[..., None] * pairs.r_k
         depth = 0.5 * (-(pairs.r_x @ u_in)[:, :, None] + pairs.r_t - (y @ u_out)) - shift
         depth = jnp.broadcast_to(depth.reshape(-1)[:, None], (n_pts, 3))
-        pieces.append((w, depth, pairs.point_window))
-    out = None
-    for w, depth, window in pieces:
-        prof = _tent_profile(w, depth, sigma, start, width, n_bins=n_bins, window=window)
-        out = prof if out is None else out + prof
-    if out is None:
-        c = 16 if projection is None else projection.shape[1]
-        out = jnp.zeros((c, n_bins), dt)
-    return out
+        return _tent_profile(
+            w, depth, sigma, start, width, n_bins=n_bins, window=pairs.point_window
+        )
+
+    return live_r, profile
