@@ -484,8 +484,9 @@ class GoodnessOfFit:
       of thumb would expect; `expected` is the exact value, smaller for sparse counts).
     - `z` = ``(deviance - expected) / std``; `p_value` the upper tail of the Pearson type III
       law with these three moments.
-    - `model_mismatch`: ``p_value < threshold`` (default 1e-3): no parameter values of this
-      model explain the data within their noise.
+    - `model_mismatch`: ``p_value < threshold`` (default 1e-3): the fitted expectation does
+      not explain the data within their noise (a model unlike the target, or, for a fit, an
+      optimum its search missed).
     - `allowance`: model error allowed for (0: the model is exact).
     """
 
@@ -507,8 +508,8 @@ class GoodnessOfFit:
         name = "Poisson deviance" if self.statistic == "poisson_deviance" else "chi-square"
         allow = f", allowance {self.allowance:.4g}" if self.allowance > 0 else ""
         verdict = (
-            f"MODEL MISMATCH (p < {self.threshold:g}: no parameter values of this model "
-            "explain the data)"
+            f"MODEL MISMATCH (p < {self.threshold:g}: the fit does not explain the data: a "
+            "model unlike the target, or a missed optimum)"
             if self.model_mismatch
             else "fit acceptable"
         )

@@ -81,7 +81,7 @@ from ._classifier import (
     prepare,
 )
 from ._database import TemplateBank
-from ._gof import GoodnessOfFit, fit_goodness_of_fit
+from ._gof import GoodnessOfFit, fit_goodness_of_fit, goodness_of_fit
 from ._grid import AttitudeGrid, as_symmetry, symmetry_group
 from ._mcmc import (
     ChainTooShortWarning,
@@ -93,7 +93,7 @@ from ._mcmc import (
 )
 from ._noise import Observation
 from ._observability import Observability, line_of_sight_of, observability, observable_inverse
-from ._params import GROUPS, PhysicalParams, lift_start
+from ._params import GROUPS, Parametrisation, PhysicalParams, lift_start
 from ._posterior import _arviz, attitude_rhat
 from ._refine import (
     PhysicalBounds,
@@ -207,8 +207,12 @@ class InvertConfig(StrictModel):
       brushed 300). `grid`: the screening bank's attitude grid.
     - `top_k`, `per_shape`: template attitudes refined: the best `top_k` distinct
       (shape, attitude) rows of the classification and the best `per_shape` of every shape,
-      each started at every finish of the bank; `polish_factor`, `polish_abs`: shapes whose
-      screened deviance is within ``factor x best + abs`` are polished.
+      each started at every finish of the bank; `escalate`: while the best screened start's
+      goodness of fit is a model mismatch, the next `top_k` templates in rank order are
+      screened too, at most `escalate` times (a search that missed the optimum is otherwise
+      indistinguishable from a target outside the candidates); `polish_factor`,
+      `polish_abs`: shapes whose screened deviance is within ``factor x best + abs`` are
+      polished.
     - `symmetry`: ``"auto"`` (each candidate mesh's own group), a named class
       (``dihedral:4``) or ``"none"``; `near_tol`: tolerance (fraction of the mesh size) of
       the near symmetries refit as modes (0: exact ones only); `mirror`: refit mirror
@@ -276,6 +280,14 @@ class InvertConfig(StrictModel):
     )
     per_shape: int = pydantic.Field(
         1, ge=0, le=10_000, description="... plus the best of every candidate shape"
+    )
+    escalate: int = pydantic.Field(
+        3,
+        ge=0,
+        le=1000,
+        description="while the best screened fit is a model mismatch (p < mismatch_p), screen "
+        "the next top_k templates, at most this many times (a missed optimum looks like a "
+        "mismatch)",
     )
     polish_factor: float = pydantic.Field(
         1.25, ge=1.0, description="shapes polished: screened deviance <= factor x best + abs"
@@ -1532,97 +1544,148 @@ def invert(
         obs = Observation(data=data, sensor=sensor) if sensor else data
         cls = classify(prep, obs, k=len(bank_), noise=noise, threshold=cfg.mismatch_p)
         cols = _pick_rows(cls, bank_, cfg.top_k, cfg.per_shape)
+        used_cols = set(cols)
         bank_mats = [materials.get(n) for n in bank_.names["materials"]]
         for i, n in enumerate(bank_mats):
             if n is None:
                 nm = bank_.names["materials"][i]
                 bank_mats[i] = complex(np.asarray(ppr.load_material(nm, wavelength).n))
+
         # starts: each picked attitude with every finish of the bank (the cosine score
         # cannot tell a broad lobe from a narrow glint of the same face, the deviance can),
         # the gain matching the total counts; a start whose gain lies outside the physical
         # range (a glint too faint for any real sensor) is dropped unless it is all there is
-        starts: dict[str, list[PhysicalParams]] = {}
-        spare: dict[str, list[tuple[float, PhysicalParams]]] = {}
-        for col in cols:
-            row = int(cls.index[0, col])
-            c = by_name[bank_.names["shapes"][bank_.shape_id[row]]]
-            k = c.n_materials
-            n = bank_mats[bank_.material_id[row]]
-            w = c.bin_width
-            off = 0.0 if w is None else float(cls.shift_refined[0, col]) * w
-            aux = None
-            los_c = _roll_los(c.model)
-            for m in bank_.names["finish_m"]:
-                p = PhysicalParams(bank_.quat[row], [m] * k, [n] * k, range_offset=off, gain=1.0)
-                if aux is None or getattr(c.model, "multibounce", False):
-                    aux = c.model.prepare(p)
-                total = float(_expect(c.model, p, aux).sum())
-                gain = float(max(data.sum(), 1.0) / max(total, 1e-300))
-                p = _with(p, gain=jnp.asarray(min(max(gain, 1e-300), 1e300), p.m.dtype))
-                if los_c is not None:
-                    # the template grid's roll about the line of sight is coarse, and the
-                    # deviance is multimodal in it: start at the template's best roll
-                    # (five model calls: inversion._roll); the turn keeps the visibility
-                    sc = roll_scan(
-                        c.model,
-                        data,
-                        p,
-                        noise=noise,
-                        los=los_c,
-                        monostatic=True,
-                        aux=aux,
-                        n_grid=ROLL_GRID,
+        def make_starts(cols) -> dict[str, list[PhysicalParams]]:
+            starts: dict[str, list[PhysicalParams]] = {}
+            spare: dict[str, list[tuple[float, PhysicalParams]]] = {}
+            for col in cols:
+                row = int(cls.index[0, col])
+                c = by_name[bank_.names["shapes"][bank_.shape_id[row]]]
+                k = c.n_materials
+                n = bank_mats[bank_.material_id[row]]
+                w = c.bin_width
+                off = 0.0 if w is None else float(cls.shift_refined[0, col]) * w
+                aux = None
+                los_c = _roll_los(c.model)
+                for m in bank_.names["finish_m"]:
+                    p = PhysicalParams(
+                        bank_.quat[row], [m] * k, [n] * k, range_offset=off, gain=1.0
                     )
-                    if sc.minima[0] != 0:
-                        p = sc.params(p, int(sc.minima[0]))
-                        gain = float(np.asarray(p.gain))
-                if BOUNDS.gain[0] <= gain <= BOUNDS.gain[1]:
-                    starts.setdefault(c.name, []).append(p)
-                else:
-                    spare.setdefault(c.name, []).append((abs(math.log(gain / 1e6)), p))
-        for name, sp in spare.items():
-            if name not in starts:
-                starts[name] = [_clip_box(min(sp, key=lambda x: x[0])[1])]
+                    if aux is None or getattr(c.model, "multibounce", False):
+                        aux = c.model.prepare(p)
+                    total = float(_expect(c.model, p, aux).sum())
+                    gain = float(max(data.sum(), 1.0) / max(total, 1e-300))
+                    p = _with(p, gain=jnp.asarray(min(max(gain, 1e-300), 1e300), p.m.dtype))
+                    if los_c is not None:
+                        # the template grid's roll about the line of sight is coarse, and the
+                        # deviance is multimodal in it: start at the template's best roll
+                        # (five model calls: inversion._roll); the turn keeps the visibility
+                        sc = roll_scan(
+                            c.model,
+                            data,
+                            p,
+                            noise=noise,
+                            los=los_c,
+                            monostatic=True,
+                            aux=aux,
+                            n_grid=ROLL_GRID,
+                        )
+                        if sc.minima[0] != 0:
+                            p = sc.params(p, int(sc.minima[0]))
+                            gain = float(np.asarray(p.gain))
+                    if BOUNDS.gain[0] <= gain <= BOUNDS.gain[1]:
+                        starts.setdefault(c.name, []).append(p)
+                    else:
+                        spare.setdefault(c.name, []).append((abs(math.log(gain / 1e6)), p))
+            for name, sp in spare.items():
+                if name not in starts:
+                    starts[name] = [_clip_box(min(sp, key=lambda x: x[0])[1])]
+            return starts
+
+        starts = make_starts(cols)
 
     # ---------------------------------------------------------------- screened refinement
     with stages("refine"):
-        total = sum(len(v) for v in starts.values())
-        bar = _Bar(cfg.progress, total, "screening starts")
         screened: dict[str, list[StartSummary]] = {}
         refiners = {}
-        for name, sts in starts.items():
-            r = refiners[name] = _Refiner(by_name[name].model, noise, data, free_fixed, cfg)
-            out = []
-            for i, s in enumerate(sts):
-                out.append(r.start(i, s, lift_start(s), True, 1))
-                bar.step()
-            screened[name] = sorted(out, key=lambda x: x.cost)
+        rolled: set[str] = set()
+
+        def screen(starts: dict[str, list[PhysicalParams]], desc: str) -> None:
+            bar = _Bar(cfg.progress, sum(len(v) for v in starts.values()), desc)
+            for name, sts in starts.items():
+                if name not in refiners:
+                    refiners[name] = _Refiner(by_name[name].model, noise, data, free_fixed, cfg)
+                r = refiners[name]
+                out = screened.setdefault(name, [])
+                for s_ in sts:
+                    out.append(r.start(len(out), s_, lift_start(s_), True, 1))
+                    bar.step()
+                out.sort(key=lambda x: x.cost)
+                roll_rescreen(name)
+            bar.close()
+
+        def roll_rescreen(name: str) -> None:
+            r = refiners[name]
+            out = screened[name]
             los_c = _roll_los(r.model)
-            if los_c is not None and np.isfinite(screened[name][0].cost):
-                # the screened optimum may sit in a side basin of the roll about the line of
-                # sight (a basin is about +-45 deg wide; the roll is coupled to m and n, so a
-                # scan at the screened parameters can miss the right one): rescreen from its
-                # best roll when that is lower and from ROLL_STARTS evenly spaced turns
-                best = screened[name][0]
-                sc = roll_scan(
-                    r.model,
-                    data,
-                    best.params,
-                    noise=noise,
-                    los=los_c,
-                    monostatic=True,
-                    n_grid=ROLL_GRID,
-                )
-                i = int(sc.minima[0])
-                turns = [k * 180.0 / ROLL_STARTS for k in range(1, ROLL_STARTS)]
-                if i != 0 and sc.deviance[i] < sc.deviance[0] - 1.0:
-                    turns.insert(0, float(sc.angles_deg[i]))
-                for a in turns:
-                    j = int(round(a / 180.0 * ROLL_GRID)) % ROLL_GRID
-                    p = sc.params(best.params, j)
-                    out.append(r.start(len(out), p, lift_start(p), True, 1))
-                screened[name] = sorted(out, key=lambda x: x.cost)
-        bar.close()
+            best = out[0]
+            key = (name, best.index)
+            if los_c is None or not np.isfinite(best.cost) or key in rolled:
+                return
+            rolled.add(key)
+            # the screened optimum may sit in a side basin of the roll about the line of
+            # sight (a basin is about +-45 deg wide; the roll is coupled to m and n, so a
+            # scan at the screened parameters can miss the right one): rescreen from its
+            # best roll when that is lower and from ROLL_STARTS evenly spaced turns
+            sc = roll_scan(
+                r.model,
+                data,
+                best.params,
+                noise=noise,
+                los=los_c,
+                monostatic=True,
+                n_grid=ROLL_GRID,
+            )
+            i = int(sc.minima[0])
+            turns = [k * 180.0 / ROLL_STARTS for k in range(1, ROLL_STARTS)]
+            if i != 0 and sc.deviance[i] < sc.deviance[0] - 1.0:
+                turns.insert(0, float(sc.angles_deg[i]))
+            for a in turns:
+                j = int(round(a / 180.0 * ROLL_GRID)) % ROLL_GRID
+                p = sc.params(best.params, j)
+                out.append(r.start(len(out), p, lift_start(p), True, 1))
+            out.sort(key=lambda x: x.cost)
+            rolled.add((name, out[0].index))  # a rolled start is not rolled again
+
+        def screened_mismatch() -> bool:
+            """The best screened start's goodness of fit (not yet polished: the test counts
+            the fitted parameters, a conservative variance) is a model mismatch."""
+            name = min(screened, key=lambda n: screened[n][0].cost)
+            best = screened[name][0]
+            if not np.isfinite(best.cost):
+                return True
+            model_b = by_name[name].model
+            mu = _expect(model_b, best.params, model_b.prepare(best.params))
+            n_par = Parametrisation(best.params, free_fixed).size
+            g = goodness_of_fit(
+                data, mu, noise, n_params=n_par, phys=best.params, threshold=cfg.mismatch_p
+            )
+            return bool(g.model_mismatch)
+
+        screen(starts, "screening starts")
+        n_batches = 1
+        ranked = _ranked_rows(cls, bank_)
+        while n_batches <= cfg.escalate and screened_mismatch():
+            more = [c for c in ranked if c not in used_cols][: cfg.top_k]
+            if not more:
+                break
+            used_cols.update(more)
+            log.info(
+                "best screened fit is a model mismatch: screening %d more templates", len(more)
+            )
+            screen(make_starts(more), f"more starts ({n_batches})")
+            n_batches += 1
+        n_templates = len(used_cols)
         best_screen = min(v[0].cost for v in screened.values())
         if not np.isfinite(best_screen):
             raise RuntimeError(
@@ -1865,9 +1928,12 @@ def invert(
     # ---------------------------------------------------------------- status
     reasons = []
     if gof.model_mismatch:
+        n_starts = sum(len(v) for v in screened.values())
         reasons.append(
             f"model mismatch: p = {gof.p_value:.3g} < {gof.threshold:g} (z = {gof.z:+.1f}): no "
-            f"parameter values of shape {cand.name!r} explain the data"
+            f"fit of shape {cand.name!r} from {n_starts} starts ({n_templates} template "
+            "attitudes) explains the data: a target unlike the candidates, or an optimum the "
+            "search missed (more templates: top_k, escalate, grid.size)"
         )
     converged = bool(final.success)
     if not converged:
@@ -1943,6 +2009,18 @@ def _pick_rows(cls: Classification, bank: TemplateBank, top_k: int, per_shape: i
     for s in np.unique(bank.shape_id):
         cols += [int(c) for c in first[sid == s][:per_shape] if c not in cols]
     return sorted(int(c) for c in cols)
+
+
+def _ranked_rows(cls: Classification, bank: TemplateBank) -> list[int]:
+    """Every distinct (shape, attitude) column of the classification, best rank first (the
+    order :func:`_pick_rows` takes its `top_k` from)."""
+    idx = cls.index[0]
+    key = (
+        np.asarray(bank.shape_id)[idx].astype(np.int64) * (int(np.max(bank.attitude_id)) + 1)
+        + np.asarray(bank.attitude_id)[idx]
+    )
+    _, first = np.unique(key, return_index=True)
+    return [int(c) for c in np.sort(first)]
 
 
 def _judged_rhat(post, diag, los_world, library=None) -> dict[str, float | None]:

@@ -468,8 +468,9 @@ print()
 print(inv.summary())""",
     """md:## Reading the verdict
 - **Goodness of fit**: the deviance against its exact null distribution (per-bin Poisson
-  moments, the fitted degrees of freedom removed): a `MODEL MISMATCH` would mean no parameter
-  values of this shape explain the data (a shape or material the candidates lack).
+  moments, the fitted degrees of freedom removed): a `MODEL MISMATCH` would mean the best fit
+  found does not explain the data (a shape or material the candidates lack, or an optimum
+  the search missed after `escalate` extra batches of templates).
 - **Modes**: the cube has mirror planes. At the attitude `P R sigma` (`P` the world mirror
   through the line of sight and the x polarization reference) the scene is the exact mirror
   image of the one at `R`: the same range profiles and Mueller profiles `D M D`,

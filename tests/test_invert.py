@@ -127,8 +127,42 @@ def test_out_of_bank_target_is_a_model_mismatch(box_case):
     inv = inversion.invert(data, cands[1:], config=CONFIG, bank=cube_bank)
     assert inv.goodness_of_fit.model_mismatch and inv.goodness_of_fit.p_value < 1e-6
     assert not inv.reliable and inv.reasons[0].startswith("model mismatch"), inv.reasons
+    assert "or an optimum the search missed" in inv.reasons[0], inv.reasons
     assert inv.summary().startswith("NOT RELIABLE: model mismatch")
     assert "MODEL MISMATCH" in inv.summary()
+
+
+def test_a_missed_optimum_is_searched_for_before_a_mismatch_is_reported(box_case, monkeypatch):
+    """A screening that starts only from the worst-ranked template (a search that missed the
+    optimum: its screened deviance is a model mismatch) goes on to the next templates in rank
+    order while the best screened fit is a mismatch, and stops at the first acceptable one;
+    with ``escalate = 0`` it screens the one start. A good first pick screens nothing more."""
+    from inversion import _invert
+
+    cands, truth, data, bank = box_case
+    inv0 = inversion.invert(data, cands, config={**CONFIG, "escalate": 0}, bank=bank)
+    inv1 = inversion.invert(data, cands, config={**CONFIG, "escalate": 12}, bank=bank)
+    assert [s.n_starts for s in inv1.shapes] == [s.n_starts for s in inv0.shapes]
+
+    worst = lambda cls, bank_, top_k, per_shape: _invert._ranked_rows(cls, bank_)[-1:]  # noqa: E731
+    monkeypatch.setattr(_invert, "_pick_rows", worst)
+    cfg = {**CONFIG, "top_k": 1, "per_shape": 0}
+    inv = inversion.invert(data, cands, config={**cfg, "escalate": 0}, bank=bank)
+    assert sum(s.n_starts for s in inv.shapes) == 1
+    gof = inversion.goodness_of_fit(
+        data,
+        np.asarray(_expected(cands[0].model, truth, cands[0].model.prepare(truth))),
+        inversion.PoissonCounts(1e-3),
+        n_params=6,
+    )
+    assert inv.shapes[0].screened_deviance > gof.expected + 10 * gof.std  # a missed optimum
+    inv = inversion.invert(data, cands, config={**cfg, "escalate": 12}, bank=bank)
+    n = sum(s.n_starts for s in inv.shapes)
+    assert 1 < n < 12, n  # went on, and stopped before the end of the ranking
+    box = next(s for s in inv.shapes if s.name == "box")
+    assert box.screened_deviance < gof.expected + 4 * gof.std, inv.summary()
+    assert not inv.goodness_of_fit.model_mismatch and inv.shape == "box"
+    assert inv.compare(truth, "box")["los_error_deg"] < 1.0
 
 
 class _IntensityOnly(eqx.Module):
