@@ -1903,7 +1903,12 @@ def invert(
                         if not post.converged:
                             why.append("chain shorter than autocorr_tol x tau")
                         if not max_rhat <= cfg.rhat_max:
-                            why.append(f"max R-hat {max_rhat:.3g} ({worst}) > {cfg.rhat_max:g}")
+                            txt = (
+                                f"{max_rhat:.3g}"
+                                if max_rhat < 1e3
+                                else "> 1000: the walkers never mix"
+                            )
+                            why.append(f"max R-hat {txt} ({worst}) > {cfg.rhat_max:g}")
                         mcmc_reasons.append(
                             f"posterior of mode {j} ({row['label']}) not converged: "
                             + ", ".join(why)
@@ -2070,10 +2075,16 @@ def _material_rhat(post, library: dict) -> dict[str, float | None]:
             ind = (which == m).astype(np.float64)
             if ind.mean() < 0.05:
                 continue
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                r = float(az.rhat(np.ascontiguousarray(ind.T)))
-            out[f"material[{slot}] = {nm}"] = r if math.isfinite(r) else None
+            if np.all(ind.min(axis=0) == ind.max(axis=0)):
+                # no walker ever changes material: they agree (1) or never mix (inf; ArviZ
+                # gives NaN or a rounding-level 1e15 here)
+                r = 1.0 if ind.min() == ind.max() else math.inf
+            else:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    r = float(az.rhat(np.ascontiguousarray(ind.T)))
+                r = r if math.isfinite(r) else math.inf
+            out[f"material[{slot}] = {nm}"] = r
     return out
 
 

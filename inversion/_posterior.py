@@ -235,13 +235,17 @@ def posterior_diagnostics(idata, labels=None) -> dict[str, dict[str, float]]:
     post = idata.posterior
     if labels is None:
         labels = str(post.attrs.get("labels", "")).split(" | ")
-    results = {
-        "r_hat": az.rhat(post),
-        "ess_bulk": az.ess(post, method="bulk"),
-        "ess_tail": az.ess(post, method="tail"),
-        "mcse_mean": az.mcse(post, method="mean"),
-        "mcse_sd": az.mcse(post, method="sd"),
-    }
+    with warnings.catch_warnings():
+        # a parameter constant over the draws (e.g. an index held at a library value) has no
+        # defined R-hat or ESS: ArviZ warns and returns NaN, reported here as None
+        warnings.simplefilter("ignore", RuntimeWarning)
+        results = {
+            "r_hat": az.rhat(post),
+            "ess_bulk": az.ess(post, method="bulk"),
+            "ess_tail": az.ess(post, method="tail"),
+            "mcse_mean": az.mcse(post, method="mean"),
+            "mcse_sd": az.mcse(post, method="sd"),
+        }
     out = {}
     for lab, (name, idx, _) in zip(labels, posterior_variables(labels), strict=True):
         entry = {}
