@@ -716,7 +716,6 @@ def sample_posterior(
     param = Parametrisation(phys, free, range_scale)
     theta0 = np.asarray(_from_physical(param, phys), np.float64)
     _check_prior_support(param, theta0, config.priors)
-    log_prob = make_log_prob(model, data, param, config.priors, noise=noise)
     if sc.n_walkers < 2 * theta0.size:
         # how many parameters are free is known only now (the index stage may free n); the
         # refinement before this point is not thrown away for a setting that is too small
@@ -729,6 +728,36 @@ def sample_posterior(
         )
         sc = sc.model_copy(update={"n_walkers": 2 * theta0.size})
     nw = sc.n_walkers
+    ndim = theta0.size
+    root = _ball_root(cov, ndim)
+    gc = sc.gain_coordinate if shear and "gain" in param.free else "log_gain"
+    counts = None
+    if gc == "total_counts":
+        # the sampler's program (log-posterior in the total-signal gain coordinate) also
+        # gives the log-posterior at theta rows: one compiled program instead of two
+        noise_c = PoissonNoise() if noise is None else noise
+        near = np.random.default_rng(sc.seed + 2).normal(size=(3, ndim)) @ root.T
+        counts = _make_counts_log_prob(
+            model,
+            data,
+            param,
+            config.priors,
+            noise_c,
+            np.vstack([theta0[None], theta0 + 0.1 * sc.init_scale * near]),
+            nw,
+        )
+        if hasattr(noise_c, "check_data"):  # (the shape was checked above)
+            noise_c.check_data(np.asarray(data, np.float64))
+
+        def log_prob(theta):
+            x = np.array(theta, np.float64, copy=True)
+            lg = x[:, counts.i_gain].copy()
+            x[:, counts.i_gain] = 0.0
+            x[:, counts.i_gain] = lg - counts(x)[:, 1]  # c = log_gain + h
+            return counts(x)[:, 0]
+
+    else:
+        log_prob = make_log_prob(model, data, param, config.priors, noise=noise)
     # every call has the walkers' batch shape (one compilation)
     lp0 = log_prob(np.tile(theta0, (nw, 1)))[0]
     if not np.isfinite(lp0):
@@ -737,8 +766,6 @@ def sample_posterior(
             f"variance may be invalid there"
         )
     rng = np.random.default_rng(sc.seed)
-    ndim = theta0.size
-    root = _ball_root(cov, ndim)
     p0 = theta0 + sc.init_scale * rng.normal(size=(nw, ndim)) @ root.T
     for _ in range(50):
         bad = ~np.isfinite(log_prob(p0))
@@ -769,23 +796,11 @@ def sample_posterior(
         if materials is not None and sc.index == "library" and _LibraryIndex.applies(param)
         else None
     )
-    gc = sc.gain_coordinate if shear and "gain" in param.free else "log_gain"
     sh = (
         _ReflectanceShear(param)
         if gc == "reflectance" and lib is None and _ReflectanceShear.applies(param)
         else None
     )
-    counts = None
-    if gc == "total_counts":
-        counts = _make_counts_log_prob(
-            model,
-            data,
-            param,
-            config.priors,
-            PoissonNoise() if noise is None else noise,
-            p0[:4],
-            nw,
-        )
 
     def target(y):
         if lib is not None:
