@@ -302,7 +302,9 @@ def observability_from_fisher(
     cov[idx, idx] = np.inf
     sigma = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     q_ref = np.asarray(param.reference.unit_quaternion(), np.float64)
-    named = tuple(_describe(v, info, G, labels, tlabels, values, los, q_ref) for v, info in dirs)
+    named = _distinct_names(
+        [_describe(v, info, G, labels, tlabels, values, los, q_ref) for v, info in dirs]
+    )
     wo = w[obs]
     cond = float(wo.max() / wo.min()) if wo.size else math.inf
     return Observability(
@@ -358,6 +360,25 @@ def observable_inverse(fisher, rtol: float | None = None) -> tuple[np.ndarray, i
 
 def _fmt_vec(v) -> str:
     return "(" + ", ".join(f"{c:+.3f}" for c in v) + ")"
+
+
+def _distinct_names(named: list[UnobservableDirection]) -> tuple[UnobservableDirection, ...]:
+    """Two directions led by the same parameter (e.g. ``m[0]`` alone and ``m[0]`` with 5 %
+    of the gain) would read as the same name twice: the later ones list every physical
+    component above 1 % by size, and a number where that still repeats."""
+    used: set[str] = set()
+    out = []
+    for d in named:
+        if d.name in used:
+            comps = sorted(d.physical, key=lambda k: -abs(d.physical[k]))
+            alt = " vs ".join(_short(k) for k in comps[:4])
+            k = 2
+            while alt in used:
+                alt, k = f"{d.name} (direction {k})", k + 1
+            d = dataclasses.replace(d, name=alt)
+        used.add(d.name)
+        out.append(d)
+    return tuple(out)
 
 
 def _describe(v, info, G, labels, tlabels, values, los, q_ref) -> UnobservableDirection:

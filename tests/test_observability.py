@@ -135,3 +135,19 @@ def test_trade_offs_own_axis_nulls_and_near_degeneracy_are_named():
     assert named == ["n_im[0] (at its lower bound 0: no local information)"]
     with pytest.raises(ValueError, match="does not match"):
         observability_from_fisher(np.eye(3), par)
+
+
+def test_two_null_directions_led_by_one_parameter_get_distinct_names():
+    """A fit at the roughness ceiling has two null directions both led by ``m[0]`` (alone,
+    and with a few % of the gain and an index): named once each, the second by all of its
+    physical components, so the summary never lists one name twice."""
+    from inversion._observability import UnobservableDirection, _distinct_names
+
+    a = UnobservableDirection("m[0]", {"log_m[0]": 1.0}, {"m[0]": 1.0}, 0.0)
+    b = UnobservableDirection(
+        "m[0]", {"log_m[0]": 0.99}, {"m[0]": 0.99, "gain": -0.08, "n_im[0]": 0.05}, 1e-10
+    )
+    c = UnobservableDirection("m[0]", {"log_m[0]": 1.0}, {"m[0]": 1.0}, 0.0)
+    names = [d.name for d in _distinct_names([a, b, c])]
+    assert names == ["m[0]", "m[0] vs gain vs n_im[0]", "m[0] (direction 2)"], names
+    assert len(set(names)) == 3
