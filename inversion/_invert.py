@@ -1555,7 +1555,7 @@ def invert(
         # cannot tell a broad lobe from a narrow glint of the same face, the deviance can),
         # the gain matching the total counts; a start whose gain lies outside the physical
         # range (a glint too faint for any real sensor) is dropped unless it is all there is
-        def make_starts(cols) -> dict[str, list[PhysicalParams]]:
+        def make_starts(cols, have=()) -> dict[str, list[PhysicalParams]]:
             starts: dict[str, list[PhysicalParams]] = {}
             spare: dict[str, list[tuple[float, PhysicalParams]]] = {}
             for col in cols:
@@ -1598,7 +1598,7 @@ def invert(
                     else:
                         spare.setdefault(c.name, []).append((abs(math.log(gain / 1e6)), p))
             for name, sp in spare.items():
-                if name not in starts:
+                if name not in starts and name not in have:
                     starts[name] = [_clip_box(min(sp, key=lambda x: x[0])[1])]
             return starts
 
@@ -1683,7 +1683,7 @@ def invert(
             log.info(
                 "best screened fit is a model mismatch: screening %d more templates", len(more)
             )
-            screen(make_starts(more), f"more starts ({n_batches})")
+            screen(make_starts(more, have=set(screened)), f"more starts ({n_batches})")
             n_batches += 1
         n_templates = len(used_cols)
         best_screen = min(v[0].cost for v in screened.values())
@@ -1903,12 +1903,15 @@ def invert(
                         if not post.converged:
                             why.append("chain shorter than autocorr_tol x tau")
                         if not max_rhat <= cfg.rhat_max:
-                            txt = (
-                                f"{max_rhat:.3g}"
-                                if max_rhat < 1e3
-                                else "> 1000: the walkers never mix"
-                            )
-                            why.append(f"max R-hat {txt} ({worst}) > {cfg.rhat_max:g}")
+                            if worst is None:
+                                why.append("no R-hat could be computed")
+                            else:
+                                txt = (
+                                    f"{max_rhat:.3g}"
+                                    if max_rhat < 1e3
+                                    else "> 1000: the walkers never mix"
+                                )
+                                why.append(f"max R-hat {txt} ({worst}) > {cfg.rhat_max:g}")
                         mcmc_reasons.append(
                             f"posterior of mode {j} ({row['label']}) not converged: "
                             + ", ".join(why)
@@ -1933,7 +1936,7 @@ def invert(
     # ---------------------------------------------------------------- status
     reasons = []
     if gof.model_mismatch:
-        n_starts = sum(len(v) for v in screened.values())
+        n_starts = len(screened.get(cand.name, ()))
         reasons.append(
             f"model mismatch: p = {gof.p_value:.3g} < {gof.threshold:g} (z = {gof.z:+.1f}): no "
             f"fit of shape {cand.name!r} from {n_starts} starts ({n_templates} template "

@@ -449,13 +449,17 @@ def _make_counts_log_prob(
     return f
 
 
-def make_log_prob(model, data, param: Parametrisation, priors: PriorConfig, noise=None, aux=None):
-    """``f(thetas (W, P) numpy) -> (W,) numpy float64``: jitted, vmapped over walkers."""
+def _require_x64() -> None:
     if not jax.config.read("jax_enable_x64"):
         raise RuntimeError(
             "MCMC needs float64: enable x64 before sampling "
             "(jax.config.update('jax_enable_x64', True)); the library never sets it"
         )
+
+
+def make_log_prob(model, data, param: Parametrisation, priors: PriorConfig, noise=None, aux=None):
+    """``f(thetas (W, P) numpy) -> (W,) numpy float64``: jitted, vmapped over walkers."""
+    _require_x64()
     noise = PoissonNoise() if noise is None else noise
     aux = model.prepare(param.reference) if aux is None else aux
     shape = _model_shape(model, param.reference, aux)
@@ -733,6 +737,7 @@ def sample_posterior(
     gc = sc.gain_coordinate if shear and "gain" in param.free else "log_gain"
     counts = None
     if gc == "total_counts":
+        _require_x64()
         # the sampler's program (log-posterior in the total-signal gain coordinate) also
         # gives the log-posterior at theta rows: one compiled program instead of two
         noise_c = PoissonNoise() if noise is None else noise

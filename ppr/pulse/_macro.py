@@ -1533,13 +1533,24 @@ def macro_profile(
         # live: a model pads its broad slots to a fixed capacity (one compiled program for
         # every pose and roughness), and dead slots then cost nothing outside vmap
         live_r, prof_r = _broad_pairs_profile(
-            pairs, u_in, u_out, x_tx, x_rx, shift, mat, sensor, sigma, start, width,
-            n_bins=n_bins, projection=projection, brdf=brdf, dt=dt,
+            pairs,
+            u_in,
+            u_out,
+            x_tx,
+            x_rx,
+            shift,
+            mat,
+            sensor,
+            sigma,
+            start,
+            width,
+            n_bins=n_bins,
+            projection=projection,
+            brdf=brdf,
+            dt=dt,
         )
         c = 16 if projection is None else projection.shape[1]
-        prof = jax.lax.cond(
-            jnp.any(live_r), prof_r, lambda: jnp.zeros((c, n_bins), dt)
-        )
+        prof = jax.lax.cond(jnp.any(live_r), prof_r, lambda: jnp.zeros((c, n_bins), dt))
         out = prof if out is None else out + prof
     if out is None:
         c = 16 if projection is None else projection.shape[1]
@@ -1548,8 +1559,22 @@ def macro_profile(
 
 
 def _broad_pairs_profile(
-    pairs, u_in, u_out, x_tx, x_rx, shift, mat, sensor, sigma, start, width, *, n_bins,
-    projection, brdf, dt,
+    pairs,
+    u_in,
+    u_out,
+    x_tx,
+    x_rx,
+    shift,
+    mat,
+    sensor,
+    sigma,
+    start,
+    width,
+    *,
+    n_bins,
+    projection,
+    brdf,
+    dt,
 ):
     """The broad point pairs of :func:`macro_profile`: ``(live (R Q Q',), profile())``, the
     profile a thunk (its BRDF call is only traced where the caller's ``cond`` takes it)."""
@@ -1593,8 +1618,10 @@ def _broad_pairs_profile(
         y = pairs.r_x[:, :, None, :] + pairs.r_t[..., None] * pairs.r_k
         depth = 0.5 * (-(pairs.r_x @ u_in)[:, :, None] + pairs.r_t - (y @ u_out)) - shift
         depth = jnp.broadcast_to(depth.reshape(-1)[:, None], (n_pts, 3))
+        # in the kernel's dtype, as the skip branch (a complex128 index under x64 would
+        # otherwise promote a float32 model's profile)
         return _tent_profile(
             w, depth, sigma, start, width, n_bins=n_bins, window=pairs.point_window
-        )
+        ).astype(dt)
 
     return live_r, profile
