@@ -1532,23 +1532,9 @@ def macro_profile(
         # the broad point pairs in their own BRDF call, skipped at run time when no point is
         # live: a model pads its broad slots to a fixed capacity (one compiled program for
         # every pose and roughness), and dead slots then cost nothing outside vmap
-        live_r, prof_r = _broad_pairs_profile(
-            pairs,
-            u_in,
-            u_out,
-            x_tx,
-            x_rx,
-            shift,
-            mat,
-            sensor,
-            sigma,
-            start,
-            width,
-            n_bins=n_bins,
-            projection=projection,
-            brdf=brdf,
-            dt=dt,
-        )
+        geo = dict(u_in=u_in, u_out=u_out, x_tx=x_tx, x_rx=x_rx, shift=shift, mat=mat)
+        bins = dict(sensor=sensor, sigma=sigma, start=start, width=width, n_bins=n_bins)
+        live_r, prof_r = _broad_pairs_profile(pairs, geo, bins, projection, brdf, dt)
         c = 16 if projection is None else projection.shape[1]
         prof = jax.lax.cond(jnp.any(live_r), prof_r, lambda: jnp.zeros((c, n_bins), dt))
         out = prof if out is None else out + prof
@@ -1558,28 +1544,15 @@ def macro_profile(
     return out
 
 
-def _broad_pairs_profile(
-    pairs,
-    u_in,
-    u_out,
-    x_tx,
-    x_rx,
-    shift,
-    mat,
-    sensor,
-    sigma,
-    start,
-    width,
-    *,
-    n_bins,
-    projection,
-    brdf,
-    dt,
-):
+def _broad_pairs_profile(pairs, geo: dict, bins: dict, projection, brdf, dt):
     """The broad point pairs of :func:`macro_profile`: ``(live (R Q Q',), profile())``, the
     profile a thunk (its BRDF call is only traced where the caller's ``cond`` takes it)."""
     from ._pulse import _tent_profile  # noqa: PLC0415
 
+    u_in, u_out, x_tx, x_rx, shift, mat = (
+        geo[k] for k in ("u_in", "u_out", "x_tx", "x_rx", "shift", "mat")
+    )
+    sensor, n_bins = bins["sensor"], bins["n_bins"]
     n_r = pairs.r_i.shape[0]
     rni, rnj = pairs.normals[pairs.r_i], pairs.normals[pairs.r_j]
     nq, nd = pairs.r_k.shape[1], pairs.r_k.shape[2]
@@ -1621,7 +1594,13 @@ def _broad_pairs_profile(
         # in the kernel's dtype, as the skip branch (a complex128 index under x64 would
         # otherwise promote a float32 model's profile)
         return _tent_profile(
-            w, depth, sigma, start, width, n_bins=n_bins, window=pairs.point_window
+            w,
+            depth,
+            bins["sigma"],
+            bins["start"],
+            bins["width"],
+            n_bins=n_bins,
+            window=pairs.point_window,
         ).astype(dt)
 
     return live_r, profile
