@@ -136,6 +136,17 @@ def fibonacci_grid(n: int) -> np.ndarray:
     return canonical_sign(q)
 
 
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """``(n, 3)`` unit vectors evenly spread over the sphere (the Fibonacci lattice)."""
+    if not isinstance(n, int | np.integer) or n < 1:
+        raise ValueError(f"n must be a positive integer, got {n!r}")
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    phi = np.pi * (1.0 + 5.0**0.5) * i
+    r = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)
+
+
 def canonical_sign(q: np.ndarray) -> np.ndarray:
     """Flip ``q -> -q`` so that the first non-negligible component is positive."""
     q = np.asarray(q, dtype=np.float64)

@@ -68,6 +68,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pydantic
+from scipy.spatial.transform import Rotation
 
 import ppr
 from ppr.config import ConfigError, StrictModel, first_nonfinite, validate_data
@@ -82,7 +83,7 @@ from ._classifier import (
 )
 from ._database import TemplateBank
 from ._gof import GoodnessOfFit, fit_goodness_of_fit, goodness_of_fit
-from ._grid import AttitudeGrid, as_symmetry, symmetry_group
+from ._grid import AttitudeGrid, as_symmetry, fibonacci_sphere, symmetry_group
 from ._mcmc import (
     ChainTooShortWarning,
     MCMCConfig,
@@ -216,7 +217,11 @@ class InvertConfig(StrictModel):
     - `symmetry`: ``"auto"`` (each candidate mesh's own group), a named class
       (``dihedral:4``) or ``"none"``; `near_tol`: tolerance (fraction of the mesh size) of
       the near symmetries refit as modes (0: exact ones only); `mirror`: refit mirror
-      images; `min_separation_deg`: optima closer than this are one mode.
+      images; `min_separation_deg`: optima closer than this are one mode;
+      `other_directions`, `other_starts`: the search for other optima at the fit's materials
+      (``_other_optima``): the roll-scanned deviance at `other_directions` lines of sight,
+      the best `other_starts` screened, those that end near the fit's deviance refit as
+      modes (a template screening finds one basin; the data can have two).
     - `ambiguity`: a second shape or mode above this posterior weight is unresolved.
     - `mismatch_p`: p-value below which the goodness of fit reports a model mismatch.
     - `mcmc`: priors and sampler (:class:`~inversion.MCMCConfig`) or None (no sampling);
@@ -306,6 +311,16 @@ class InvertConfig(StrictModel):
         "(0: exact ones only)",
     )
     mirror: bool = pydantic.Field(True, description="refit the mirror images as modes")
+    other_directions: int = pydantic.Field(
+        24,
+        ge=0,
+        le=10_000,
+        description="lines of sight (a Fibonacci sphere in the body) scanned for other optima "
+        "at the fit's materials (0: none)",
+    )
+    other_starts: int = pydantic.Field(
+        12, ge=1, le=1000, description="... of which the best-scanning ones are screened"
+    )
     min_separation_deg: float = pydantic.Field(
         1.0, ge=0.0, le=180.0, description="optima closer than this are one mode"
     )
@@ -1780,6 +1795,7 @@ def invert(
         )
         cands_m = candidate_modes(np.asarray(fit.params.quaternion, np.float64), sym, **geometry)
         cands_m += _roll_modes(model, data, fit, noise, sym, cands_m, half_turn_exact, cfg)
+        cands_m += _other_optima(refiner, data, fit, sym, cands_m, cfg)
         chk = mode_check(
             model,
             data,
@@ -2230,6 +2246,88 @@ def _roll_modes(model, data, fit, noise, sym, kept, half_turn_exact, cfg) -> lis
         )
         quats.append(q)
     return out
+
+
+# other optima (_other_optima): at most this many refit as modes, those whose screened
+# deviance is within max(OTHER_DELTA, a quarter of the fit's) of the fit's
+OTHER_MODES = 2
+OTHER_DELTA = 25.0
+# ... and whose line of sight is farther than this from every kept mode's (modulo the mesh's
+# exact rotations)
+OTHER_LOS_DEG = 5.0
+
+
+def _other_optima(refiner, data, fit, sym, kept, cfg) -> list:
+    """Other optima of the deviance far from the fit's attitude, as modes to refit.
+
+    The template screening ends in one basin per start; data that two attitudes explain
+    (with other materials per part, say: two copolarized channels of a body with three
+    materials) have a second basin that a coarse template grid can miss entirely, and the
+    fit's Cramer-Rao bound then states a confident answer. This search looks for it at the
+    fit's materials and roughness: for each of ``cfg.other_directions`` body directions (a
+    Fibonacci sphere) the attitude that points it along the line of sight, its best roll and
+    gain (:func:`inversion.roll_scan`); the ``cfg.other_starts`` lowest deviances are
+    screened (one loose round of the refiner's solver), and those that end within
+    ``OTHER_DELTA`` of the fit's deviance, with a line of sight farther than ``OTHER_LOS_DEG``
+    from every kept candidate's (modulo the mesh's exact rotations), are returned (at
+    most ``OTHER_MODES``, lowest first) as modes ``"other optimum"`` that start from their own
+    screened parameters. The mode check refits them and their evidence weighs them."""
+    from ._modes import Mode
+    from ._params import lift_start
+
+    if cfg.other_directions == 0 or not np.isfinite(fit.cost):
+        return []
+    model = refiner.model
+    los_r = _roll_los(model)
+    los = line_of_sight_of(model) if los_r is None else los_r
+    los = np.array([0.0, 0.0, 1.0]) if los is None else np.asarray(los, np.float64)
+    mono = los_r is not None
+    p0 = fit.params
+    scanned = []
+    for d in fibonacci_sphere(cfg.other_directions):
+        # the attitude (body -> world) taking the body direction d onto the line of sight
+        rot, _ = Rotation.align_vectors(los[None], d[None])
+        x, y, z, w = rot.as_quat()
+        p = _with(p0, quaternion=jnp.asarray([w, x, y, z], p0.m.dtype))
+        aux = model.prepare(p) if mono else None
+        sc = roll_scan(
+            model, data, p, noise=refiner.noise, los=los, monostatic=mono, aux=aux, n_direct=8
+        )
+        i = int(sc.minima[0])
+        if np.isfinite(sc.deviance[i]):
+            scanned.append((float(sc.deviance[i]), sc.params(p, i)))
+    scanned.sort(key=lambda t: t[0])
+    limit = fit.cost + OTHER_DELTA
+    # the proper rotations the mesh has exactly: their lines of sight are one
+    exact = sym.quaternions()[sym.residuals[sym.determinants > 0] <= 1e-6]
+    quats = [np.asarray(m.quaternion, np.float64) for m in kept]
+    found = []
+    for _, p in scanned[: cfg.other_starts]:
+        s = refiner.start(0, p, lift_start(p), True, 1)
+        if not np.isfinite(s.cost) or s.cost > limit:
+            continue
+        q = np.asarray(s.params.quaternion, np.float64)
+        # another line of sight only: an optimum at a kept line of sight with another roll
+        # is a roll mode (_roll_modes) or, on a flat roll, the unobservable roll itself
+        if min(line_of_sight_error_deg(qk, q, exact)[0] for qk in quats) <= OTHER_LOS_DEG:
+            continue
+        found.append((s.cost, q, s.params))
+        quats.append(q)
+    found.sort(key=lambda t: t[0])
+    return [
+        Mode(
+            quaternion=q,
+            label="other optimum",
+            kind="other optimum",
+            exact=False,
+            range_shift=float(np.asarray(p.range_offset) - np.asarray(p0.range_offset)),
+            body=np.eye(3),
+            world="other optimum",
+            residual=0.0,
+            start=p,
+        )
+        for _, q, p in found[:OTHER_MODES]
+    ]
 
 
 def _sensor_geometry(model, los_world) -> tuple[bool, np.ndarray]:

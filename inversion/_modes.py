@@ -59,7 +59,9 @@ class Mode:
       the line of sight"``, ``"mirror image"``, ``"near symmetry: C2 about body x (residual
       3.1e-03)"``, ...
     - `kind`: ``"fit"``, ``"symmetry"``, ``"half turn"``, ``"mirror"``,
-      ``"near symmetry"`` or ``"near mirror"``.
+      ``"near symmetry"``, ``"near mirror"``, ``"roll"`` (another minimum of the roll about
+      the line of sight) or ``"other optimum"`` (another line of sight that explains the data
+      at the fit's materials; ``inversion.invert``).
     - `exact`: the data at this attitude are those at the fit's, in every channel and bin
       (an exact proper symmetry, with or without the half turn of a monostatic sensor).
     - `range_shift`: metres to add to the fit's range offset (the body centre's move along
@@ -67,6 +69,9 @@ class Mode:
     - `body`: ``(3, 3)`` the body element ``B``; `world`: the world operation ``W``
       (``"identity"``, ``"half turn"``, ``"mirror"``, ``"mirror, half turn"``);
       `residual`: ``B``'s residual relative to the mesh size (:func:`ppr.mesh_symmetries`).
+    - `start`: the parameters to refit from (an optimum found by its own search, with its own
+      roughness, gain and range offset), or None: the fit's with this attitude and the range
+      offset moved by `range_shift`.
     """
 
     quaternion: np.ndarray
@@ -77,6 +82,7 @@ class Mode:
     body: np.ndarray
     world: str
     residual: float
+    start: object = None
 
     def to_dict(self) -> dict:
         return {

@@ -142,9 +142,13 @@ class Observability:
                 else " (all parameters observable)"
             )
         ]
+        edges = self.at_bounds()
         for lab, v, s, obs, det in zip(
             self.labels, self.values, self.sigma, self.observable, self.determined, strict=True
         ):
+            if lab in edges:
+                lines.append(f"  {lab:>22s} = {v: .6g}  ({edges[lab]}: no Gaussian sigma)")
+                continue
             if not obs:
                 note = "unobservable on its own"
                 lines.append(f"  {lab:>22s} = {v: .6g}  ({note})")
@@ -153,15 +157,21 @@ class Observability:
             lines.append(f"  {lab:>22s} = {v: .6g} +- {s:.3g}{note}")
         return "\n".join(lines)
 
+    def at_bounds(self, bounds=None) -> dict[str, str]:
+        """:func:`box_edges` of these parameters."""
+        return box_edges(self.labels, self.values, bounds)
+
     def to_dict(self) -> dict:
         """JSON-ready: ``sigma`` is ``None`` (JSON ``null``) exactly for the parameters
-        unobservable on their own, which are listed by name."""
+        unobservable on their own, which are listed by name; ``at_bounds`` names the
+        parameters on an edge of the physical box (:meth:`at_bounds`)."""
         return {
             "labels": list(self.labels),
             "values": [float(v) for v in self.values],
             "sigma": [float(s) if math.isfinite(s) else None for s in self.sigma],
             "observable": [bool(b) for b in self.observable],
             "determined": [bool(b) for b in self.determined],
+            "at_bounds": self.at_bounds(),
             "unobservable_on_own": [
                 lab for lab, b in zip(self.labels, self.observable, strict=True) if not b
             ],
@@ -203,6 +213,32 @@ def _index(labels, label):
 
 def _short(label: str) -> str:
     return label.split(" [")[0]
+
+
+def box_edges(labels, values, bounds=None) -> dict[str, str]:
+    """Parameters on an edge of the physical box (default :class:`~inversion.PhysicalBounds`,
+    the box of :func:`inversion.invert`), by label, e.g. ``{"m[0]": "at the upper bound
+    1e+06"}``: the optimum lies at or beyond the edge (a mirror-smooth part, a dielectric's
+    ``n'' = 0``), where the likelihood is cut by the box, not curved, and a local Gaussian
+    sigma says nothing."""
+    from ._refine import PhysicalBounds
+
+    b = PhysicalBounds() if bounds is None else bounds
+    edges = {"m": b.m, "n_re": b.n_re, "n_im": b.n_im, "corr_length": b.corr_length}
+    edges |= {"gain": b.gain, "range_offset": b.range_offset, "thickness": b.thickness}
+    out = {}
+    for lab, v in zip(labels, np.asarray(values, np.float64), strict=True):
+        key = lab.split("[")[0].split(" ")[0]
+        if key not in edges or not math.isfinite(v):
+            continue
+        lo, hi = edges[key]
+        # m and n'' have floors of 1e-9 (a start lifted to 1e-6): physically zero
+        floor = 1.001e-6 if key in ("m", "n_im") else lo + 1e-9 * max(abs(lo), 1.0)
+        if v <= floor:
+            out[lab] = f"at the lower bound {lo:g}"
+        elif v >= hi - 1e-9 * max(abs(hi), 1.0):
+            out[lab] = f"at the upper bound {hi:g}"
+    return out
 
 
 def observability(

@@ -390,9 +390,12 @@ class RefineResult:
             sigma, own, det = ob.sigma, ~ob.observable, ob.determined
             if ob.unobservable:
                 lines.append("  unobservable: " + "; ".join(ob.names))
+        from ._observability import box_edges
+
+        edges = box_edges(self.labels, vec)
         for lab, v, s, o, d in zip(self.labels, vec, sigma, own, det, strict=True):
-            if (lab.startswith("m[") or lab.startswith("n_im[")) and v <= 1.001e-9:
-                lines.append(f"  {lab:>22s} = {v: .6g}  (on the boundary: no Gaussian sigma)")
+            if lab in edges:
+                lines.append(f"  {lab:>22s} = {v: .6g}  ({edges[lab]}: no Gaussian sigma)")
             elif o:
                 lines.append(f"  {lab:>22s} = {v: .6g}  (unobservable on its own)")
             else:
@@ -1152,23 +1155,25 @@ def mirror_check(
 
 def _refit_from(
     model, data, fit: RefineResult, q_start, range_shift: float, *, noise, max_steps, rounds,
-    solver, bounds,
+    solver, bounds, start: PhysicalParams | None = None,
 ) -> RefineResult:
     """Refine from ``fit``'s parameters with the attitude ``q_start`` and the range offset
     moved by ``range_shift`` (same free groups and range scale as ``fit``), kept inside
     ``bounds`` when given (:func:`refine`'s box: the same compiled solver); refit with
-    :func:`refine_bounded` should the optimum still leave it."""
+    :func:`refine_bounded` should the optimum still leave it. ``start``: refine from these
+    parameters instead (``q_start`` and ``range_shift`` are then its own)."""
     p = fit.params
-    start = PhysicalParams(
-        jnp.asarray(q_start, p.m.dtype),
-        p.m,
-        p.n,
-        p.corr_length,
-        p.range_offset + jnp.asarray(range_shift, p.range_offset.dtype),
-        p.gain,
-        p.thickness,
-        p.thickness_slots,
-    )
+    if start is None:
+        start = PhysicalParams(
+            jnp.asarray(q_start, p.m.dtype),
+            p.m,
+            p.n,
+            p.corr_length,
+            p.range_offset + jnp.asarray(range_shift, p.range_offset.dtype),
+            p.gain,
+            p.thickness,
+            p.thickness_slots,
+        )
     out = refine(
         model,
         data,
@@ -1370,6 +1375,7 @@ def mode_check(
                 fit,
                 m.quaternion,
                 m.range_shift,
+                start=m.start,
                 noise=noise,
                 max_steps=max_steps,
                 rounds=rounds,

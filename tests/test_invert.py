@@ -165,6 +165,38 @@ def test_a_missed_optimum_is_searched_for_before_a_mismatch_is_reported(box_case
     assert inv.compare(truth, "box")["los_error_deg"] < 1.0
 
 
+def test_other_optima_find_the_basin_a_wrong_fit_missed_and_invent_none(box_case):
+    """The search for other optima (``_other_optima``: roll-scanned lines of sight over the
+    sphere at the fit's materials, the best screened) from a fit 100 deg off the truth finds
+    the truth's basin: its screened start has the right line of sight and a deviance within
+    the exact null distribution of the truth's. From the converged fit at the truth it adds
+    no mode: every other basin (the mirror image, which the off-block channels reject) is
+    more than ``OTHER_DELTA`` worse."""
+    from inversion import _invert
+    from inversion._modes import candidate_modes
+
+    cands, truth, data, bank = box_case
+    model = cands[0].model
+    cfg = inversion.InvertConfig(**CONFIG)
+    noise = _invert._noise_of(cfg)
+    ref = _invert._Refiner(model, noise, data, ("attitude", "m", "range_offset", "gain"), cfg)
+    sym = cands[0].mode_symmetry(cfg.symmetry, cfg.near_tol)
+    wrong = quat_mul(axis_angle_quat([1.0, 0.0, 0.0], math.radians(100.0)), Q0)
+    off = ref.at(_invert._with(truth, quaternion=jnp.asarray(wrong)))
+    modes = candidate_modes(np.asarray(off.params.quaternion), sym, los=(0.0, 0.0, 1.0))
+    found = _invert._other_optima(ref, data, off, sym, modes, cfg)
+    assert found and found[0].kind == "other optimum" and found[0].start is not None
+    best = found[0].start
+    assert inversion.line_of_sight_error_deg(np.asarray(Q0), found[0].quaternion)[0] < 2.0
+    mu = np.asarray(_expected(model, best, model.prepare(best)))
+    gof = inversion.goodness_of_fit(data, mu, noise, n_params=6)
+    assert not gof.model_mismatch, gof
+
+    fit = ref.polish(truth)
+    modes = candidate_modes(np.asarray(fit.params.quaternion), sym, los=(0.0, 0.0, 1.0))
+    assert _invert._other_optima(ref, data, fit, sym, modes, cfg) == []
+
+
 class _IntensityOnly(eqx.Module):
     """The toy's H and V channels summed (``2 M_00``): blind to the polarization frame, so
     the roll about the line of sight changes nothing."""

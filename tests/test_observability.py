@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from inversion._observability import observability_from_fisher
+from inversion._observability import box_edges, observability_from_fisher
 from inversion._params import Parametrisation, PhysicalParams
 from inversion._refine import PoissonCounts, cramer_rao
 from ppr import quat_to_matrix
@@ -77,6 +77,17 @@ def test_roll_about_the_line_of_sight_is_named_and_nothing_else_is_infinite():
     assert d["sigma"][iz] is None and sum(s is None for s in d["sigma"]) == 1
     assert d["unobservable_on_own"] == ["rot_z [deg]"]
     assert "unobservable on its own" in ob.summary()
+    assert d["at_bounds"] == {}  # m = 10, gain = 2, offset 1 cm: inside the box
+    # a parameter on an edge of the physical box gets no Gaussian sigma: the likelihood is
+    # cut there, not curved (a mirror-smooth part at m = 1e6, a dielectric's n'' = 0)
+    vals = [2.0, 1e6, 1e-6, 0.05, 1.0, 1e12]
+    labs = ["rot_x [deg]", "m[0]", "n_im[0]", "n_re[0]", "range_offset [m]", "gain"]
+    assert box_edges(labs, vals) == {
+        "m[0]": "at the upper bound 1e+06",
+        "n_im[0]": "at the lower bound 0",
+        "n_re[0]": "at the lower bound 0.05",
+        "range_offset [m]": "at the upper bound 1",
+    }
     # a line of sight along x names the same direction a rotation 90 deg from it
     side = crb.observability(line_of_sight=(1.0, 0.0, 0.0))
     assert "90.0 deg from the line of sight" in side.names[0]
