@@ -1806,7 +1806,7 @@ def invert(
         )
         cands_m = candidate_modes(np.asarray(fit.params.quaternion, np.float64), sym, **geometry)
         cands_m += _roll_modes(model, data, fit, noise, sym, cands_m, half_turn_exact, cfg)
-        cands_m += _other_optima(refiner, data, fit, sym, cands_m, cfg)
+        cands_m += _other_optima(refiner, data, fit, sym, cands_m, half_turn_exact, cfg)
         chk = mode_check(
             model,
             data,
@@ -2260,15 +2260,15 @@ def _roll_modes(model, data, fit, noise, sym, kept, half_turn_exact, cfg) -> lis
 
 
 # other optima (_other_optima): at most this many refit as modes, those whose screened
-# deviance is within max(OTHER_DELTA, a quarter of the fit's) of the fit's
+# deviance is within OTHER_DELTA of the fit's
 OTHER_MODES = 2
 OTHER_DELTA = 25.0
 # ... and whose line of sight is farther than this from every kept mode's (modulo the mesh's
-# exact rotations)
+# exact rotations), unless they fit better than the fit by more than OTHER_DELTA
 OTHER_LOS_DEG = 5.0
 
 
-def _other_optima(refiner, data, fit, sym, kept, cfg) -> list:
+def _other_optima(refiner, data, fit, sym, kept, half_turn_exact, cfg) -> list:
     """Other optima of the deviance far from the fit's attitude, as modes to refit.
 
     The template screening ends in one basin per start; data that two attitudes explain
@@ -2277,50 +2277,53 @@ def _other_optima(refiner, data, fit, sym, kept, cfg) -> list:
     fit's Cramer-Rao bound then states a confident answer. This search looks for it at the
     fit's materials and roughness: for each of ``cfg.other_directions`` body directions (a
     Fibonacci sphere) the attitude that points it along the line of sight, its best roll and
-    gain (:func:`inversion.roll_scan`); the ``cfg.other_starts`` lowest deviances are
-    screened (one loose round of the refiner's solver), and those that end within
-    ``OTHER_DELTA`` of the fit's deviance, with a line of sight farther than ``OTHER_LOS_DEG``
-    from every kept candidate's (modulo the mesh's exact rotations), are returned (at
-    most ``OTHER_MODES``, lowest first) as modes ``"other optimum"`` that start from their own
-    screened parameters. The mode check refits them and their evidence weighs them."""
-    from ._modes import Mode
-    from ._params import lift_start
+    gain (:func:`inversion.roll_scan`: exact on a fine grid for a monostatic sensor, 8 rolls
+    otherwise); the ``cfg.other_starts`` lowest deviances are screened (one loose round of
+    the refiner's solver). An optimum is kept when its screened deviance is within
+    ``OTHER_DELTA`` of the fit's, its attitude is farther than the mode separation from every
+    kept candidate (modulo the exact equivalences), and either its line of sight is farther
+    than ``OTHER_LOS_DEG`` from every kept candidate's (modulo the mesh's exact rotations) or
+    it fits better than the fit by more than ``OTHER_DELTA`` (a kept line of sight with
+    another roll and an equal deviance is the unobservable roll, or a roll mode, not another
+    optimum; a much better one is the optimum the fit missed). At most ``OTHER_MODES``,
+    lowest first, are returned as modes ``"other optimum"`` that start from their own
+    screened parameters; the mode check refits them and their evidence weighs them."""
+    from ._modes import Mode, mode_separation_deg
 
     if cfg.other_directions == 0 or not np.isfinite(fit.cost):
         return []
     model = refiner.model
-    los_r = _roll_los(model)
-    los = line_of_sight_of(model) if los_r is None else los_r
+    sym = as_symmetry(sym)
+    los = line_of_sight_of(model)
     los = np.array([0.0, 0.0, 1.0]) if los is None else np.asarray(los, np.float64)
-    mono = los_r is not None
     p0 = fit.params
     scanned = []
     for d in fibonacci_sphere(cfg.other_directions):
         # the attitude (body -> world) taking the body direction d onto the line of sight
         rot, _ = Rotation.align_vectors(los[None], d[None])
-        x, y, z, w = rot.as_quat()
+        x, y, z, w = rot.as_quat()  # scipy: scalar last
         p = _with(p0, quaternion=jnp.asarray([w, x, y, z], p0.m.dtype))
-        aux = model.prepare(p) if mono else None
-        sc = roll_scan(
-            model, data, p, noise=refiner.noise, los=los, monostatic=mono, aux=aux, n_direct=8
-        )
+        sc = roll_scan(model, data, p, noise=refiner.noise, los=los, n_direct=8)
         i = int(sc.minima[0])
         if np.isfinite(sc.deviance[i]):
             scanned.append((float(sc.deviance[i]), sc.params(p, i)))
     scanned.sort(key=lambda t: t[0])
-    limit = fit.cost + OTHER_DELTA
     # the proper rotations the mesh has exactly: their lines of sight are one
     exact = sym.quaternions()[sym.residuals[sym.determinants > 0] <= 1e-6]
+    sep_kw = {"half_turn_exact": half_turn_exact, "los": tuple(los)}
     quats = [np.asarray(m.quaternion, np.float64) for m in kept]
     found = []
     for _, p in scanned[: cfg.other_starts]:
         s = refiner.start(0, p, lift_start(p), True, 1)
-        if not np.isfinite(s.cost) or s.cost > limit:
+        if not np.isfinite(s.cost) or s.cost > fit.cost + OTHER_DELTA:
             continue
         q = np.asarray(s.params.quaternion, np.float64)
-        # another line of sight only: an optimum at a kept line of sight with another roll
-        # is a roll mode (_roll_modes) or, on a flat roll, the unobservable roll itself
-        if min(line_of_sight_error_deg(qk, q, exact)[0] for qk in quats) <= OTHER_LOS_DEG:
+        if min(mode_separation_deg(qk, q, sym, **sep_kw) for qk in quats) <= max(
+            cfg.min_separation_deg, 2.0
+        ):
+            continue
+        los_sep = min(line_of_sight_error_deg(qk, q, exact)[0] for qk in quats)
+        if los_sep <= OTHER_LOS_DEG and s.cost >= fit.cost - OTHER_DELTA:
             continue
         found.append((s.cost, q, s.params))
         quats.append(q)

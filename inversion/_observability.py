@@ -232,11 +232,12 @@ def box_edges(labels, values, bounds=None) -> dict[str, str]:
         if key not in edges or not math.isfinite(v):
             continue
         lo, hi = edges[key]
-        # m and n'' have floors of 1e-9 (a start lifted to 1e-6): physically zero
-        floor = 1.001e-6 if key in ("m", "n_im") else lo + 1e-9 * max(abs(lo), 1.0)
+        # m and n'' have floors of 1e-9 (a start lifted to 1e-6): physically zero; other
+        # bounds to 1e-9 of their size (a 1.5 nm film is not on the 1 nm bound)
+        floor = 1.001e-6 if key in ("m", "n_im") and lo == 0.0 else lo + 1e-9 * abs(lo)
         if v <= floor:
             out[lab] = f"at the lower bound {lo:g}"
-        elif v >= hi - 1e-9 * max(abs(hi), 1.0):
+        elif v >= hi - 1e-9 * abs(hi):
             out[lab] = f"at the upper bound {hi:g}"
     return out
 

@@ -167,11 +167,13 @@ def test_a_missed_optimum_is_searched_for_before_a_mismatch_is_reported(box_case
 
 def test_other_optima_find_the_basin_a_wrong_fit_missed_and_invent_none(box_case):
     """The search for other optima (``_other_optima``: roll-scanned lines of sight over the
-    sphere at the fit's materials, the best screened) from a fit 100 deg off the truth finds
-    the truth's basin: its screened start has the right line of sight and a deviance within
-    the exact null distribution of the truth's. From the converged fit at the truth it adds
-    no mode: every other basin (the mirror image, which the off-block channels reject) is
-    more than ``OTHER_DELTA`` worse."""
+    sphere at the fit's materials, the best screened) from a converged fit in a wrong basin
+    (polished from 100 deg off the truth: its deviance far above the truth's null
+    distribution) finds the truth's basin, and the mode check refits it from its own
+    parameters into the most probable mode, at the true line of sight with an acceptable
+    goodness of fit. From the converged fit at the truth it adds no mode: every other basin
+    (the mirror image, which the off-block channels reject) is more than ``OTHER_DELTA``
+    worse."""
     from inversion import _invert
     from inversion._modes import candidate_modes
 
@@ -179,22 +181,35 @@ def test_other_optima_find_the_basin_a_wrong_fit_missed_and_invent_none(box_case
     model = cands[0].model
     cfg = inversion.InvertConfig(**CONFIG)
     noise = _invert._noise_of(cfg)
-    ref = _invert._Refiner(model, noise, data, ("attitude", "m", "range_offset", "gain"), cfg)
+    free = ("attitude", "m", "range_offset", "gain")
+    ref = _invert._Refiner(model, noise, data, free, cfg)
     sym = cands[0].mode_symmetry(cfg.symmetry, cfg.near_tol)
+    mu = np.asarray(_expected(model, truth, model.prepare(truth)))
+    null = inversion.goodness_of_fit(data, mu, noise, n_params=6)
+
     wrong = quat_mul(axis_angle_quat([1.0, 0.0, 0.0], math.radians(100.0)), Q0)
-    off = ref.at(_invert._with(truth, quaternion=jnp.asarray(wrong)))
-    modes = candidate_modes(np.asarray(off.params.quaternion), sym, los=(0.0, 0.0, 1.0))
-    found = _invert._other_optima(ref, data, off, sym, modes, cfg)
-    assert found and found[0].kind == "other optimum" and found[0].start is not None
-    best = found[0].start
-    assert inversion.line_of_sight_error_deg(np.asarray(Q0), found[0].quaternion)[0] < 2.0
-    mu = np.asarray(_expected(model, best, model.prepare(best)))
-    gof = inversion.goodness_of_fit(data, mu, noise, n_params=6)
-    assert not gof.model_mismatch, gof
+    off = ref.polish(_invert._with(truth, quaternion=jnp.asarray(wrong)))
+    assert off.cost > null.expected + 10 * null.std  # a wrong basin, converged
+    assert inversion.line_of_sight_error_deg(np.asarray(Q0), off.params.quaternion)[0] > 10.0
+    geo = {"los": (0.0, 0.0, 1.0), "half_turn_exact": True}
+    modes = candidate_modes(np.asarray(off.params.quaternion), sym, **geo)
+    found = _invert._other_optima(ref, data, off, sym, modes, True, cfg)
+    assert found and all(m.kind == "other optimum" and m.start is not None for m in found)
+    chk = inversion.mode_check(
+        model, data, off, sym, noise=noise, modes=modes + found, **geo, max_steps=cfg.max_steps
+    )
+    best = max(chk.modes, key=lambda m: m.weight)
+    assert best.mode.kind == "other optimum" and best.weight > 0.99, chk
+    los_err = inversion.line_of_sight_error_deg(np.asarray(Q0), best.fit.params.quaternion, sym)
+    assert los_err[0] < 1.0, los_err
+    mu = np.asarray(_expected(model, best.fit.params, model.prepare(best.fit.params)))
+    assert not inversion.goodness_of_fit(data, mu, noise, n_params=6).model_mismatch
 
     fit = ref.polish(truth)
-    modes = candidate_modes(np.asarray(fit.params.quaternion), sym, los=(0.0, 0.0, 1.0))
-    assert _invert._other_optima(ref, data, fit, sym, modes, cfg) == []
+    modes = candidate_modes(np.asarray(fit.params.quaternion), sym, **geo)
+    assert _invert._other_optima(ref, data, fit, sym, modes, True, cfg) == []
+    # a named symmetry class (a string) is accepted like a mesh's group
+    assert _invert._other_optima(ref, data, fit, "dihedral:2", modes, True, cfg) == []
 
 
 class _IntensityOnly(eqx.Module):

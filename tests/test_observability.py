@@ -80,8 +80,9 @@ def test_roll_about_the_line_of_sight_is_named_and_nothing_else_is_infinite():
     assert d["at_bounds"] == {}  # m = 10, gain = 2, offset 1 cm: inside the box
     # a parameter on an edge of the physical box gets no Gaussian sigma: the likelihood is
     # cut there, not curved (a mirror-smooth part at m = 1e6, a dielectric's n'' = 0)
-    vals = [2.0, 1e6, 1e-6, 0.05, 1.0, 1e12]
+    vals = [2.0, 1e6, 1e-6, 0.05, 1.0, 1e12, 1.5e-9]
     labs = ["rot_x [deg]", "m[0]", "n_im[0]", "n_re[0]", "range_offset [m]", "gain"]
+    labs += ["thickness[0] [m]"]  # 1.5 nm: inside the box (lower bound 1 nm)
     assert box_edges(labs, vals) == {
         "m[0]": "at the upper bound 1e+06",
         "n_im[0]": "at the lower bound 0",
