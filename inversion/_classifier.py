@@ -46,7 +46,7 @@ import numpy as np
 
 import ppr
 from ppr.config import first_nonfinite
-from ppr.geometry import quat_angle_deg, quat_multiply_host
+from ppr.geometry import quat_angle_deg, quat_multiply_host, quat_to_matrix_host
 
 from ._database import TemplateBank
 from ._grid import as_symmetry, los_half_turn
@@ -711,11 +711,11 @@ def attitude_error_deg(
 
 
 def line_of_sight_error_deg(
-    q_true, q_est, symmetry="none", *, mirror: bool = False, mesh=None
+    q_true, q_est, symmetry="none", *, mirror: bool = False, mesh=None, los=None
 ) -> np.ndarray:
     """Angle (deg) between the true and estimated line of sight *in the body frame*
-    (``R^T k`` with ``k`` the world direction to the sensor, ``+z``), modulo the symmetry
-    (``symmetry`` or ``mesh=`` as in :func:`attitude_error_deg`).
+    (``R^T k`` with ``k`` the world direction to the sensor, `los`, default ``+z``), modulo
+    the symmetry (``symmetry`` or ``mesh=`` as in :func:`attitude_error_deg`).
 
     A monostatic range profile depends on the attitude only through this direction; the roll
     about the line of sight enters through the polarization alone, so this error is the
@@ -729,14 +729,18 @@ def line_of_sight_error_deg(
     """
     q_true = np.atleast_2d(q_true)
     cand = _equivalents(q_est, _symmetry_arg(symmetry, mesh), mirror)  # (N, G, 4)
-    los_t = _body_los(q_true)[:, None, :]
-    los_e = _body_los(cand)
+    los_t = _body_los(q_true, los)[:, None, :]
+    los_e = _body_los(cand, los)
     cos = np.clip(np.sum(los_t * los_e, axis=-1), -1.0, 1.0)
     return np.degrees(np.arccos(cos)).min(axis=1)
 
 
-def _body_los(q: np.ndarray) -> np.ndarray:
-    """Third row of R(q): R^T e_z, the world +z direction in body coordinates."""
+def _body_los(q: np.ndarray, los=None) -> np.ndarray:
+    """``R(q)^T k``: the world line of sight ``k`` (toward the sensor, default ``+z``: the
+    third row of ``R``) in body coordinates; batched over ``q (..., 4)``."""
     q = np.asarray(q, np.float64)
+    if los is not None:
+        k = np.asarray(los, np.float64)
+        return np.einsum("...ij,i->...j", quat_to_matrix_host(q), k / np.linalg.norm(k))
     w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
     return np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)

@@ -78,6 +78,7 @@ from ppr.config import ConfigError, StrictModel, first_nonfinite, validate_data
 from ._classifier import (
     Classification,
     PreparedBank,
+    _body_los,
     attitude_error_deg,
     classify,
     line_of_sight_error_deg,
@@ -772,13 +773,6 @@ def _jsonable(obj: Any) -> Any:
     return obj
 
 
-def _body_los(q, los_world=None) -> np.ndarray:
-    """``R(q)^T k``: the world line of sight (toward the sensor, default ``+z``) in the body
-    frame."""
-    k = np.array([0.0, 0.0, 1.0]) if los_world is None else np.asarray(los_world, np.float64)
-    return np.asarray(ppr.quat_to_matrix(np.asarray(q, np.float64))).T @ k
-
-
 def _polar_azimuth(v) -> tuple[float, float]:
     v = np.asarray(v, np.float64) / np.linalg.norm(v)
     return (
@@ -903,9 +897,10 @@ class Inversion:
         out["attitude_error_mod_half_turn_deg"] = float(
             attitude_error_deg(q_t, q_f, sym, mirror=mirror, half_turn=True)[0]
         )
-        out["los_error_deg"] = float(line_of_sight_error_deg(q_t, q_f, sym)[0])
+        k = self.line_of_sight_world
+        out["los_error_deg"] = float(line_of_sight_error_deg(q_t, q_f, sym, los=k)[0])
         out["los_error_mod_mirror_deg"] = (
-            float(line_of_sight_error_deg(q_t, q_f, sym, mirror=True)[0]) if mirror else None
+            float(line_of_sight_error_deg(q_t, q_f, sym, mirror=True, los=k)[0]) if mirror else None
         )
         ob = self.observability
         labels = ob.labels
@@ -1845,7 +1840,9 @@ def invert(
                         q_best, q, sym, half_turn_exact=half_turn_exact, los=tuple(los_world)
                     ),
                     los_separation_deg=float(
-                        line_of_sight_error_deg(q_best, q, cand.exact_symmetry(cfg.symmetry))[0]
+                        line_of_sight_error_deg(
+                            q_best, q, cand.exact_symmetry(cfg.symmetry), los=los_world
+                        )[0]
                     ),
                     log_evidence=z,
                     weight=float(wt),
@@ -2322,7 +2319,7 @@ def _other_optima(refiner, data, fit, sym, kept, half_turn_exact, cfg) -> list:
             cfg.min_separation_deg, 2.0
         ):
             continue
-        los_sep = min(line_of_sight_error_deg(qk, q, exact)[0] for qk in quats)
+        los_sep = min(line_of_sight_error_deg(qk, q, exact, los=los)[0] for qk in quats)
         if los_sep <= OTHER_LOS_DEG and s.cost >= fit.cost - OTHER_DELTA:
             continue
         found.append((s.cost, q, s.params))

@@ -1408,7 +1408,7 @@ def mode_check(
     out = []
     for j, (m, f) in enumerate(zip(modes, fits, strict=True)):
         r = rep[group[j]]
-        los_sep = line_of_sight_error_deg(q_fit, quats[j], exact_rot)[0]
+        los_sep = line_of_sight_error_deg(q_fit, quats[j], exact_rot, los=los)[0]
         out.append(
             ModeFit(
                 mode=m,

@@ -2,6 +2,7 @@
 direct reference, low-rank certificate, weight designs, bad input, evaluation report."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -278,6 +279,36 @@ def test_candidates_cover_every_shape(bank, exact):
         full.candidates(bank, per_shape=-1)
     with pytest.raises(ValueError, match="obs=1"):
         full.candidates(bank, obs=1)
+
+
+def test_line_of_sight_error_about_another_sensor_direction():
+    """With the sensor along another world direction ``k`` (``los=k``), a turn of the
+    attitude about ``k`` keeps the body-frame line of sight (error 0) and a tilt away from it
+    by 30 deg shows as 30 deg; the default ``+z`` is ``los=(0, 0, 1)``."""
+    from inversion._classifier import line_of_sight_error_deg
+    from ppr.geometry import quat_from_axis_angle
+
+    def quat_mul(a, b):
+        return quat_multiply_host(np.asarray(a), np.asarray(b))
+
+    rng = np.random.default_rng(7)
+    q = rng.normal(size=(4, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    k = np.array([0.6, -0.0, 0.8])
+    turn = np.stack([quat_from_axis_angle(k, a) for a in (0.3, 1.1, 2.0, -2.5)])
+    tilt = quat_from_axis_angle(np.cross(k, [0.0, 1.0, 0.0]), math.radians(30.0))
+    for i in range(4):
+        rolled = quat_mul(turn[i], q[i])  # world-side turn about k
+        assert line_of_sight_error_deg(q[i], rolled, los=k)[0] < 1e-5
+        assert line_of_sight_error_deg(q[i], rolled)[0] > 1.0  # about +z it is a tilt
+        np.testing.assert_allclose(
+            line_of_sight_error_deg(q[i], quat_mul(tilt, q[i]), los=k), 30.0, atol=1e-6
+        )
+    np.testing.assert_allclose(
+        line_of_sight_error_deg(q, q[::-1], los=(0.0, 0.0, 1.0)),
+        line_of_sight_error_deg(q, q[::-1]),
+        atol=1e-9,
+    )
 
 
 def test_half_turn_about_line_of_sight_in_attitude_errors():
