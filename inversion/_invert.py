@@ -2315,11 +2315,12 @@ def _other_optima(refiner, data, fit, sym, kept, half_turn_exact, cfg) -> list:
         if not np.isfinite(s.cost) or s.cost > fit.cost + OTHER_DELTA:
             continue
         q = np.asarray(s.params.quaternion, np.float64)
-        if min(mode_separation_deg(qk, q, sym, **sep_kw) for qk in quats) <= max(
-            cfg.min_separation_deg, 2.0
-        ):
+        sep = min((mode_separation_deg(qk, q, sym, **sep_kw) for qk in quats), default=np.inf)
+        if sep <= max(cfg.min_separation_deg, 2.0):
             continue
-        los_sep = min(line_of_sight_error_deg(qk, q, exact, los=los)[0] for qk in quats)
+        los_sep = min(
+            (line_of_sight_error_deg(qk, q, exact, los=los)[0] for qk in quats), default=np.inf
+        )
         if los_sep <= OTHER_LOS_DEG and s.cost >= fit.cost - OTHER_DELTA:
             continue
         found.append((s.cost, q, s.params))
