@@ -36,15 +36,7 @@ OUT = ROOT / "bench" / "results" / "other_optima.md"
 
 
 def observation(model, scene, photons, offset, seed):
-    mats = scene.materials
-    unit = inversion.PhysicalParams(
-        np.asarray(scene.pose.quaternion, np.float64),
-        [float(np.asarray(m.m)) for m in mats],
-        [complex(np.asarray(m.n)) for m in mats],
-        [float(np.asarray(m.corr_length)) for m in mats],
-        range_offset=offset,
-        gain=1.0,
-    )
+    unit = inversion.PhysicalParams.from_scene(scene, range_offset=offset)
     mu = np.array(model.expected(unit, model.prepare(unit)), np.float64)
     mu *= photons / mu.sum()
     data = np.random.default_rng(seed).poisson(np.maximum(mu, 0.0)).astype(np.float64)

@@ -189,6 +189,21 @@ class PhysicalParams(eqx.Module):
                 f"corr_length={np.asarray(self.corr_length)!r}"
             )
 
+    @classmethod
+    def from_scene(cls, scene, *, range_offset: float = 0.0, gain: float = 1.0):
+        """The parameters of a :class:`ppr.Scene`: its pose's attitude and each part's
+        material (``m``, ``n``, correlation length); e.g. the truth of a simulated
+        observation."""
+        mats = scene.materials
+        return cls(
+            np.asarray(scene.pose.quaternion, np.float64),
+            [float(np.asarray(m.m)) for m in mats],
+            [complex(np.asarray(m.n)) for m in mats],
+            [float(np.asarray(m.corr_length)) for m in mats],
+            range_offset=range_offset,
+            gain=gain,
+        )
+
     @property
     def n_materials(self) -> int:
         return int(self.m.shape[0])

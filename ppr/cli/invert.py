@@ -154,15 +154,7 @@ def _simulated_truth(model, scene, photons: float, offset: float):
 
     import inversion
 
-    mats = scene.materials
-    truth = inversion.PhysicalParams(
-        np.asarray(scene.pose.quaternion, np.float64),
-        [float(np.asarray(m.m)) for m in mats],
-        [complex(np.asarray(m.n)) for m in mats],
-        [float(np.asarray(m.corr_length)) for m in mats],
-        range_offset=offset,
-        gain=1.0,
-    )
+    truth = inversion.PhysicalParams.from_scene(scene, range_offset=offset)
     shape = np.asarray(model.expected(truth, model.prepare(truth)))
     gain = photons / max(float(shape.sum()), 1e-300)
     truth = eqx_replace(truth, gain=jnp.asarray(gain, jnp.float64))
