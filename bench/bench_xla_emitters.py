@@ -8,7 +8,10 @@ starts), with the compilation cache off (``PPR_JAX_CACHE=0``): the first call of
 - ``ppr.mueller_brdf`` (aluminium, m = 300, float64) on random upper-hemisphere direction
   pairs: single + multiple on 2e5 rows, single + double + multiple on 2e4 rows;
 - ``ppr.simulate`` of the 3U CubeSat with panels (configs/scenes/cubesat3u_panels.toml: facet
-  sum and the macro double bounce).
+  sum and the macro double bounce);
+- the inversion's forward-model programs (compiled with the emitters of
+  ``PPR_XLA_EMITTERS``, :func:`inversion_programs`): a refinement, the Fisher matrix and a
+  short chain, on the ``ppr invert`` example and on a cylinder with the single term only.
 
     .venv/bin/python bench/bench_xla_emitters.py [--repeats 3]
 
@@ -23,6 +26,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 from _timing import load_average, write_result
@@ -61,6 +65,88 @@ def child(repeats: int) -> dict:
     out["ppr.simulate, 3U CubeSat with panels"] = first_and_median_time(
         lambda: ppr.simulate(scene).data, repeats=repeats
     )
+    out.update(inversion_programs(scene, repeats))
+    return out
+
+
+def inversion_programs(scene, repeats: int) -> dict:
+    """The inversion's forward-model programs (``inversion._xla.MODEL_PROGRAM``: the emitters
+    of ``PPR_XLA_EMITTERS``) on two models: the shipped ``ppr invert`` example (3U CubeSat
+    with panels, copolarized channels, full BRDF, macro double bounce) and a 64-sided
+    cylinder with the single term only and 16 channels (a cheap BRDF on more facets, where
+    the fusion emitters' faster kernels would show): one refinement (one start, 20 steps, one
+    round), the Fisher matrix at its optimum, a short chain (24 walkers x 20 steps)."""
+    import numpy as np
+    from _timing import first_and_median_time
+
+    import inversion
+    import ppr
+
+    out = {}
+    noise = inversion.PoissonCounts()
+    free = ("attitude", "m", "range_offset", "gain")
+    cyl = ppr.Scene(
+        ppr.shapes.cylinder(0.06, 0.25, sections=64),
+        (ppr.Material(1.5, 10.0),),
+        ppr.Pose([1.0, 0.0, 0.0, 0.0]),
+        ppr.Sensor.make(),
+        ppr.Pulse.gaussian(100e-12),
+        ppr.RangeBins.centred(0.01, 48),
+    )
+    cases = {
+        "3U CubeSat with panels, copol, full BRDF": (scene, "copol", {}),
+        "cylinder (64 sides), 16 channels, single term": (cyl, "full", {"terms": ("single",)}),
+    }
+    al = complex(np.asarray(ppr.load_material("aluminium").n))
+    for label, (sc, channels, kw) in cases.items():
+        chm = inversion.MeasurementModel.preset(channels).channel_matrix()
+        model = inversion.SimulatorModel(sc, chm, **kw)
+        k = len(sc.mesh.parts)
+        q = np.array([0.86, 0.31, -0.22, 0.35])
+        q /= np.linalg.norm(q)
+        truth = inversion.PhysicalParams(q, [30.0] * k, [al] * k, range_offset=0.003)
+        x = np.asarray(model.expected(truth, model.prepare(truth))).sum()
+        truth = inversion.PhysicalParams(q, [30.0] * k, [al] * k, range_offset=0.003, gain=1e5 / x)
+        data = (
+            np.random.default_rng(0)
+            .poisson(np.maximum(np.asarray(model.expected(truth, model.prepare(truth))), 0.0))
+            .astype(np.float64)
+        )
+        q2 = q + 0.03
+        q2 /= np.linalg.norm(q2)
+        start = inversion.PhysicalParams(
+            q2, [25.0] * k, [al] * k, range_offset=0.002, gain=truth.gain
+        )
+
+        def fit(start=start, model=model, data=data, free=free, noise=noise):
+            return inversion.refine(
+                model, data, [start], noise=noise, free=free, max_steps=20, rounds=1
+            ).cost
+
+        out[f"inversion.refine, {label}"] = first_and_median_time(fit, repeats=repeats)
+        best = inversion.refine(
+            model, data, [start], noise=noise, free=free, max_steps=20, rounds=1
+        ).params
+        out[f"inversion.fisher_at, {label}"] = first_and_median_time(
+            lambda best=best, model=model, data=data: inversion.fisher_at(
+                model, noise, data, best, free
+            )[0],
+            repeats=repeats,
+        )
+        cfg = inversion.MCMCConfig(
+            sampler={"n_walkers": 24, "n_steps": 20, "burn_in": 0, "independence_move": 0.0}
+        )
+
+        def chain(best=best, model=model, data=data, cfg=cfg):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", inversion.ChainTooShortWarning)
+                return inversion.sample_posterior(
+                    model, data, best, config=cfg, noise=noise, free=free
+                ).samples
+
+        out[f"inversion.sample_posterior (24 walkers x 20 steps), {label}"] = first_and_median_time(
+            chain, repeats=repeats
+        )
     return out
 
 
@@ -74,8 +160,11 @@ def main() -> None:
         return
     load = load_average()
     runs = {}
-    for name, flags in (("fusion emitters (default)", ""), ("elemental emitters", FLAG)):
-        env = {**os.environ, "PPR_JAX_CACHE": "0"}
+    for name, flags, inv in (
+        ("fusion emitters", "", "fusion"),
+        ("elemental emitters", FLAG, "elemental"),
+    ):
+        env = {**os.environ, "PPR_JAX_CACHE": "0", "PPR_XLA_EMITTERS": inv}
         env["XLA_FLAGS"] = " ".join(x for x in (env.get("XLA_FLAGS", ""), flags) if x)
         res = subprocess.run(
             [sys.executable, __file__, "--child", "--repeats", str(args.repeats)],
@@ -105,9 +194,11 @@ def main() -> None:
         lines.append(f"| {prog} | " + " | ".join(cells) + f" | {ratio:.2f} |")
     lines += [
         "",
-        "The elemental emitters compile the large programs faster (the refinement of "
-        "`ppr invert`: 75.5 s instead of 116.6 s, bench/results/compile.md) and run them "
-        "slower: a documented choice for cold, compile-bound runs (docs/cli.md), not a default.",
+        "The elemental emitters compile the large programs faster and run some of them "
+        "slower: the BRDF on many rows and the sampler's batch of walkers (default fusion "
+        "emitters kept there), the single-point programs of the refiner a few per cent (the "
+        "elemental emitters are the default there: `inversion._xla.model_compiler_options`, "
+        "`PPR_XLA_EMITTERS`).",
     ]
     write_result("xla_emitters", lines)
 

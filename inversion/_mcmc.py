@@ -389,6 +389,9 @@ def _jitted_vmap(static, method: str = "single"):
             lp = eqx.combine(dyn, static)
             return jax.vmap(getattr(lp, method))(x)
 
+        # XLA's default (fusion) kernel emitters, unlike the refiner's programs
+        # (inversion._xla): the walkers' batch runs 1.6x faster with them
+        # (bench/results/xla_emitters.md)
         fn = _JIT_CACHE[key] = jax.jit(batched)
     return fn
 

@@ -60,6 +60,7 @@ from ._params import (
     group_sizes,
     lift_start,
 )
+from ._xla import MODEL_PROGRAM
 
 __all__ = [
     "GaussianNoise",
@@ -481,7 +482,7 @@ def _make_solver(solver, rtol, atol):
     return solver
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=MODEL_PROGRAM)
 def _solve_round(model, param, aux, inv_sigma, data, theta0, solver, max_steps, noise):
     def fn(theta, args):
         return _solver_residuals(theta, param, model, aux, inv_sigma, data, noise)
@@ -526,7 +527,7 @@ def _inv_sigma(noise, mu, phys):
     return 1.0 / jnp.sqrt(noise.variance(mu, phys))
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=MODEL_PROGRAM)
 def _jacobians(model, param, aux, inv_sigma, data, theta, noise=None):
     # one forward-mode pass gives mu and d mu / d theta: the Pearson residuals' Jacobian
     # (fixed weights) is -inv_sigma d mu / d theta, and the solver's cost comes from the same mu
@@ -1561,7 +1562,7 @@ class _BoxMap(eqx.Module):
         return np.asarray(lo), np.asarray(hi)
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=MODEL_PROGRAM)
 def _bounded_round(model, box, aux, inv_sigma, data, z0, lower, upper, maxiter, tol, noise):
     from ._jaxopt_adapter import lbfgsb_minimize
 
@@ -2041,7 +2042,7 @@ class SimulatorModel:
         return _expected_jit(self.pure_model, phys, vis)
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=MODEL_PROGRAM)
 def _expected_jit(kernel, phys, vis):
     return kernel.expected(phys, vis)
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from compile_level import USER_COMPILER_OPTIONS, optimized, unoptimized
 
 from ppr import Material
@@ -94,3 +95,17 @@ def test_unoptimized_compilation_gives_the_same_values_and_gradients():
     # not bitwise equal: two programs were compiled (the switch reached the compiler and the
     # jit cache kept them apart)
     assert 0.0 < _rel(lvl0, default) < 1e-4, _rel(lvl0, default)
+
+
+def test_model_program_emitters_setting_is_read_and_checked(monkeypatch):
+    """``PPR_XLA_EMITTERS`` picks the kernel emitters of the inversion's forward-model programs
+    (elemental unless ``fusion``); another value is refused by name and value."""
+    from inversion._xla import EMITTERS_ENV, model_compiler_options
+
+    monkeypatch.delenv(EMITTERS_ENV, raising=False)
+    assert model_compiler_options() == {"xla_cpu_use_fusion_emitters": False}
+    monkeypatch.setenv(EMITTERS_ENV, " Fusion ")
+    assert model_compiler_options() == {"xla_cpu_use_fusion_emitters": True}
+    monkeypatch.setenv(EMITTERS_ENV, "llvm")
+    with pytest.raises(ValueError, match="PPR_XLA_EMITTERS='llvm'"):
+        model_compiler_options()
