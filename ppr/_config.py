@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import math
 import tomllib
+import types
+import typing
 import warnings
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
@@ -59,7 +61,8 @@ class StrictModel(pydantic.BaseModel):
                 raise ValueError(f"give {new} or the deprecated {old}, not both")
             value = data.pop(old)
             number = isinstance(value, int | float) and not isinstance(value, bool)
-            data[new] = value * factor if number else value
+            # the unit conversion applies to numbers only: a quoted "5" would pass it by
+            data[new] = value * factor if number else _Refused(value) if factor != 1 else value
             if (cls.__name__, old) not in _WARNED:
                 _WARNED.add((cls.__name__, old))
                 unit = f" (x {factor:g})" if factor != 1 else ""
@@ -69,6 +72,85 @@ class StrictModel(pydantic.BaseModel):
                     stacklevel=2,
                 )
         return data
+
+    @pydantic.model_validator(mode="before")
+    @classmethod
+    def _no_casts(cls, data):
+        """Refuse what pydantic would otherwise convert without a word: a string or a
+        boolean where a number belongs (``"256"``, ``true`` -> 1), a string or a number where
+        true/false belongs (``"no"``, ``1``). Fields that also take strings (a name, "auto")
+        keep them. The value is swapped for a marker that fails the field's own type check,
+        so the error names the field and the value as written."""
+        if not isinstance(data, dict):
+            return data
+        out = None
+        for name, field in cls.model_fields.items():
+            key = field.alias or name
+            if key in data:
+                checked = _refuse_casts(field.annotation, data[key])
+                if checked is not data[key]:
+                    out = dict(data) if out is None else out
+                    out[key] = checked
+        return data if out is None else out
+
+
+class _Refused:
+    """A config value refused before validation (it would only pass by conversion): no
+    pydantic type accepts it; its repr is the value's, for the error message."""
+
+    def __init__(self, value):
+        self.value = value
+
+    def __repr__(self) -> str:
+        return repr(self.value)
+
+
+def _scalar_kind(annotation) -> str | None:
+    """``"number"``, ``"bool"`` or ``None`` (anything else) for a field's annotation,
+    through ``Annotated`` and ``X | None``."""
+    origin = typing.get_origin(annotation)
+    if origin is typing.Annotated:
+        return _scalar_kind(typing.get_args(annotation)[0])
+    if origin in (typing.Union, types.UnionType):
+        kinds = {_scalar_kind(a) for a in typing.get_args(annotation) if a is not type(None)}
+        return kinds.pop() if len(kinds) == 1 else None
+    if annotation is bool:
+        return "bool"
+    if annotation in (int, float):
+        return "number"
+    return None
+
+
+def _refuse_casts(annotation, value):
+    """``value``, or (a copy of it with) each scalar that would reach a numeric or boolean
+    field (or a list/tuple of them) only by conversion replaced by :class:`_Refused`."""
+    origin = typing.get_origin(annotation)
+    if origin is typing.Annotated:
+        return _refuse_casts(typing.get_args(annotation)[0], value)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if value is None:
+            return value
+        if len(args) == 1:
+            return _refuse_casts(args[0], value)
+        return value if _scalar_kind(annotation) is None else _refuse_casts(args[0], value)
+    if origin in (list, tuple) and isinstance(value, list | tuple):
+        args = [a for a in typing.get_args(annotation) if a is not Ellipsis]
+        if len(args) == 1:
+            new = [_refuse_casts(args[0], v) for v in value]
+        elif origin is tuple and len(args) == len(value):
+            new = [_refuse_casts(a, v) for a, v in zip(args, value, strict=True)]
+        else:
+            return value
+        if all(a is b for a, b in zip(new, value, strict=True)):
+            return value
+        return type(value)(new)
+    kind = _scalar_kind(annotation)
+    if kind == "number" and isinstance(value, str | bool):
+        return _Refused(value)
+    if kind == "bool" and not isinstance(value, bool):
+        return _Refused(value)
+    return value
 
 
 def first_nonfinite(arr) -> tuple[int, tuple[int, ...], float] | None:
@@ -237,7 +319,26 @@ def load_toml_model(model: type[M], path: str | Path, overrides: dict | None = N
                 where = ".".join(head[: i + 1])
                 raise ConfigError(f"{path}: override {key!r}: {where!r} is {node!r}, not a table")
         node[last] = value
-    return validate_data(model, data, str(path))
+    return validate_data(model, data, config_source(path, overrides))
+
+
+def config_source(path: str | Path, overrides: dict | None = None) -> str:
+    """How an error names a config: the file, and the command line's overrides applied to
+    it (the value at fault may be one of theirs, not the file's)."""
+    if not overrides:
+        return str(path)
+    return f"{path} with --set " + ", ".join(f"{k}={_as_written(v)}" for k, v in overrides.items())
+
+
+def _as_written(value) -> str:
+    """A value as a TOML file writes it (``true``, ``"4"``, ``[1, 2]``)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace('"', '\\"') + '"'
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_as_written(v) for v in value) + "]"
+    return repr(value)
 
 
 def parse_override(text: str) -> tuple[str, Any]:

@@ -299,12 +299,22 @@ class Outputs:
             refuse_existing(self.out, self.names, overwrite)
         self._created: list[Path] = []
         token = f"{owner_tag()}-{secrets.token_hex(4)}"
-        if self.out.is_dir():
-            self.stage = self.out / f"{STAGE_MARK}{token}"
-        else:
-            self._make_parents(self.out.parent)
-            self.stage = self.out.parent / f".{self.out.name}{STAGE_MARK}{token}"
-        (self.stage / "new").mkdir(parents=True)
+        try:
+            if self.out.is_dir():
+                self.stage = self.out / f"{STAGE_MARK}{token}"
+            else:
+                self._make_parents(self.out.parent)
+                self.stage = self.out.parent / f".{self.out.name}{STAGE_MARK}{token}"
+            (self.stage / "new").mkdir(parents=True)
+        except OSError as err:  # a read-only or special file system: a user error, one line
+            for p in reversed(self._created):  # the parents this call made, if any
+                with contextlib.suppress(OSError):
+                    p.rmdir()
+            where = self.out if self.out.is_dir() else self.out.parent
+            raise ValueError(
+                f"--out {os.fspath(out)}: cannot write in {where} "
+                f"({err.strerror or err}); choose a folder you can write to"
+            ) from None
         self._adopted: dict[str, Path] = {}
         self.written: list[Path] = []
 

@@ -388,6 +388,47 @@ def test_refuses_to_overwrite(tmp_path, capsys):
     assert json.loads((out / "brdf.json").read_text())["material"]["name"].startswith("silver")
 
 
+def test_unwritable_out_is_one_line_naming_it(tmp_path, capsys, monkeypatch):
+    """An --out the user cannot write in (a read-only file system: mkdir raises) is refused in
+    one line naming --out as written and the reason, with exit status 2 and no folder left
+    behind; another write failure later is one line too (exit status 1), not a traceback."""
+    import errno
+    import pathlib
+
+    cfg = _write(
+        tmp_path / "brdf.toml",
+        'material = "gold"\nterms = ["single"]\nincidence_deg = [10.0]\nbistatic_deg = [0.0]\n',
+    )
+    real_mkdir = pathlib.Path.mkdir
+
+    def read_only(self, *args, **kwargs):
+        if str(self).startswith(str(tmp_path / "ro")):
+            raise PermissionError(errno.EROFS, "Read-only file system", str(self))
+        return real_mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(pathlib.Path, "mkdir", read_only)
+    out = tmp_path / "ro" / "deep" / "out"
+    assert run("brdf", "-q", "-c", cfg, "-o", out) == 2
+    line = error_line(capsys)
+    assert line == (
+        f"ppr brdf: error: --out {out}: cannot write in {out.parent} (Read-only file system); "
+        "choose a folder you can write to"
+    ), line
+    assert not (tmp_path / "ro").exists()
+    monkeypatch.setattr(pathlib.Path, "mkdir", real_mkdir)
+
+    import ppr.cli.brdf as cb
+
+    def disk_full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "o2" / "brdf.npz"))
+
+    monkeypatch.setattr(cb.np, "savez_compressed", disk_full)
+    assert run("brdf", "-q", "-c", cfg, "-o", tmp_path / "o2") == 1
+    line = error_line(capsys)
+    assert "No space left on device" in line and "previous outputs were left" in line, line
+    assert not (tmp_path / "o2").exists()
+
+
 # ------------------------------------------------------------------------------ subprocess
 def test_subprocess_smoke(tmp_path):
     """The installed entry point's module runs in a fresh interpreter; a config error gives
@@ -667,6 +708,10 @@ def _obs_files(folder: Path) -> None:
     (folder / "text.npz").write_text("1 2 3")
     (folder / "trunc.npz").write_bytes((folder / "neg.npz").read_bytes()[:100])
     (folder / "adir.npz").mkdir()
+    import zipfile
+
+    with zipfile.ZipFile(folder / "member.npz", "w") as z:  # a member not in .npy format
+        z.writestr("data.npy", b"garbage")
 
 
 # (observation file, what the one line must name besides the config file and the field):
@@ -678,6 +723,7 @@ BAD_OBSERVATIONS = [
     ("text.npz", ["not a NumPy .npz file (no zip header)"]),
     ("trunc.npz", ["not a NumPy .npz file"]),
     ("nodata.npz", ["no 'data' array (it has counts)"]),
+    ("member.npz", ["array 'data' cannot be read", "data.npy is not a .npy array"]),
     ("shape.npz", ["data has shape (64,)", "(2 channels, 32 bins)"]),
     ("str.npz", ["data has dtype <U1 (strings)"]),
     ("complex.npz", ["data has dtype complex128", "imaginary part"]),

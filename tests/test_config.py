@@ -89,3 +89,56 @@ def test_deprecated_key_is_converted_warns_once_and_errors_name_it(tmp_path, mon
         p = _write(tmp_path, "[pulse]\nfwhm_ps = 3.0\nfwhm_s = 3e-12\n")
         with pytest.raises(ConfigError, match="give fwhm_s or the deprecated fwhm_ps"):
             load_toml_model(Sensor, p)
+
+
+def test_no_value_reaches_a_number_or_a_switch_by_conversion(tmp_path, monkeypatch):
+    """A string or a boolean where a number belongs (``"256"``, ``true`` would become 256 and
+    1), a string or a number where true/false belongs (``"no"``, ``1``), and a quoted value
+    of a deprecated key in another unit (``width_mm = "5"`` skipped its x 1e-3 and read 5 m)
+    are errors naming the field as written and the value; a field that also takes a string
+    keeps it, an integer is a number, and an error names the command line's overrides."""
+    import typing
+
+    from ppr import _config
+    from ppr._config import ConfigDeprecationWarning
+    from ppr.pulse._scene import PulseConfig
+
+    monkeypatch.setattr(_config, "_WARNED", set())
+
+    class Run(StrictModel):
+        count: int = 1
+        scale: float | None = None
+        angles: tuple[float, ...] = ()
+        capacity: int | typing.Literal["auto"] = "auto"
+        mirror: bool = True
+        pulse: PulseConfig | None = None
+
+    cases = [
+        ('count = "256"', "count = '256': expected an integer"),
+        ("count = true", "count = True: expected an integer"),
+        ('scale = "1.5"', "scale = '1.5': expected a number"),
+        ("angles = [30.0, true]", r"angles\[1\] = True: expected a number"),
+        ('angles = ["30"]', r"angles\[0\] = '30': expected a number"),
+        ('mirror = "no"', "mirror = 'no': expected true or false"),
+        ("mirror = 1", "mirror = 1: expected true or false"),
+        ('[pulse]\nfwhm_ps = "100"', "pulse.fwhm_ps = '100': expected a number"),
+    ]
+    for text, needle in cases:
+        p = _write(tmp_path, text + "\n")
+        with pytest.warns(ConfigDeprecationWarning) if "fwhm_ps" in text else _no_warning():
+            with pytest.raises(ConfigError, match=f"{p}: {needle}"):
+                load_toml_model(Run, p)
+    ok = load_toml_model(
+        Run, _write(tmp_path, 'count = 3\nscale = 2\nangles = [30, 45.5]\ncapacity = "auto"\n')
+    )
+    assert (ok.count, ok.scale, ok.angles, ok.capacity) == (3, 2.0, (30.0, 45.5), "auto")
+    assert load_toml_model(Run, _write(tmp_path, "capacity = 64\n")).capacity == 64
+    p = _write(tmp_path, "count = 3\n")
+    with pytest.raises(ConfigError, match=rf'{p} with --set count="4": count = .4.: expected'):
+        load_toml_model(Run, p, {"count": "4"})
+
+
+def _no_warning():
+    import contextlib
+
+    return contextlib.nullcontext()

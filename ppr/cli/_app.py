@@ -129,3 +129,15 @@ def run(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"ppr {name}: error: {c.one_line(err)}", file=sys.stderr)
         raise SystemExit(2) from None
+    except OSError as err:
+        # a folder that cannot be written (--out on a read-only or special file system), a
+        # full disk: one line naming the path, not a traceback
+        if args.debug:
+            raise
+        what = err.strerror or c.one_line(err)
+        where = f": {err.filename}" if err.filename else ""
+        print(
+            f"ppr {name}: error: {what}{where} (previous outputs were left as they were)",
+            file=sys.stderr,
+        )
+        raise SystemExit(1) from None

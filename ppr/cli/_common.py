@@ -198,6 +198,12 @@ def read_npz(value: str, cfg_path: Path, field: str, optional: tuple[str, ...] =
                     if "allow_pickle" in msg:
                         msg = "an object array (pickled Python objects), not numbers"
                     raise ConfigError(f"{where}: array {name!r} cannot be read: {msg}") from None
+                if not isinstance(out[name], np.ndarray):
+                    # NpzFile hands back the raw bytes of a member not in .npy format
+                    raise ConfigError(
+                        f"{where}: array {name!r} cannot be read: its member {name}.npy is not "
+                        f"a .npy array; write the file with {save}"
+                    )
     data = out["data"]
     kind = data.dtype.kind
     if kind not in "iuf":

@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 import pydantic
 
-from .._config import ConfigError, StrictModel, load_toml_model
+from .._config import ConfigError, StrictModel, config_source, load_toml_model
 from .._types import Array
 from ..geometry._mesh import Mesh, check_mesh, load_mesh
 from ..geometry._rotation import check_quaternion
@@ -589,6 +589,7 @@ def load_scene(path: str | os.PathLike, overrides: dict | None = None) -> Scene:
 
     path = Path(path)
     cfg = load_toml_model(SceneConfig, path, overrides)
+    src = config_source(path, overrides)
     spath = _find_sensor(cfg.sensor, path)
     sensor, pulse, bins = load_sensor(spath)
     try:
@@ -605,31 +606,28 @@ def load_scene(path: str | os.PathLike, overrides: dict | None = None) -> Scene:
                 part_names=cfg.mesh.part_names,
             )
     except ValueError as exc:
-        raise ConfigError(f"{path}: {'shape' if cfg.shape else 'mesh'}: {exc}") from None
+        raise ConfigError(f"{src}: {'shape' if cfg.shape else 'mesh'}: {exc}") from None
     missing = [p for p in mesh.parts if p not in cfg.materials]
     if missing:
         raise ConfigError(
-            f"{path}: materials: no material for mesh parts {missing} "
-            f"(parts are {list(mesh.parts)})"
+            f"{src}: materials: no material for mesh parts {missing} (parts are {list(mesh.parts)})"
         )
     extra = [k for k in cfg.materials if k not in mesh.parts]
     if extra:
-        raise ConfigError(
-            f"{path}: materials: {extra} are not parts of the mesh {list(mesh.parts)}"
-        )
+        raise ConfigError(f"{src}: materials: {extra} are not parts of the mesh {list(mesh.parts)}")
     wl = float(sensor.wavelength)
     mats = tuple(
-        _material_from_config(cfg.materials[p], wl, f"{path}: materials.{p}") for p in mesh.parts
+        _material_from_config(cfg.materials[p], wl, f"{src}: materials.{p}") for p in mesh.parts
     )
     try:
         q = check_quaternion(cfg.pose.quaternion, "pose.quaternion")
     except ValueError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
+        raise ConfigError(f"{src}: {exc}") from None
     pose = Pose(q, cfg.pose.position_m)
     r = math.isqrt(cfg.visibility.samples_per_face)
     if r * r != cfg.visibility.samples_per_face:
         raise ConfigError(
-            f"{path}: visibility.samples_per_face = {cfg.visibility.samples_per_face}: must be a "
+            f"{src}: visibility.samples_per_face = {cfg.visibility.samples_per_face}: must be a "
             "perfect square (1, 4, 9, 16, ...)"
         )
     return Scene(
