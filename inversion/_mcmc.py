@@ -122,6 +122,21 @@ class Prior1D(StrictModel):
     @pydantic.model_validator(mode="after")
     def _check(self):
         k = self.kind
+        takes = {
+            "uniform": ("low", "high"),
+            "loguniform": ("low", "high"),
+            "normal": ("mean", "sigma"),
+            "lognormal": ("mean", "sigma"),
+            "halfnormal": ("sigma",),
+        }[k]
+        extra = [f for f in ("low", "high", "mean", "sigma") if f not in takes]
+        given = [f"{f} = {getattr(self, f)}" for f in extra if getattr(self, f) is not None]
+        if given:
+            # a normal prior with low/high would silently be an untruncated normal
+            raise ValueError(
+                f"a {k} prior takes {' and '.join(takes)}, not {', '.join(given)} (there are "
+                "no truncated priors)"
+            )
         if k in ("uniform", "loguniform"):
             if self.low is None or self.high is None:
                 raise ValueError(f"{k} prior needs low and high")
@@ -174,6 +189,11 @@ class AttitudePrior(StrictModel):
 
     @pydantic.model_validator(mode="after")
     def _check(self):
+        if self.kind == "uniform" and self.sigma_deg is not None:
+            raise ValueError(
+                f"a uniform attitude prior takes no sigma_deg (got {self.sigma_deg}); "
+                'kind = "gaussian" uses it'
+            )
         if self.kind == "gaussian" and (self.sigma_deg is None or not self.sigma_deg > 0):
             raise ValueError(f"gaussian attitude prior needs sigma_deg > 0, got {self.sigma_deg}")
         return self

@@ -139,6 +139,18 @@ class PhysicalParams(eqx.Module):
         m = jnp.atleast_1d(jnp.asarray(m, dt))
         cdt = jnp.result_type(dt, jnp.complex64)
         n = jnp.atleast_1d(jnp.asarray(n)).astype(cdt)
+        if m.ndim != 1 or m.shape[0] == 0:
+            raise ValueError(
+                f"PhysicalParams.m must hold one value per material slot (at least one), got "
+                f"shape {m.shape}"
+            )
+        for name, v in (("n", n), ("corr_length", corr_length), ("thickness", thickness)):
+            shape = jnp.shape(v)
+            if len(shape) > 1 or (len(shape) == 1 and shape[0] not in (1, m.shape[0])):
+                raise ValueError(
+                    f"PhysicalParams.{name} has shape {shape} but m has {m.shape[0]} material "
+                    f"slot(s): give one value per slot, or one for every slot"
+                )
         corr = jnp.broadcast_to(jnp.asarray(corr_length, dt), m.shape)
         self.quaternion = q
         self.m = m
@@ -171,8 +183,11 @@ class PhysicalParams(eqx.Module):
         if not np.all(np.isfinite(t)) or np.any(t < 0):
             raise ValueError(f"PhysicalParams.thickness must be finite and >= 0 metres, got {t!r}")
         q = np.asarray(self.quaternion)
-        if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-12:
-            raise ValueError(f"PhysicalParams.quaternion must be finite and non-zero, got {q!r}")
+        if not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+            raise ValueError(
+                "PhysicalParams.quaternion must be a finite unit quaternion (w, x, y, z) within "
+                f"|norm - 1| <= 1e-3, got {q.tolist()} with norm {np.linalg.norm(q):.6g}"
+            )
         for name in ("m", "corr_length", "range_offset", "gain"):
             a = np.asarray(getattr(self, name))
             if not np.all(np.isfinite(a)):
@@ -484,5 +499,3 @@ def lift_start(phys: PhysicalParams, floor: float = 1e-6) -> PhysicalParams:
         phys.thickness,
         phys.thickness_slots,
     )
-
-

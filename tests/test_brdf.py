@@ -431,6 +431,20 @@ def test_bad_directions_raise_naming_argument(kwargs, name):
 _RUNTIME_ERRORS = (eqx.EquinoxRuntimeError, ValueError, jax.errors.JaxRuntimeError)
 
 
+def test_wavelength_not_in_metres_raises():
+    """A NaN, non-positive or nanometre wavelength (the coherent backscatter peak and film
+    phases scale with it) is refused by the BRDF and the sensor, not computed."""
+    k = _unit([0.2, 0.0, 1.0])
+    for bad in (np.nan, 0.0, -532e-9, 532.0):
+        with pytest.raises(ValueError, match="wavelength must be a finite length in metres"):
+            mueller_brdf(k, k, jnp.asarray(Z), Material(n=1.5, m=10.0), wavelength=bad)
+    with pytest.raises(ValueError, match=r"Sensor.wavelength .* nanometres"):
+        ppr.Sensor.make(wavelength=532.0)
+    assert np.isfinite(
+        np.asarray(mueller_brdf(k, k, jnp.asarray(Z), Material(n=1.5, m=10.0), wavelength=1064e-9))
+    ).all()
+
+
 def test_bad_material_raises():
     with pytest.raises(ValueError, match="m"):
         Material(n=1.5, m=-1.0)

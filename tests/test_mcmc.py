@@ -67,6 +67,14 @@ def test_default_config_loads_and_bad_configs_are_clear(tmp_path):
     bad.write_text("[sampler]\nn_steps = 100\nburn_in = 200\n")
     with pytest.raises(ConfigError, match="burn_in"):
         load_mcmc_config(bad)
+    # a field its kind does not take is an error, not dropped (low on a normal prior would
+    # have been an untruncated normal)
+    bad.write_text('[priors.range_offset]\nkind = "normal"\nmean = 0.0\nsigma = 1.0\nlow = -5.0\n')
+    with pytest.raises(ConfigError, match=r"a normal prior takes mean and sigma, not low = -5.0"):
+        load_mcmc_config(bad)
+    bad.write_text('[priors.attitude]\nkind = "uniform"\nsigma_deg = 3.0\n')
+    with pytest.raises(ConfigError, match=r"uniform attitude prior takes no sigma_deg"):
+        load_mcmc_config(bad)
 
 
 def test_log_prob_vectorised_equals_single_and_respects_support():

@@ -220,6 +220,16 @@ def test_params_roundtrip_and_constraints():
             np.all(np.asarray(p.m) > 0) and np.all(np.imag(p.n) >= 0) and np.all(np.real(p.n) > 0)
         )
     assert len(par.labels) == par.size == len(par.theta_labels) == 3 + 2 + 4 + 1 + 1
+    # what is not an attitude or a set of material slots is refused, not normalised or
+    # broadcast (one value for every slot is fine)
+    with pytest.raises(ValueError, match=r"unit quaternion .* norm 1.41421"):
+        PhysicalParams([1.0, 0.0, 0.0, 1.0], [10.0], [1.5])
+    with pytest.raises(ValueError, match=r"n has shape \(2,\) but m has 1 material slot"):
+        PhysicalParams([1.0, 0.0, 0.0, 0.0], [10.0], [1.5, 1.6])
+    with pytest.raises(ValueError, match=r"at least one"):
+        PhysicalParams([1.0, 0.0, 0.0, 0.0], [], [])
+    both = PhysicalParams([1.0, 0.0, 0.0, 0.0], [10.0, 20.0], [1.5])
+    np.testing.assert_array_equal(both.n, [1.5, 1.5])
 
 
 def test_rotvec_quaternion_inverse_and_smooth_at_zero():
@@ -382,9 +392,11 @@ def test_forward_jacobian_linearization_equals_autodiff():
         )
     with pytest.raises(NotImplementedError, match="theta only"):
         jax.jvp(
-            lambda a: _expected_forward_jac(th, par, eqx.tree_at(lambda mo: mo.areas, model, a),
-                                            aux),
-            (model.areas,), (jnp.ones_like(model.areas),),
+            lambda a: _expected_forward_jac(
+                th, par, eqx.tree_at(lambda mo: mo.areas, model, a), aux
+            ),
+            (model.areas,),
+            (jnp.ones_like(model.areas),),
         )
 
 

@@ -273,9 +273,7 @@ def _single_flat(
     scal, ki_s, ko_s, h = _single_scalar3(ki, ko, nr, m, m0)
     # R(b) F R(a) of the facet; the ideal white reflector (perfect conductor,
     # diag(r_s, r_p) = diag(-1, 1)) has Fresnel parameters (a, b, c, d) = (1, 0, -1, 0)
-    params = facet_rotated_params(
-        n_re, n_im, ki_s, ko_s, h, x_in, x_out, white=white, films=films
-    )
+    params = facet_rotated_params(n_re, n_im, ki_s, ko_s, h, x_in, x_out, white=white, films=films)
     return rotated_mueller_flat(params, scal, add_m00)
 
 
@@ -814,6 +812,15 @@ def mueller_brdf(
             f"material: field shapes m {jnp.shape(material.m)}, n {jnp.shape(material.n)} "
             f"(and film layers) do not broadcast with the directions' batch shape {batch}"
         ) from err
+    if _is_concrete(wavelength):
+        w = np.asarray(wavelength, np.float64)
+        if not np.all(np.isfinite(w)) or np.any(w <= 0) or np.any(w > 1e-3):
+            # the coherent backscatter peak and film phases scale with it: NaN, 0 or
+            # nanometres would give NaN or a silently wrong BRDF
+            raise ValueError(
+                f"wavelength must be a finite length in metres (e.g. 532e-9), got "
+                f"{w.ravel()[:4].tolist()}"
+            )
     _check_film_wavelength(material, wavelength)
     inputs = (k_in, k_out, normal, frame_in, frame_out, material)
     static = dict(names=names, dt=np.dtype(dt).name, batch=tuple(batch))
@@ -850,9 +857,7 @@ def mueller_brdf(
 def _check_film_wavelength(material: Material, wavelength) -> None:
     """A coated material's layers were given at ``material.wavelength``; a concrete BRDF
     wavelength must match it (within 1e-6 relative)."""
-    if not material.films or not (
-        _is_concrete(wavelength) and _is_concrete(material.wavelength)
-    ):
+    if not material.films or not (_is_concrete(wavelength) and _is_concrete(material.wavelength)):
         return
     lam = np.asarray(material.wavelength, np.float64)
     w = np.asarray(wavelength, np.float64)

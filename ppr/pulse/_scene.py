@@ -143,9 +143,10 @@ class Sensor(eqx.Module):
                     )
         if _concrete(self.wavelength):
             wl = np.asarray(self.wavelength)
-            if not np.all(np.isfinite(wl)) or np.any(wl <= 0):
+            if not np.all(np.isfinite(wl)) or np.any(wl <= 0) or np.any(wl > 1e-3):
                 raise ValueError(
-                    f"Sensor.wavelength must be a positive length in metres, got {wl!r}"
+                    f"Sensor.wavelength must be a positive length in metres (e.g. 532e-9; "
+                    f"above 1 mm is taken for nanometres), got {wl!r}"
                 )
 
     @classmethod
