@@ -650,6 +650,15 @@ def build_database(
         sig, energy = evaluate_rows(
             signature_fn, {k: v[a:b] for k, v in rows.items()}, mesh, dtype, pad_to=cr
         )
+        if not np.any(np.asarray(energy) > 0):
+            # a whole chunk of templates with no signal is a sensor that sees nothing (a
+            # pulse far longer than the bins, a gate that misses the shapes), not edge-on
+            # plates: refuse it instead of writing a database of zeros (not marked done)
+            raise ValueError(
+                f"database {spec.name!r}: every signature of chunk {i} (rows {a}-{b - 1}) is "
+                "zero: no return reaches the range bins; check the sensor's pulse and bins "
+                "against the shapes (e.g. `ppr simulate` one of them)"
+            )
         group["signatures"][a:b] = sig
         group["energy"][a:b] = energy
         # read back what the store will return, then mark the chunk done

@@ -120,7 +120,10 @@ def _remove(path: Path) -> None:
 
 
 def check_out_folder(out: str | os.PathLike, flag: str = "--out") -> Path:
-    """``out`` as a Path; an error naming ``flag`` if it, or a parent, is not a folder."""
+    """``out`` as a Path; an error naming ``flag`` if it is empty (an unset shell variable
+    would write into the working folder), or it or a parent is not a folder."""
+    if not os.fspath(out).strip():
+        raise OutputError(f"{flag} {os.fspath(out)!r}: empty path; choose a folder")
     out = Path(out)
     for p in (out, *out.parents):
         if os.path.lexists(p) and not p.is_dir():

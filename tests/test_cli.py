@@ -171,6 +171,39 @@ def test_brdf_end_to_end(tmp_path):
     assert (out / "brdf.png").stat().st_size > 1000
 
 
+def test_brdf_geometries_below_the_horizon_are_marked_and_said(tmp_path, capsys):
+    """Angles inside the documented bounds whose k_out falls at or below the horizon (a
+    cross-plane bistatic angle of 90 deg or more at normal incidence, in-plane 179 deg at 60
+    deg): the others are computed, these are NaN with valid = false and the command says so
+    on stderr (the cross-plane k_out along the frames' axis raised an internal error)."""
+    for plane, inc, bis in (
+        ("cross", [0.0, 60.0], [0.0, 90.0, 179.0]),
+        ("in", [60.0], [0.0, 179.0]),
+    ):
+        cfg = _write(
+            tmp_path / "brdf.toml",
+            f'material = "gold"\nterms = ["single"]\nincidence_deg = {inc}\n'
+            f'bistatic_deg = {bis}\nplane = "{plane}"\n',
+        )
+        out = tmp_path / f"out_{plane}"
+        capsys.readouterr()
+        assert run("brdf", "-c", cfg, "-o", out) == 0
+        err = capsys.readouterr().err
+        with np.load(out / "brdf.npz") as z:
+            valid, mueller = z["valid"], z["mueller"]
+        assert np.all(valid == (z_out(inc, bis, plane) > 1e-6))
+        assert np.all(np.isfinite(mueller[valid])) and np.all(np.isnan(mueller[~valid]))
+        n_bad = int((~valid).sum())
+        assert n_bad > 0 and f"{n_bad} of {valid.size} geometries have k_out at or below" in err
+
+
+def z_out(inc, bis, plane):
+    """The z component of k_out of ``ppr brdf``'s sweep (normal +z)."""
+    from ppr.cli.brdf import brdf_geometry
+
+    return brdf_geometry(inc, bis, plane)[1][..., 2]
+
+
 def test_image_end_to_end_example_satellite(tmp_path):
     out = tmp_path / "img"
     assert (
@@ -386,6 +419,17 @@ def test_refuses_to_overwrite(tmp_path, capsys):
     assert (out / "brdf.npz").read_bytes() == before
     assert run("brdf", "-q", "-c", cfg, "-o", out, "--set", 'material="silver"', "--overwrite") == 0
     assert json.loads((out / "brdf.json").read_text())["material"]["name"].startswith("silver")
+
+
+def test_empty_arguments_are_refused_not_defaults(tmp_path, capsys, monkeypatch):
+    """An empty --out (an unset shell variable) would write into the working folder and an
+    empty --only would run every demo step: both are refused in one line."""
+    monkeypatch.chdir(tmp_path)
+    assert run("brdf", "-q", "-o", "") == 2
+    assert error_line(capsys) == "ppr brdf: error: --out '': empty path; choose a folder"
+    assert run("demo", "-q", "--only", " ", "-o", tmp_path / "d") == 2
+    assert "--only ' ': empty; give steps from" in error_line(capsys)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_unwritable_out_is_one_line_naming_it(tmp_path, capsys, monkeypatch):

@@ -222,6 +222,23 @@ def test_bad_inputs(reference, tmp_path):
         load_database(tmp_path)
     with pytest.raises(ConfigError, match=r"shapes\[0\].name = 'torus': not a shape of model"):
         spec_from_dict(dict(SPEC, shapes=[{"name": "torus"}]))
+    # a sensor that sees nothing (every template zero) is refused, not written as zeros
+    from inversion._database import make_signature_fn
+
+    class Dark:
+        def __init__(self, fn):
+            self.fn = fn
+
+        def __getattr__(self, name):
+            return getattr(self.fn, name)
+
+        def __call__(self, params):
+            return 0.0 * self.fn(params)
+
+    spec = spec_from_dict(SPEC)
+    with pytest.raises(ValueError, match=r"every signature of chunk 0 \(rows 0-15\) is zero"):
+        build_database(spec, tmp_path / "dark", Dark(make_signature_fn(spec)), progress=False)
+    assert chunk_status(tmp_path / "dark", verify=False)["done"] == []
 
 
 @pytest.mark.parametrize("name", ["synthetic_small", "ppr_cubesat"])

@@ -152,7 +152,18 @@ def run(args) -> int:
         )
         inc = np.asarray(cfg.incidence_deg, float)
         k_in, k_out, f_in, f_out, valid = brdf_geometry(inc, bis, cfg.plane)
+        # below the horizon: evaluated at k_in with its frame (a valid placeholder; NaN in
+        # the outputs, valid = false), so a k_out along the frames' y axis raises nothing
         safe_out = np.where(valid[..., None], k_out, k_in)
+        f_out = np.where(valid[..., None], f_out, f_in)
+        if not valid.all() and not getattr(args, "quiet", False):
+            bad = np.argwhere(~valid)[0]
+            print(
+                f"ppr {NAME}: {int((~valid).sum())} of {valid.size} geometries have k_out at or "
+                f"below the horizon (first: incidence {inc[bad[0]]:g} deg, bistatic "
+                f"{bis[bad[1]]:g} deg, {cfg.plane}-plane): NaN in brdf.npz (valid = false)",
+                file=sys.stderr,
+            )
         t0 = time.perf_counter()
         flat = [x.reshape(-1, 3) for x in (k_in, safe_out)]
         n_rows = len(flat[0])

@@ -86,7 +86,10 @@ def register(sub) -> None:
 
 
 def _steps(args) -> tuple[str, ...]:
-    only = KEYS if not args.only else tuple(k.strip() for k in args.only.split(","))
+    if args.only is not None and not args.only.strip():
+        # an unset shell variable, not "every step"
+        raise c.CLIError(f"--only {args.only!r}: empty; give steps from {', '.join(KEYS)}")
+    only = KEYS if args.only is None else tuple(k.strip() for k in args.only.split(","))
     bad = [k for k in only if k not in KEYS]
     if bad:
         raise c.CLIError(
