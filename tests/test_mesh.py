@@ -396,3 +396,26 @@ def test_back_faces_culled_and_self_shadowing_panels():
 def test_visibility_rejects_non_square_samples():
     with pytest.raises(ValueError, match="perfect square"):
         VisibilityCaster(shapes.plate(), 10)
+
+
+@pytest.mark.parametrize(
+    "name, params, needle",
+    [
+        ("sphere", {"subdivisions": 1.9}, "subdivisions must be an integer >= 0, got 1.9"),
+        ("sphere", {"subdivisions": -2}, "subdivisions must be an integer >= 0, got -2"),
+        ("cylinder", {"sections": 2}, "sections must be an integer >= 3, got 2"),
+        ("cone", {"sections": True}, "sections must be an integer >= 3, got True"),
+        ("cylinder", {"radius": "0.25"}, "radius must be a positive finite length"),
+        ("plate", {"subdivisions": 0}, "subdivisions must be an integer >= 1, got 0"),
+    ],
+)
+def test_shape_parameters_are_refused_not_truncated(name, params, needle):
+    """A fractional, boolean or too small count (a 1.9-times subdivided sphere was silently
+    80 faces, a 2-sided cylinder a flat sliver) or a quoted length is an error naming it.
+    (Under the suite's runtime type checks a wrong type is caught by its annotation first:
+    that message names the parameter and the value too.)"""
+    ((key, value),) = params.items()
+    with pytest.raises(ValueError) as err:
+        shapes.by_name(name, **params)
+    msg = str(err.value)
+    assert needle in msg or (f"'{key}'" in msg and f"Actual value: {value!r}" in msg), msg

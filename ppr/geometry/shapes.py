@@ -30,10 +30,22 @@ __all__ = [
 
 
 def _positive(name: str, value) -> float:
+    if isinstance(value, str | bool) or not np.isscalar(value) and np.ndim(value) != 0:
+        raise ValueError(f"{name} must be a positive finite length in metres, got {value!r}")
     v = float(value)
     if not (np.isfinite(v) and v > 0):
         raise ValueError(f"{name} must be a positive finite length in metres, got {value!r}")
     return v
+
+
+def _count(name: str, value, minimum: int) -> int:
+    """An integer parameter (a number of sections, subdivisions): ``1.9`` or ``"3"`` are
+    refused, not truncated or parsed."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
 
 
 def _from_trimesh(tm, part: str) -> Mesh:
@@ -47,9 +59,7 @@ def plate(
     split into ``subdivisions^2`` squares of two triangles each."""
     w = _positive("width", width)
     h = w if height is None else _positive("height", height)
-    n = int(subdivisions)
-    if n < 1:
-        raise ValueError(f"subdivisions must be >= 1, got {subdivisions!r}")
+    n = _count("subdivisions", subdivisions, 1)
     xs = np.linspace(-w / 2, w / 2, n + 1)
     ys = np.linspace(-h / 2, h / 2, n + 1)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
@@ -80,7 +90,7 @@ def box(extents=(0.1, 0.1, 0.1), *, max_edge: float | None = None, part: str = "
 def cubesat(units: int = 1, *, max_edge: float | None = None, part: str = "body") -> Mesh:
     """CubeSat body: 1U is a 0.1 m cube, 3U is 0.1 x 0.1 x 0.34 m (long axis z)."""
     lengths = {1: 0.1, 2: 0.227, 3: 0.34, 6: 0.34}
-    if units not in lengths:
+    if isinstance(units, bool) or units not in lengths:
         raise ValueError(f"units must be one of {sorted(lengths)}, got {units!r}")
     ext = (0.2 if units == 6 else 0.1, 0.1, lengths[units])
     return box(ext, max_edge=max_edge, part=part)
@@ -95,7 +105,7 @@ def cylinder(
     tm = trimesh.creation.cylinder(
         radius=_positive("radius", radius),
         height=_positive("height", height),
-        sections=int(sections),
+        sections=_count("sections", sections, 3),
     )
     return check_mesh(_from_trimesh(tm, part), name="cylinder")
 
@@ -109,7 +119,7 @@ def cone(
     tm = trimesh.creation.cone(
         radius=_positive("radius", radius),
         height=_positive("height", height),
-        sections=int(sections),
+        sections=_count("sections", sections, 3),
     )
     return check_mesh(_from_trimesh(tm, part), name="cone")
 
@@ -119,7 +129,7 @@ def sphere(radius: float = 0.5, *, subdivisions: int = 3, part: str = "body") ->
     import trimesh
 
     tm = trimesh.creation.icosphere(
-        subdivisions=int(subdivisions), radius=_positive("radius", radius)
+        subdivisions=_count("subdivisions", subdivisions, 0), radius=_positive("radius", radius)
     )
     return check_mesh(_from_trimesh(tm, part), name="sphere")
 
