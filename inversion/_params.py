@@ -145,7 +145,7 @@ class PhysicalParams(eqx.Module):
                 f"shape {m.shape}"
             )
         for name, v in (("n", n), ("corr_length", corr_length), ("thickness", thickness)):
-            shape = jnp.shape(v)
+            shape = np.shape(v)
             if len(shape) > 1 or (len(shape) == 1 and shape[0] not in (1, m.shape[0])):
                 raise ValueError(
                     f"PhysicalParams.{name} has shape {shape} but m has {m.shape[0]} material "
