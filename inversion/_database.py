@@ -129,6 +129,15 @@ class DatabaseSpec(StrictModel):
     def _nonempty(cls, v):
         if len(v) == 0:
             raise ValueError("must not be empty")
+        # the same entry twice builds every one of its rows twice (the classifier then
+        # counts one template as two)
+        seen: dict = {}
+        for i, item in enumerate(v):
+            key = item if isinstance(item, str) else repr(item.model_dump())
+            if key in seen:
+                what = repr(item) if isinstance(item, str) else f"shape {item.name!r}"
+                raise ValueError(f"entries [{seen[key]}] and [{i}] are the same {what}")
+            seen[key] = i
         return v
 
     @pydantic.field_validator("finishes")

@@ -289,9 +289,19 @@ def validate_data(model: type[M], data: dict, source: str) -> M:
             f"{source}: {path} = {value}: not finite (NaN/inf are not allowed in configs)"
         )
     try:
-        return model.model_validate(data)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            result = model.model_validate(data)
     except pydantic.ValidationError as err:
         raise ConfigError(format_validation_error(err, source, data)) from None
+    finally:
+        for w in caught:
+            if issubclass(w.category, ConfigDeprecationWarning):
+                # the file it is in, not pydantic's line that ran the validator
+                warnings.warn(f"{source}: {w.message}", w.category, stacklevel=2)
+            else:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return result
 
 
 def read_toml(path: str | Path) -> dict:
@@ -305,6 +315,11 @@ def read_toml(path: str | Path) -> dict:
             return tomllib.load(f)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: not valid TOML ({err})") from None
+    except UnicodeDecodeError as err:
+        raise ConfigError(
+            f"{path}: not a TOML text file (not UTF-8: byte {err.object[err.start]:#04x} at "
+            f"position {err.start})"
+        ) from None
 
 
 def load_toml_model(model: type[M], path: str | Path, overrides: dict | None = None) -> M:

@@ -51,6 +51,9 @@ def test_missing_file_and_bad_toml(tmp_path):
     p = _write(tmp_path, "name = \n")
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_toml_model(Scene, p)
+    p.write_bytes(b'\xffname = "a"\n')  # another encoding than UTF-8: named, with the byte
+    with pytest.raises(ConfigError, match=rf"{p}: not a TOML text file \(not UTF-8: byte 0xff"):
+        load_toml_model(Scene, p)
 
 
 def test_parse_override_types():
@@ -125,7 +128,13 @@ def test_no_value_reaches_a_number_or_a_switch_by_conversion(tmp_path, monkeypat
     ]
     for text, needle in cases:
         p = _write(tmp_path, text + "\n")
-        with pytest.warns(ConfigDeprecationWarning) if "fwhm_ps" in text else _no_warning():
+        # the deprecation warning names the file the key is in
+        dep = f"{p}: config key 'fwhm_ps' is deprecated"
+        with (
+            pytest.warns(ConfigDeprecationWarning, match=dep)
+            if "fwhm_ps" in text
+            else _no_warning()
+        ):
             with pytest.raises(ConfigError, match=f"{p}: {needle}"):
                 load_toml_model(Run, p)
     ok = load_toml_model(

@@ -212,6 +212,11 @@ def test_bad_inputs(reference, tmp_path):
         build_database(spec_from_dict(other), ref_path, progress=False)
     with pytest.raises(ConfigError, match="materials"):
         spec_from_dict(dict(SPEC, materials=[]))
+    # an entry twice would build its rows twice (one template counted as two)
+    with pytest.raises(ConfigError, match=r"entries \[0\] and \[1\] are the same 'aluminium'"):
+        spec_from_dict(dict(SPEC, materials=["aluminium", "aluminium"]))
+    with pytest.raises(ConfigError, match=r"entries \[0\] and \[2\] are the same shape 'cube'"):
+        spec_from_dict(dict(SPEC, shapes=[*SPEC["shapes"], SPEC["shapes"][0]]))
     with pytest.raises(ConfigError, match="shapes"):
         spec_from_dict(dict(SPEC, shapes=[]))
     with pytest.raises(ConfigError, match="finishes"):

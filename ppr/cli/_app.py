@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
+import warnings
 from collections.abc import Sequence
 
 import pydantic
@@ -104,6 +105,30 @@ def _command_name(args) -> str:
 USER_ERRORS = (c.ConfigError, c.CLIError, ValueError, pydantic.ValidationError)
 
 
+_WARNING_PREFIX = ["ppr"]  # the running command, for the warning lines below
+
+
+def _config_warnings_as_lines(name: str) -> None:
+    """A config's deprecation warnings as one line each (``ppr simulate: warning: <file>:
+    config key 'fwhm_ps' is deprecated; ...``), not Python's two-line warning format."""
+    from .._config import ConfigDeprecationWarning
+
+    _WARNING_PREFIX[0] = f"ppr {name}"
+    shown = warnings.showwarning
+    if getattr(shown, "_ppr_lines", False):
+        return
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, ConfigDeprecationWarning):
+            out = sys.stderr if file is None else file
+            print(f"{_WARNING_PREFIX[0]}: warning: {message}", file=out)
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    show._ppr_lines = True
+    warnings.showwarning = show
+
+
 def run(argv: Sequence[str] | None = None) -> int:
     """Parse ``argv`` and run the command (see :func:`ppr.cli.main`)."""
     parser = build_parser()
@@ -113,6 +138,7 @@ def run(argv: Sequence[str] | None = None) -> int:
         raise SystemExit(2)
     c.COMMAND_LINE = ["ppr", *(sys.argv[1:] if argv is None else [str(a) for a in argv])]
     name = _command_name(args)
+    _config_warnings_as_lines(name)
     try:
         with _sigterm_raises():
             enable_compile_cache()
