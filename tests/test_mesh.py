@@ -87,6 +87,17 @@ def test_shape_errors():
 TRI = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
 
 
+def test_fractional_indices_and_repeated_part_names_rejected():
+    """A face index 2.5 was silently vertex 2; two parts of one name are one material slot
+    named twice."""
+    faces = np.array([[0, 1, 2], [1, 3, 2]])
+    with pytest.raises(ValueError, match=r"indices must be integers, got 0.5 at \(0, 0\)"):
+        ppr.Mesh(TRI, faces + 0.5)
+    np.testing.assert_array_equal(ppr.Mesh(TRI, faces * 1.0).faces, faces)
+    with pytest.raises(ValueError, match="Mesh.parts names 'a' twice"):
+        ppr.Mesh(TRI, faces, np.array([0, 1]), ("a", "a"))
+
+
 def test_empty_mesh_rejected():
     with pytest.raises(ValueError, match="empty"):
         ppr.Mesh(np.zeros((0, 3)), np.zeros((0, 3), int))

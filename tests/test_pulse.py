@@ -735,6 +735,11 @@ def test_bad_inputs_raise_before_computing():
         ppr.Pulse.gaussian(-1e-12)
     with pytest.raises(ValueError, match="unknown transmitted state"):
         ppr.simulate(_scene(mesh), brdf=lambertian_mueller, states=["H", "Q"])
+    # Stokes rows that are not light: over-polarized, zero, negative power
+    for row, dop in (([1.0, 2.0, 0.0, 0.0], "2"), ([0.0] * 4, "inf"), ([-1.0, 0, 0, 0], "inf")):
+        with pytest.raises(ValueError, match=rf"states\[1\] = .*degree of polarization {dop}"):
+            states = np.asarray([[1.0, 1, 0, 0], row], np.float64)
+            ppr.simulate(_scene(mesh), brdf=lambertian_mueller, states=states)
     with pytest.raises(ValueError, match="visibility must be"):
         ppr.simulate(_scene(mesh), brdf=lambertian_mueller, visibility=np.ones(3))
     with pytest.raises(ValueError, match="one Material per part"):

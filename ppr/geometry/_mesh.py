@@ -44,6 +44,16 @@ def _as_vertices(x) -> Array:
 
 
 def _as_int(x) -> Array:
+    if _concrete(x) and not isinstance(x, jax.Array):
+        a = np.asarray(x)
+        if a.dtype.kind == "f" and a.size and not np.all(a == np.round(a)):
+            # 2.5 would silently be vertex 2
+            bad = tuple(int(i) for i in np.argwhere(a != np.round(a))[0])
+            raise ValueError(
+                f"Mesh face and material indices must be integers, got {float(a[bad])} at {bad}"
+            )
+        if a.dtype.kind not in "iuf" and a.size:
+            raise ValueError(f"Mesh face and material indices must be integers, got {a.dtype}")
     return jnp.asarray(x, dtype=jnp.int32)
 
 
@@ -91,6 +101,12 @@ class Mesh(eqx.Module):
             raise ValueError(f"Mesh.material_ids must have shape ({f.shape[0]},), got {mid.shape}")
         if len(self.parts) == 0:
             raise ValueError("Mesh.parts must name at least one part")
+        if len(set(self.parts)) != len(self.parts):
+            dup = next(p for p in self.parts if self.parts.count(p) > 1)
+            raise ValueError(
+                f"Mesh.parts names {dup!r} twice: each part is a material slot of its own "
+                f"name, got {self.parts}"
+            )
         if _concrete(v):
             a = np.asarray(v)
             bad = ~np.isfinite(a).all(axis=1)

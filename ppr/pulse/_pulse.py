@@ -990,6 +990,16 @@ def simulate(
             svec = np.asarray(states, np.float64)
             if svec.ndim != 2 or svec.shape[1] != 4 or not np.all(np.isfinite(svec)):
                 raise ValueError(f"states must be names or (S, 4) Stokes rows, got {svec.tolist()}")
+            # a physical (partially) polarized state: S0 > 0 and |S1, S2, S3| <= S0
+            dop = np.linalg.norm(svec[:, 1:], axis=1)
+            bad = np.flatnonzero(~(svec[:, 0] > 0) | (dop > svec[:, 0] * (1 + 1e-9)))
+            if bad.size:
+                i = int(bad[0])
+                raise ValueError(
+                    f"states[{i}] = {svec[i].tolist()}: not a Stokes vector of light (needs S0 > 0 "
+                    f"and sqrt(S1^2 + S2^2 + S3^2) <= S0; degree of polarization "
+                    f"{dop[i] / svec[i, 0] if svec[i, 0] > 0 else float('inf'):.3g})"
+                )
             labels = tuple(str(list(r)) for r in svec)
         proj = stokes_projection(svec)
         kind, out_shape = "stokes", (len(svec), 4)
