@@ -156,6 +156,11 @@ def test_sensor_config_errors(tmp_path):
     )
     with pytest.raises(ConfigError, match=r"bins.count = 0"):
         ppr.load_sensor(bad)
+    # a sensor field overridden on a scene (`ppr simulate --set bins.width_m=...`) says where
+    # it lives instead of "unknown key"
+    scene = ppr.shipped_config("scenes/cubesat3u_panels.toml")
+    with pytest.raises(ConfigError, match=r"bins.width_m is a field of the sensor file"):
+        ppr.load_scene(scene, {"bins.width_m": 0.01})
 
 
 def test_mesh_file_scene(tmp_path):

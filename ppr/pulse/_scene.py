@@ -589,6 +589,14 @@ def load_scene(path: str | os.PathLike, overrides: dict | None = None) -> Scene:
     from ..geometry import shapes  # noqa: PLC0415
 
     path = Path(path)
+    sensor_keys = [k for k in (overrides or {}) if k.split(".")[0] in SensorConfig.model_fields]
+    if sensor_keys:
+        # the sensor's fields live in its own file, which the scene names
+        raise ConfigError(
+            f"{config_source(path, overrides)}: {sensor_keys[0]} is a field of the sensor "
+            "file the scene names (sensor = ...), not of the scene: copy that file (e.g. "
+            'configs/sensors/default.toml), change it there and set sensor = "<its path>"'
+        )
     cfg = load_toml_model(SceneConfig, path, overrides)
     src = config_source(path, overrides)
     spath = _find_sensor(cfg.sensor, path)
