@@ -55,26 +55,32 @@ def test_default_config_loads_and_bad_configs_are_clear(tmp_path):
     cfg = load_mcmc_config(CONFIG)
     assert cfg.priors.m.kind == "loguniform" and cfg.sampler.n_walkers == 32
     bad = tmp_path / "bad.toml"
-    bad.write_text('[priors.m]\nkind = "uniform"\nlow = 10.0\nhigh = 1.0\n')
-    with pytest.raises(ConfigError, match=r"bad.toml.*priors.m.*low < high"):
-        load_mcmc_config(bad)
-    bad.write_text("[sampler]\nn_walkerz = 3\n")
-    with pytest.raises(ConfigError, match=r"sampler.n_walkerz.*unknown key"):
-        load_mcmc_config(bad)
-    bad.write_text('[priors.gain]\nkind = "loguniform"\nlow = nan\nhigh = 1.0\n')
-    with pytest.raises(ConfigError, match=r"priors.gain.low = nan: not finite"):
-        load_mcmc_config(bad)
-    bad.write_text("[sampler]\nn_steps = 100\nburn_in = 200\n")
-    with pytest.raises(ConfigError, match="burn_in"):
-        load_mcmc_config(bad)
-    # a field its kind does not take is an error, not dropped (low on a normal prior would
-    # have been an untruncated normal)
-    bad.write_text('[priors.range_offset]\nkind = "normal"\nmean = 0.0\nsigma = 1.0\nlow = -5.0\n')
-    with pytest.raises(ConfigError, match=r"a normal prior takes mean and sigma, not low = -5.0"):
-        load_mcmc_config(bad)
-    bad.write_text('[priors.attitude]\nkind = "uniform"\nsigma_deg = 3.0\n')
-    with pytest.raises(ConfigError, match=r"uniform attitude prior takes no sigma_deg"):
-        load_mcmc_config(bad)
+    # (file text, what the one-line error must say); a field its kind does not take is an
+    # error, not dropped (low on a normal prior would have been an untruncated normal)
+    cases = [
+        (
+            '[priors.m]\nkind = "uniform"\nlow = 10.0\nhigh = 1.0\n',
+            r"bad.toml.*priors.m.*low < high",
+        ),
+        ("[sampler]\nn_walkerz = 3\n", r"sampler.n_walkerz.*unknown key"),
+        (
+            '[priors.gain]\nkind = "loguniform"\nlow = nan\nhigh = 1.0\n',
+            r"priors.gain.low = nan: not finite",
+        ),
+        ("[sampler]\nn_steps = 100\nburn_in = 200\n", "burn_in"),
+        (
+            '[priors.range_offset]\nkind = "normal"\nmean = 0.0\nsigma = 1.0\nlow = -5.0\n',
+            r"a normal prior takes mean and sigma, not low = -5.0",
+        ),
+        (
+            '[priors.attitude]\nkind = "uniform"\nsigma_deg = 3.0\n',
+            "attitude prior takes no sigma_deg",
+        ),
+    ]
+    for text, needle in cases:
+        bad.write_text(text)
+        with pytest.raises(ConfigError, match=needle):
+            load_mcmc_config(bad)
 
 
 def test_log_prob_vectorised_equals_single_and_respects_support():
