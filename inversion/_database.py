@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import socket
 import time
@@ -198,6 +199,8 @@ def shape_symmetry(spec: DatabaseSpec, i: int):
     mesh (``model = "ppr"``: :func:`ppr.mesh_symmetries` of the ``ppr.shapes`` mesh)."""
     s = spec.shapes[i]
     if s.symmetry != "auto":
+        if spec.model == "ppr" and s.symmetry != "none":
+            _check_declared_symmetry(s, i)
         return s.symmetry
     if spec.model != "ppr":
         raise ValueError(
@@ -205,6 +208,25 @@ def shape_symmetry(spec: DatabaseSpec, i: int):
             f"mesh and needs model = 'ppr', got model = {spec.model!r}"
         )
     return as_symmetry(ppr.shapes.by_name(s.name, **s.params))
+
+
+def _check_declared_symmetry(s, i: int) -> None:
+    """A named class given for a ``ppr.shapes`` shape must be rotations of its mesh: the
+    grid is reduced by them, so a group the shape does not have (a cube declared
+    ``cyclic:7``) would merge attitudes that give different signatures."""
+    mesh = ppr.shapes.by_name(s.name, **s.params)
+    # the geometry's group: a database gives every part of a template one material
+    whole = ppr.Mesh(mesh.vertices, mesh.faces)
+    mesh_q = np.asarray(as_symmetry(whole).quaternions())
+    for q in np.asarray(symmetry_group(s.symmetry), np.float64):
+        if np.max(np.abs(mesh_q @ q)) < 1.0 - 1e-9:  # |q . p| = cos(angle / 2)
+            angle = 2.0 * math.degrees(math.acos(min(1.0, abs(float(q[0])))))
+            axis = q[1:] / max(float(np.linalg.norm(q[1:])), 1e-300)
+            raise ValueError(
+                f"shapes[{i}].symmetry = {s.symmetry!r}: shape {s.name!r} is not symmetric "
+                f"under its {angle:.4g} deg rotation about {np.round(axis, 4).tolist()} (use "
+                "symmetry = 'auto' for the mesh's own group)"
+            )
 
 
 def grids_for(spec: DatabaseSpec) -> list[AttitudeGrid]:

@@ -246,6 +246,27 @@ def test_bad_inputs(reference, tmp_path):
     assert chunk_status(tmp_path / "dark", verify=False)["done"] == []
 
 
+def test_declared_symmetry_must_be_the_shapes():
+    """The grid is reduced by a shape's declared class: one the mesh does not have (a 3U
+    CubeSat declared cyclic:7) would merge attitudes with different signatures, so it is
+    refused naming the rotation; the shipped spec's classes are the meshes' own (geometry
+    only: a template has one material on every part)."""
+    from inversion._database import grids_for, load_spec
+
+    bad = dict(
+        SPEC,
+        model="ppr",
+        shapes=[{"name": "cubesat", "params": {"units": 3}, "symmetry": "cyclic:7"}],
+    )
+    with pytest.raises(
+        ValueError,
+        match=r"shapes\[0\].symmetry = 'cyclic:7': shape 'cubesat' is "
+        r"not symmetric under its 51.43 deg rotation about \[0.0, 0.0, 1.0\]",
+    ):
+        grids_for(spec_from_dict(bad))
+    assert len(grids_for(load_spec(ROOT / "configs" / "databases" / "ppr_cubesat.toml"))) == 2
+
+
 @pytest.mark.parametrize("name", ["synthetic_small", "ppr_cubesat"])
 def test_shipped_specs_parse(name):
     from inversion._database import load_spec
