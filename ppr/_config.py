@@ -134,6 +134,10 @@ def _refuse_casts(annotation, value):
         if len(args) == 1:
             return _refuse_casts(args[0], value)
         return value if _scalar_kind(annotation) is None else _refuse_casts(args[0], value)
+    if origin is dict and isinstance(value, dict) and len(typing.get_args(annotation)) == 2:
+        v_type = typing.get_args(annotation)[1]
+        new = {k: _refuse_casts(v_type, v) for k, v in value.items()}
+        return value if all(new[k] is value[k] for k in value) else new
     if origin in (list, tuple) and isinstance(value, list | tuple):
         args = [a for a in typing.get_args(annotation) if a is not Ellipsis]
         if len(args) == 1:

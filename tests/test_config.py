@@ -114,6 +114,7 @@ def test_no_value_reaches_a_number_or_a_switch_by_conversion(tmp_path, monkeypat
         angles: tuple[float, ...] = ()
         capacity: int | typing.Literal["auto"] = "auto"
         mirror: bool = True
+        finishes: dict[str, float] = {}
         pulse: PulseConfig | None = None
 
     cases = [
@@ -124,6 +125,7 @@ def test_no_value_reaches_a_number_or_a_switch_by_conversion(tmp_path, monkeypat
         ('angles = ["30"]', r"angles\[0\] = '30': expected a number"),
         ('mirror = "no"', "mirror = 'no': expected true or false"),
         ("mirror = 1", "mirror = 1: expected true or false"),
+        ('[finishes]\nrough = "10"', "finishes.rough = '10': expected a number"),
         ('[pulse]\nfwhm_ps = "100"', "pulse.fwhm_ps = '100': expected a number"),
     ]
     for text, needle in cases:
