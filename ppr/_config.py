@@ -235,6 +235,9 @@ def _message(e: dict) -> str:
     if e["type"] == "extra_forbidden":
         return "unknown key"
     if e["type"] == "missing":
+        loc = e.get("loc", ())
+        if loc and isinstance(loc[-1], int):  # a fixed-length list given too few values
+            return f"too few values (no value at position {loc[-1]})"
         return "required field missing"
     if e["type"] in _TYPE_WORDS:
         return f"expected {_TYPE_WORDS[e['type']]}"

@@ -594,6 +594,19 @@ def test_classify_end_to_end(tiny_db, tmp_path):
     assert json.loads((tmp_path / "cls3" / "classify.json").read_text())["no_signal"] == [2]
 
 
+def test_classify_top_k_beyond_the_database_is_said(tiny_db, tmp_path, capsys):
+    """top_k above the database's template count returns every template, and says so."""
+    _, db = tiny_db
+    cfg = _write(
+        tmp_path / "c.toml",
+        f'database = "{db / "database.zarr"}"\nn_simulated = 2\ntop_k = 1000\n',
+    )
+    capsys.readouterr()
+    assert run("classify", "-q", "-c", cfg, "-o", tmp_path / "cls") == 0
+    n = json.loads((tmp_path / "cls" / "classify.json").read_text())["n_templates"]
+    assert f"top_k = 1000 is more than the database's {n} templates" in capsys.readouterr().err
+
+
 def test_classify_missing_database(tmp_path, capsys):
     cfg = _write(tmp_path / "c.toml", 'database = "nowhere.zarr"\n')
     assert run("classify", "-c", cfg, "-o", tmp_path / "o") == 2

@@ -115,6 +115,7 @@ def test_no_value_reaches_a_number_or_a_switch_by_conversion(tmp_path, monkeypat
         capacity: int | typing.Literal["auto"] = "auto"
         mirror: bool = True
         finishes: dict[str, float] = {}
+        pair: tuple[float, float] = (1.0, 2.0)
         pulse: PulseConfig | None = None
 
     cases = [
@@ -126,6 +127,7 @@ def test_no_value_reaches_a_number_or_a_switch_by_conversion(tmp_path, monkeypat
         ('mirror = "no"', "mirror = 'no': expected true or false"),
         ("mirror = 1", "mirror = 1: expected true or false"),
         ('[finishes]\nrough = "10"', "finishes.rough = '10': expected a number"),
+        ("pair = [0.1]", r"pair = \[0.1\]: too few values \(no value at position 1\)"),
         ('[pulse]\nfwhm_ps = "100"', "pulse.fwhm_ps = '100': expected a number"),
     ]
     for text, needle in cases:

@@ -210,6 +210,12 @@ def run(args) -> int:
     with c.outputs(args.out, OUTPUTS, args.overwrite) as out:
         w = inversion.design_weights(bank, cfg.weights, cfg.attribute)
         prep = inversion.prepare(bank, w)
+        if cfg.top_k > len(bank):  # what was asked for is not what is returned: said
+            print(
+                f"ppr classify: top_k = {cfg.top_k} is more than the database's {len(bank)} "
+                f"templates: every template is a candidate ({len(bank)} per observation)",
+                file=sys.stderr,
+            )
         try:
             res = inversion.classify(
                 prep, obs, k=min(cfg.top_k, len(bank)), max_shift=cfg.max_shift_bins
