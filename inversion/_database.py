@@ -298,6 +298,9 @@ def make_signature_fn(spec: DatabaseSpec):
     from ._ppr_adapter import PprSignatures
 
     _check_ppr_names(spec)
+    for i, s in enumerate(spec.shapes):  # a declared group must be the shape's own
+        if s.symmetry not in ("auto", "none"):
+            _check_declared_symmetry(s, i)
     try:
         return PprSignatures.from_spec(spec, mm)
     except ValueError as err:
@@ -471,6 +474,19 @@ def _store_attrs(spec: DatabaseSpec, signature_fn) -> tuple[dict, list, dict]:
     return attrs, grids, rows
 
 
+def _open_store(path: Path, mode: str) -> zarr.Group:
+    """The store's zarr group; unreadable metadata is an error naming its file."""
+    try:
+        return zarr.open_group(str(path), mode=mode)
+    except Exception as err:  # noqa: BLE001 - re-raised naming the file
+        meta = Path(path) / "zarr.json"
+        raise ValueError(
+            f"database {path}: its metadata {meta} cannot be read ({type(err).__name__}: "
+            f"{err}); the store is damaged beyond its chunk checksums: remove {path} and "
+            "build it again"
+        ) from None
+
+
 def init_database(spec: DatabaseSpec, path: str | Path, signature_fn=None) -> zarr.Group:
     """Create (or reopen and check) the store for ``spec``; returns the zarr group.
 
@@ -483,7 +499,7 @@ def init_database(spec: DatabaseSpec, path: str | Path, signature_fn=None) -> za
     sensor = json.dumps(attrs["sensor"])
     n = attrs["n_rows"]
     if (path / "zarr.json").exists():
-        group = zarr.open_group(str(path), mode="r+")
+        group = _open_store(path, "r+")
         old = dict(group.attrs)
         if old.get("initialized"):
             _check_same(old, attrs, path)
@@ -593,7 +609,7 @@ def _read_chunk(group, i: int, cr: int, n: int):
 def chunk_status(path: str | Path, verify: bool = True) -> dict[str, list[int]]:
     """Chunks that are ``done``, ``missing`` (no marker) and ``corrupt`` (digest mismatch)."""
     path = Path(path)
-    group = zarr.open_group(str(path), mode="r")
+    group = _open_store(path, "r")
     n, cr, n_chunks = group.attrs["n_rows"], group.attrs["chunk_rows"], group.attrs["n_chunks"]
     status = {"done": [], "missing": [], "corrupt": []}
     for i in range(n_chunks):
@@ -765,7 +781,7 @@ def load_database(path: str | Path, verify: bool = True) -> TemplateBank:
         raise ValueError(f"database {path} does not exist")
     if not (path / "zarr.json").exists():
         raise ValueError(f"{path} is not a signature database (no zarr.json)")
-    group = zarr.open_group(str(path), mode="r")
+    group = _open_store(path, "r")
     attrs = dict(group.attrs)
     if not attrs.get("initialized") or attrs.get("ppr_database") != FORMAT_VERSION:
         raise ValueError(

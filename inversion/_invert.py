@@ -1488,6 +1488,7 @@ def invert(
         cfg = _as_config(config)
         cands = _as_candidates(candidates)
         data, sensor = _observation_data(observation)
+        from_config = noise is None
         noise = _noise_of(cfg) if noise is None else noise
         if not callable(getattr(noise, "variance", None)):
             raise ValueError(
@@ -1525,7 +1526,18 @@ def invert(
             if shape is not None:
                 check_observation(data, shape, f"observation (candidate {c.name!r})")
         if hasattr(noise, "check_data"):
-            noise.check_data(data, "observation")
+            try:
+                noise.check_data(data, "observation")
+            except ValueError as err:
+                if not from_config:
+                    raise
+                # the noise came from the config: name its field, not the library's classes
+                msg = str(err).split("; use ")[0]
+                raise ValueError(
+                    f"{msg}; likelihood = {cfg.likelihood!r} takes photo-counts: set "
+                    'likelihood = "gaussian" (variance mu + 1) for background-subtracted or '
+                    "scaled data"
+                ) from None
         wavelength = cands[0].wavelength
         materials = _resolve_materials(cfg, bank_, wavelength)
         if not materials:

@@ -7,6 +7,7 @@ status 2.
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 import types
 import typing
@@ -333,15 +334,72 @@ def load_toml_model(model: type[M], path: str | Path, overrides: dict | None = N
     """Read a TOML file, apply dotted-key ``overrides`` (``{"pulse.fwhm_s": 80e-12}``), validate."""
     data = read_toml(path)
     for key, value in (overrides or {}).items():
-        node = data
-        *head, last = key.split(".")
-        for i, k in enumerate(head):
-            node = node.setdefault(k, {})
-            if not isinstance(node, dict):
-                where = ".".join(head[: i + 1])
-                raise ConfigError(f"{path}: override {key!r}: {where!r} is {node!r}, not a table")
-        node[last] = value
+        _set_override(data, key, value, path)
     return validate_data(model, data, config_source(path, overrides))
+
+
+_KEY_PART = re.compile(r"^([^\[\]]+)((?:\[\d+\])*)$")
+
+
+def _set_override(data: dict, key: str, value, path) -> None:
+    """``data[key] = value`` for a dotted key whose parts may index a list of tables
+    (``shapes[0].symmetry``, the notation errors use); a missing table is created, a missing
+    list entry is an error naming the list's length."""
+    steps: list[str | int] = []
+    for part in key.split("."):
+        match = _KEY_PART.match(part)
+        if match is None:
+            raise ConfigError(
+                f"{path}: override {key!r}: {part!r} is not a key (write key.sub or key[index].sub)"
+            )
+        steps.append(match.group(1))
+        steps += [int(i) for i in re.findall(r"\[(\d+)\]", match.group(2))]
+    node = data
+    for i, step in enumerate(steps[:-1]):
+        where = _written(steps[: i + 1])
+        if isinstance(step, int):
+            if not isinstance(node, list):
+                raise ConfigError(
+                    f"{path}: override {key!r}: {_written(steps[:i])!r} is not a list"
+                )
+            if step >= len(node):
+                raise ConfigError(
+                    f"{path}: override {key!r}: {_written(steps[:i])!r} has {len(node)} "
+                    f"entries (indices 0 to {len(node) - 1})"
+                )
+            node = node[step]
+        else:
+            if not isinstance(node, dict):
+                raise ConfigError(
+                    f"{path}: override {key!r}: {_written(steps[:i])!r} is a list: index it "
+                    f"({_written(steps[:i])}[0].{step})"
+                )
+            node = node.setdefault(step, {})
+        if not isinstance(node, (dict, list)):
+            raise ConfigError(f"{path}: override {key!r}: {where!r} is {node!r}, not a table")
+    last = steps[-1]
+    if isinstance(last, int):
+        if not isinstance(node, list) or last >= len(node):
+            n = len(node) if isinstance(node, list) else 0
+            raise ConfigError(
+                f"{path}: override {key!r}: {_written(steps[:-1])!r} has {n} entries "
+                "(an override replaces an entry; it cannot add one)"
+            )
+    elif isinstance(node, list):
+        raise ConfigError(
+            f"{path}: override {key!r}: {_written(steps[:-1])!r} is a list: index it "
+            f"({_written(steps[:-1])}[0].{last})"
+        )
+    elif not isinstance(node, dict):
+        raise ConfigError(f"{path}: override {key!r}: {_written(steps[:-1])!r} is not a table")
+    node[last] = value
+
+
+def _written(steps) -> str:
+    out = ""
+    for s in steps:
+        out += f"[{s}]" if isinstance(s, int) else (f".{s}" if out else s)
+    return out
 
 
 def config_source(path: str | Path, overrides: dict | None = None) -> str:

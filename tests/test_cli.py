@@ -650,6 +650,21 @@ samples_per_face = 1
 """
 
 
+def test_invert_simulated_return_outside_the_gate_names_the_offset(tmp_path, capsys):
+    """A simulated observation whose range offset moves the whole return out of the bins is
+    refused naming the offset and the gate (it was 'all values are 0 (no signal)')."""
+    _write(tmp_path / "sensor.toml", INV_SENSOR)
+    _write(tmp_path / "scene.toml", INV_SCENE)
+    text = 'scene = "scene.toml"\nbrdf = "glossy"\nmcmc = "none"\n'
+    cfg = _write(tmp_path / "inv.toml", text + "[observation]\nrange_offset_m = 5.0\n")
+    out = tmp_path / "out"
+    assert run("invert", "-q", "-c", cfg, "-o", out) == 2
+    line = error_line(capsys)
+    assert line.startswith(f"ppr invert: error: {cfg}: observation.range_offset_m = 5.0: ")
+    assert "out of the range gate [-0.16, 0.16] m" in line, line
+    assert not out.exists()
+
+
 def test_invert_end_to_end(tmp_path, capsys):
     """``ppr invert`` is config + inversion.invert + Inversion.write: the JSON separates
     converged from reliable with the reasons (a 20-step chain has not converged; the glossy
@@ -921,6 +936,13 @@ BAD_INPUTS = [
     ),
     ("simulate", None, ["--states", "H,Q"], ["--states 'H,Q'", "'Q'"]),
     ("simulate", None, ["--terms", "single,quad"], ["--terms 'single,quad'", "'quad'"]),
+    ("simulate", None, ["--states", "H,V,H"], ["--states 'H,V,H'", "'H' is listed twice"]),
+    (
+        "database build",
+        SMALL_DB,
+        ["--set", "shapes[9].symmetry='none'"],
+        ["override 'shapes[9].symmetry'", "'shapes' has"],
+    ),
     (
         "database build",
         SMALL_DB,
@@ -966,6 +988,7 @@ BAD_INPUTS = [
         ["database = 'nowhere.zarr'", "does not exist"],
     ),
     ("report", 'database = "{spec}"\nsnrs = []\n', [], ["snrs = []", "must not be empty"]),
+    ("report", 'database = "{spec}"\nsnrs = [30.0, 30.0]\n', [], ["30.0 is listed twice"]),
     ("report", 'database = "{spec}"\ngain_range = [10.0, 0.1]\n', [], ["gain_range = [10.0, 0.1]"]),
     ("report", 'database = "nope.toml"\n', [], ["database = 'nope.toml'", "no such config file"]),
     ("demo", None, ["--only", "image", "--pixels", "2"], ["--pixels 2"]),
@@ -1012,6 +1035,32 @@ def test_bad_input_is_one_line_exit_2(tiny_db, tmp_path, capsys, command, text, 
     for needle in needles:
         assert needle in line, (needle, line)
     assert not out.exists()
+
+
+DEGEN_OBJ = "v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\nv 0 1 0\nf 1 2 4\n"
+
+
+def test_image_mesh_table_takes_the_degenerate_face_hint(tmp_path, capsys):
+    """``ppr image`` on a mesh with a zero-area face says how to drop it in the config's own
+    notation, and the mesh table it names (as in scene configs) is accepted: the face is
+    dropped, the other kept."""
+    from ppr.cli import image
+
+    (tmp_path / "degen.obj").write_text(DEGEN_OBJ)
+    cfg = _write(tmp_path / "img.toml", 'mesh = "degen.obj"\n[materials]\ndefault = "gold"\n')
+    assert run("image", "-q", "-c", cfg, "-o", tmp_path / "out") == 2
+    line = error_line(capsys)
+    assert "1 degenerate (zero-area) faces" in line
+    assert 'mesh = {path = "...", on_degenerate = "drop"}' in line, line
+    text = 'mesh = {path = "degen.obj", on_degenerate = "drop"}\n[materials]\ndefault = "gold"\n'
+    _write(cfg, text)
+    from ppr.config import read_toml
+
+    mesh = image.image_inputs(image.ImageConfig.model_validate(read_toml(cfg)), cfg)[0]
+    assert mesh.n_faces == 1
+    _write(cfg, text.replace('"drop"', '"keep"'))
+    assert run("image", "-q", "-c", cfg, "-o", tmp_path / "out") == 2
+    assert "mesh.on_degenerate = 'keep'" in error_line(capsys)
 
 
 def test_out_is_a_file(tmp_path, capsys):

@@ -155,3 +155,37 @@ def _no_warning():
     import contextlib
 
     return contextlib.nullcontext()
+
+
+class Shape(StrictModel):
+    name: str
+    symmetry: str = "none"
+
+
+class Spec(StrictModel):
+    shapes: list[Shape]
+
+
+def test_override_indexes_a_list_of_tables_as_errors_write_it(tmp_path):
+    """``--set shapes[1].symmetry=...`` reaches the second [[shapes]] table (the notation the
+    errors use); an index past the list, a dotted key into a list and a bracket that is not
+    an index are errors naming the override."""
+    p = _write(tmp_path, '[[shapes]]\nname = "a"\n[[shapes]]\nname = "b"\n')
+    s = load_toml_model(Spec, p, {"shapes[1].symmetry": "dihedral:4"})
+    assert [(x.name, x.symmetry) for x in s.shapes] == [("a", "none"), ("b", "dihedral:4")]
+    s = load_toml_model(Spec, p, {"shapes[0]": {"name": "c"}})  # a whole entry replaced
+    assert [x.name for x in s.shapes] == ["c", "b"]
+    for key, needle in [
+        ("shapes[2].symmetry", "'shapes' has 2 entries (indices 0 to 1)"),
+        ("shapes.symmetry", "'shapes' is a list: index it (shapes[0].symmetry)"),
+        ("shapes[x].symmetry", "'shapes[x]' is not a key"),
+        ("shapes[0].symmetry[0]", "'shapes[0].symmetry' has 0 entries"),
+    ]:
+        with pytest.raises(ConfigError) as e:
+            load_toml_model(Spec, p, {key: "dihedral:4"})
+        msg = str(e.value)
+        assert str(p) in msg and f"override {key!r}" in msg and needle in msg, msg
+    # the error of a value set through an index names it as written
+    with pytest.raises(ConfigError) as e:
+        load_toml_model(Spec, p, {"shapes[1].colour": 3})
+    assert "shapes[1].colour=3" in str(e.value) and "unknown key" in str(e.value)

@@ -147,6 +147,18 @@ def test_corrupt_chunk_detected_and_recomputed(reference, tmp_path):
     chunk.write_bytes(chunk.read_bytes()[:10])
     with pytest.raises(CorruptChunkError):
         load_database(path)
+    # damaged metadata is named (file and parse error) with what to do, on load and rebuild
+    meta = path / "zarr.json"
+    meta.write_text(meta.read_text()[:1] + "garbage")
+    for call in (
+        lambda: load_database(path),
+        lambda: build_database(spec_from_dict(SPEC), path, progress=False),
+    ):
+        with pytest.raises(ValueError) as err:
+            call()
+        msg = str(err.value)
+        assert f"its metadata {meta} cannot be read (JSONDecodeError" in msg, msg
+        assert f"remove {path} and build it again" in msg
 
 
 def test_two_devices_subprocess(reference, tmp_path):
@@ -256,14 +268,18 @@ def test_declared_symmetry_must_be_the_shapes():
     bad = dict(
         SPEC,
         model="ppr",
+        materials=["aluminium"],
         shapes=[{"name": "cubesat", "params": {"units": 3}, "symmetry": "cyclic:7"}],
     )
-    with pytest.raises(
-        ValueError,
-        match=r"shapes\[0\].symmetry = 'cyclic:7': shape 'cubesat' is "
-        r"not symmetric under its 51.43 deg rotation about \[0.0, 0.0, 1.0\]",
-    ):
-        grids_for(spec_from_dict(bad))
+    from inversion._database import make_signature_fn
+
+    for call in (grids_for, make_signature_fn):  # before a store is made, and for the grid
+        with pytest.raises(
+            ValueError,
+            match=r"shapes\[0\].symmetry = 'cyclic:7': shape 'cubesat' is "
+            r"not symmetric under its 51.43 deg rotation about \[0.0, 0.0, 1.0\]",
+        ):
+            call(spec_from_dict(bad))
     assert len(grids_for(load_spec(ROOT / "configs" / "databases" / "ppr_cubesat.toml"))) == 2
 
 

@@ -325,7 +325,11 @@ def test_config_is_validated_before_any_computation(config, words):
         (np.zeros((16, 64)), {}, ["all 1024 values are 0", "no signal"]),
         (np.full((16, 64), 1e300), {}, ["value 1e+300 at index (0, 0)", "2^53"]),
         ([[1.0, 2.0], [3.0]], {}, ["observation: not a (channels, bins) array"]),
-        (np.ones((16, 64)) * np.r_[1.0, -2.0, np.ones(62)], {}, ["negative", "(0, 1): -2.0"]),
+        (
+            np.ones((16, 64)) * np.r_[1.0, -2.0, np.ones(62)],
+            {},
+            ["negative", "(0, 1): -2.0", 'set likelihood = "gaussian"'],
+        ),
         (np.ones((16, 64)), {"noise": "poisson"}, ["noise: expected a noise model", "str"]),
         (np.ones((16, 64)), {"candidates": {"box": 3}}, ["candidates['box'] is int"]),
     ],

@@ -195,6 +195,10 @@ def test_load_errors(tmp_path):
     with pytest.raises(ValueError, match="degenerate"):
         ppr.load_mesh(bad)
     assert ppr.load_mesh(bad, on_degenerate="drop").n_faces == 1
+    # the scale is checked itself (0 made every face degenerate, NaN every vertex non-finite)
+    for scale in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=r"load_mesh: scale must be"):
+            ppr.load_mesh(bad, scale=scale)
 
 
 TWO_OBJECTS = """o first

@@ -52,7 +52,6 @@ PositiveFloat = Annotated[float, pydantic.Field(gt=0.0)]
 Seed = Annotated[int, pydantic.Field(ge=0, description="random seed")]
 
 _T = TypeVar("_T")
-NonEmpty = Annotated[list[_T], pydantic.Field(min_length=1)]  # lists the user must not empty
 
 
 def _distinct(v: list) -> list:
@@ -60,6 +59,11 @@ def _distinct(v: list) -> list:
     if dup:
         raise ValueError(f"{dup[0]!r} is listed twice")
     return v
+
+
+# lists the user must not empty, each entry once (a repeated SNR or weight design would
+# only repeat rows of the report)
+NonEmpty = Annotated[list[_T], pydantic.Field(min_length=1), pydantic.AfterValidator(_distinct)]
 
 
 TermName = Literal["single", "double", "multiple"]
@@ -406,7 +410,8 @@ def add_common(
         metavar="KEY=VALUE",
         action="append",
         default=[],
-        help="override a config field: dotted keys, TOML values, repeatable (e.g. --set "
+        help="override a config field: dotted keys (key[0].sub for an entry of a list of "
+        "tables), TOML values, repeatable (e.g. --set "
         f"{set_example}); relative paths are relative to the current folder",
     )
     p.add_argument("--out", "-o", metavar="DIR", default=out_default, help="output folder")

@@ -223,12 +223,15 @@ def _validate_store(path: Path) -> None:
 def run(args) -> int:
     import inversion
 
+    from .._config import config_source
+
     cfg_path, spec = load(args)
     _shards_ok(args)
     try:
         sig_fn = inversion.make_signature_fn(spec)
     except ValueError as err:
-        raise c.ConfigError(f"{cfg_path}: {c.one_line(err)}") from None
+        src = config_source(cfg_path, c.overrides(args))
+        raise c.ConfigError(f"{src}: {c.one_line(err)}") from None
     out = _outputs.check_out_folder(args.out)
     _outputs.recover(out)
     target = database_target(

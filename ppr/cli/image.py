@@ -76,10 +76,12 @@ class ImageConfig(c.StrictModel):
         description="a scene config (configs/scenes/*.toml): mesh, materials, pose and sensor "
         "all come from it",
     )
-    mesh: str | None = pydantic.Field(
+    mesh: str | dict[str, Any] | None = pydantic.Field(
         None,
         description='"example" (the shipped example satellite) or a mesh file trimesh reads '
-        "(metres; one part per object)",
+        "(metres; one part per object), or a table {path, scale, on_degenerate, part_names} "
+        "as in scene configs",
+        json_schema_extra={"schema": "ppr.pulse._scene:MeshFileConfig"},
     )
     shape: dict[str, Any] | None = pydantic.Field(
         None,
@@ -172,13 +174,20 @@ def image_inputs(cfg: ImageConfig, cfg_path: Path):
         except ValueError as err:
             raise c.ConfigError(f"{cfg_path}: shape = {cfg.shape!r}: {err}") from None
     else:
+        spec = cfg.mesh if isinstance(cfg.mesh, dict) else {"path": cfg.mesh}
+        mcfg = c.sub_model(_scene.MeshFileConfig, spec, cfg_path, "mesh")
         path = (
             _image.EXAMPLE_SATELLITE
-            if cfg.mesh == "example"
-            else c.resolve_path(cfg.mesh, cfg_path)
+            if mcfg.path == "example"
+            else c.resolve_path(mcfg.path, cfg_path)
         )
         try:
-            mesh = load_mesh(path)
+            mesh = load_mesh(
+                path,
+                scale=mcfg.scale,
+                on_degenerate=mcfg.on_degenerate,
+                part_names=mcfg.part_names,
+            )
         except ValueError as err:
             raise c.ConfigError(f"{cfg_path}: mesh = {cfg.mesh!r}: {err}") from None
     view = cfg.view or ViewConfig()

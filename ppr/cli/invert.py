@@ -149,14 +149,30 @@ def invert_config(cfg, cfg_path: Path, progress: bool):
         raise c.ConfigError(f"{cfg_path}: {msg} (mcmc = {cfg.mcmc!r})") from None
 
 
-def _simulated_truth(model, scene, photons: float, offset: float):
+def _simulated_truth(model, scene, photons: float, offset: float, where: str):
     import jax.numpy as jnp
 
     import inversion
 
-    truth = inversion.PhysicalParams.from_scene(scene, range_offset=offset)
-    shape = np.asarray(model.expected(truth, model.prepare(truth)))
-    gain = photons / max(float(shape.sum()), 1e-300)
+    def counts(offset):
+        truth = inversion.PhysicalParams.from_scene(scene, range_offset=offset)
+        return truth, np.asarray(model.expected(truth, model.prepare(truth)))
+
+    truth, shape = counts(offset)
+    if not float(shape.sum()) > 0.0:
+        b = scene.bins
+        gate = (float(b.start), float(b.start) + float(b.width) * int(b.n_bins))
+        if offset != 0.0 and float(counts(0.0)[1].sum()) > 0.0:
+            raise c.ConfigError(
+                f"{where}: observation.range_offset_m = {offset!r}: the offset moves the whole "
+                f"return out of the range gate [{gate[0]:.4g}, {gate[1]:.4g}] m of the scene's "
+                "bins: the simulated observation would hold no signal"
+            )
+        raise c.ConfigError(
+            f"{where}: the scene returns no signal into its range gate [{gate[0]:.4g}, "
+            f"{gate[1]:.4g}] m (bins, line of sight and pose): nothing to observe"
+        )
+    gain = photons / float(shape.sum())
     truth = eqx_replace(truth, gain=jnp.asarray(gain, jnp.float64))
     return truth, shape * gain
 
@@ -190,7 +206,7 @@ def run_invert(cfg, cfg_path: Path, out, overwrite: bool = False, progress: bool
     truth = None
     data_file = data is not None
     if data is None:
-        truth, expected = _simulated_truth(model, scene, ob.photons, ob.range_offset_m)
+        truth, expected = _simulated_truth(model, scene, ob.photons, ob.range_offset_m, where)
         # the kernel's roundoff can give -1e-22 counts; anything beyond roundoff is a bug
         if np.min(expected) < -1e-9 * max(float(np.max(expected)), 1e-300):
             raise RuntimeError(

@@ -98,6 +98,12 @@ def flags(args) -> tuple[list[str] | None, Any]:
                 f"--states {args.states!r}: unknown state {bad[0]!r} (known: "
                 f"{', '.join(STOKES_STATES)}; comma-separated, e.g. H,V)"
             )
+        dup = sorted({s for s in states if states.count(s) > 1})
+        if dup:
+            raise c.CLIError(
+                f"--states {args.states!r}: {dup[0]!r} is listed twice (each transmitted state "
+                "is one channel)"
+            )
     terms = None if args.terms == "all" else args.terms
     if terms not in (None, "auto"):
         terms = tuple(t.strip() for t in terms.split(","))

@@ -21,6 +21,8 @@ compilation.
 
 from __future__ import annotations
 
+import math
+import numbers
 import os
 import re
 from collections.abc import Mapping, Sequence
@@ -196,6 +198,12 @@ def _degenerate_and_duplicate(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     return degenerate, duplicate
 
 
+_DROP_HINT = (
+    'on_degenerate = "drop" removes them (load_mesh\'s argument; in a config, the mesh '
+    'table\'s key: mesh = {path = "...", on_degenerate = "drop"})'
+)
+
+
 def check_mesh(mesh: Mesh, on_degenerate: str = "error", name: str = "mesh") -> Mesh:
     """Reject (``"error"``) or remove (``"drop"``) zero-area and duplicate faces.
 
@@ -212,12 +220,12 @@ def check_mesh(mesh: Mesh, on_degenerate: str = "error", name: str = "mesh") -> 
             i = int(np.flatnonzero(deg)[0])
             raise ValueError(
                 f"{name}: {int(deg.sum())} degenerate (zero-area) faces, first is face {i} with "
-                f"vertices {tri[i].tolist()}; pass on_degenerate='drop' to remove them"
+                f"vertices {tri[i].tolist()}; {_DROP_HINT}"
             )
         i = int(np.flatnonzero(dup)[0])
         raise ValueError(
             f"{name}: {int(dup.sum())} duplicate faces, first is face {i} with vertices "
-            f"{tri[i].tolist()}; pass on_degenerate='drop' to remove them"
+            f"{tri[i].tolist()}; {_DROP_HINT}"
         )
     keep = ~(deg | dup)
     if not keep.any():
@@ -328,6 +336,12 @@ def load_mesh(
     import trimesh
 
     path = os.fspath(path)
+    if isinstance(scale, bool) or not isinstance(scale, numbers.Real):
+        raise ValueError(f"load_mesh: scale must be a number (file units -> metres), got {scale!r}")
+    if not (math.isfinite(scale) and scale > 0):
+        raise ValueError(
+            f"load_mesh: scale must be finite and > 0 (file units -> metres), got {scale!r}"
+        )
     if not os.path.exists(path):
         raise ValueError(f"mesh file not found: {path!r}")
     scene = _read_scene(path)
