@@ -621,3 +621,59 @@ def test_padded_broad_slots_change_nothing_and_dead_ones_are_skipped_exactly():
     np.testing.assert_allclose(got_j, ref_j, rtol=1e-12, atol=1e-14 * np.abs(ref_j).max())
     # and the broad pairs mattered where they were live
     assert np.abs(live - ref).max() > 1e-3 * live.max()
+
+
+def test_visibility_does_not_depend_on_where_the_body_origin_is():
+    """Moving every vertex 1 km from the body origin (a part exported in a vehicle's frame)
+    changes no lit-and-visible fraction and no macro pair's visibility: the rays are cast in
+    coordinates centred on the mesh (Embree intersects in float32; with rays lifted 4 um off
+    their faces in body coordinates, a convex 3U box 70 m off shadowed itself, 1 km off it
+    vanished)."""
+    mesh = shapes.cubesat_with_panels(3, panel_span=0.3)
+    far = ppr.Mesh(
+        np.asarray(mesh.vertices, np.float64) + 1e3 * np.array([1.0, 1.0, 1.0]) / np.sqrt(3),
+        mesh.faces,
+        mesh.material_ids,
+        mesh.parts,
+    )
+    u = np.array([0.3, -0.4, 0.866])
+    u /= np.linalg.norm(u)
+    near_f = ppr.VisibilityCaster(mesh, 16).fractions(u)
+    far_f = ppr.VisibilityCaster(far, 16).fractions(u)
+    assert near_f.max() == 1.0
+    np.testing.assert_array_equal(far_f, near_f)
+    # a convex box: every face toward u fully lit and visible
+    box = shapes.box((0.1, 0.1, 0.34))
+    off = ppr.Mesh(np.asarray(box.vertices, np.float64) + 1e3, box.faces)
+    f = ppr.VisibilityCaster(off, 16).fractions(u)
+    front = np.asarray(ppr.mesh_arrays(off).normals)[: box.n_faces] @ u > 1e-6
+    assert np.all(f[front] == 1.0) and np.all(f[~front] == 0.0)
+    # the macro pairs' visibility: the panel-body dihedral seen along its bisector
+    phi = np.radians(5.0)
+    v = np.array([np.cos(np.pi / 4 - phi), np.sin(np.pi / 4 - phi), 0.0])
+    mats = [ppr.Material(AL, 1e4)] * 3
+    (p0, i0), (p1, i1) = (_pairs(_scene(m, v, mats)) for m in (mesh, far))
+    assert i0["glossy"] >= 2
+    assert {k: v for k, v in i0.items() if k != "range"} == {
+        k: v for k, v in i1.items() if k != "range"
+    }
+    np.testing.assert_allclose(np.asarray(p1.g_vis), np.asarray(p0.g_vis), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(np.asarray(p1.r_w), np.asarray(p0.r_w), rtol=1e-9, atol=0)
+
+
+def test_facing_pairs_equal_their_definition_and_convex_meshes_have_none():
+    """The facing pairs (searched among the surfaces with some vertex in front of their
+    plane) are exactly the ordered pairs of the definition, checked pair by pair on the
+    panelled 3U's faces and a concave L; a 1280-face sphere has none."""
+    for mesh in (shapes.cubesat_with_panels(3, panel_span=0.3), _dihedral(2)):
+        tri = mesh.triangles()
+        area, nrm = ppr.geometry._mesh.face_areas_normals(tri)
+        scale = float(np.linalg.norm(np.ptp(tri.reshape(-1, 3), axis=0)))
+        got = {tuple(p) for p in _macro._facing(tri, nrm, scale).tolist()}
+        off = np.einsum("mk,mk->m", nrm, tri[:, 0])
+        h = np.einsum("ak,bvk->abv", nrm, tri).max(-1) - off[:, None]  # (I, J)
+        tol = 1e-9 * scale
+        want = {(i, j) for i, j in zip(*np.nonzero((h > tol) & (h.T > tol)), strict=True)}
+        assert got == want and len(want) > 0
+    sphere = shapes.sphere(0.5, subdivisions=3)
+    assert _macro.macro_geometry(sphere, plates=False).convex

@@ -66,11 +66,18 @@ class VisibilityCaster:
                 f"samples must be a perfect square >= 1 (1, 4, 9, 16, ...), got {samples!r}"
             )
         tri = mesh.triangles()
+        # rays in coordinates centred on the mesh (visibility does not depend on where the
+        # body origin is): Embree intersects in float32, and a mesh exported far from its
+        # origin (a part placed in a vehicle's frame) would otherwise have float32 spacings
+        # above the rays' lift off their face and shadow itself (a convex 3U box 70 m off)
+        lo, hi = tri.reshape(-1, 3).min(0), tri.reshape(-1, 3).max(0)
+        self.centre = 0.5 * (lo + hi)  # body frame; subtract it from points given to _ray
+        tri = tri - self.centre
         self.n_faces = tri.shape[0]
         self.samples = samples
         _, self.normals = face_areas_normals(tri)
         bary = barycentric_samples(k)
-        diag = float(np.linalg.norm(tri.reshape(-1, 3).max(0) - tri.reshape(-1, 3).min(0)))
+        diag = float(np.linalg.norm(hi - lo))
         self._offset = RAY_OFFSET_REL * max(diag, 1e-9)
         self.points = np.einsum("sk,fkd->fsd", bary, tri)  # (F, S, 3)
         tm = trimesh.Trimesh(

@@ -366,18 +366,35 @@ def _fan_of_hull(tri_faces, normal, total_area):
 
 def _facing(tri, nrm, scale, chunk=2048):
     """Ordered pairs (I, J) with some vertex of J strictly in front of I's plane and some
-    vertex of I strictly in front of J's plane (pose independent)."""
+    vertex of I strictly in front of J's plane (pose independent).
+
+    Both surfaces of such a pair have some vertex of the mesh in front of their plane, so the
+    pairs are searched among those surfaces only: one matrix product of the planes with the
+    mesh's vertices finds them (none for a convex mesh: a 20480-face sphere in ~1 s instead of
+    the quadratic search's 80 s and 2.2 GB)."""
     m = len(tri)
     tol = 1e-9 * scale
     off = np.einsum("mk,mk->m", nrm, tri[:, 0])
+    verts = np.unique(tri.reshape(-1, 3), axis=0)
+    above = np.zeros(m, bool)
+    step = max(1, (1 << 22) // max(len(verts), 1))  # <= 32 MB of heights at a time
+    for s in range(0, m, step):
+        a = slice(s, min(m, s + step))
+        above[a] = (nrm[a] @ verts.T - off[a, None]).max(1) > tol
+    idx = np.flatnonzero(above)
+    if len(idx) == 0:
+        return np.zeros((0, 2), np.int32)
+    tri, nrm, off = tri[idx], nrm[idx], off[idx]
+    k = len(idx)
+    chunk = max(1, min(chunk, (1 << 22) // (3 * k)))  # <= 32 MB per height table
     # h[a, b] = max over the vertices of b of their height above a's plane
     out = []
-    for s in range(0, m, chunk):
-        a = slice(s, min(m, s + chunk))
-        h_ab = np.einsum("ak,bvk->abv", nrm[a], tri).max(-1) - off[a, None]  # (A, M)
-        h_ba = np.einsum("bk,avk->abv", nrm, tri[a]).max(-1) - off[None, :]  # (A, M)
+    for s in range(0, k, chunk):
+        a = slice(s, min(k, s + chunk))
+        h_ab = np.einsum("ak,bvk->abv", nrm[a], tri).max(-1) - off[a, None]  # (A, K)
+        h_ba = np.einsum("bk,avk->abv", nrm, tri[a]).max(-1) - off[None, :]  # (A, K)
         ii, jj = np.nonzero((h_ab > tol) & (h_ba > tol))
-        out.append(np.stack([ii + s, jj], 1))
+        out.append(np.stack([idx[ii + s], idx[jj]], 1))
     pairs = np.concatenate(out) if out else np.zeros((0, 2), np.int64)
     return pairs.astype(np.int32)
 
@@ -766,7 +783,7 @@ def _escape(caster: VisibilityCaster, pts, nrm, u):
     """Rays from ``pts`` (lifted along ``nrm``) toward ``u`` escape the mesh."""
     if len(pts) == 0:
         return np.zeros(0, bool)
-    org = pts + caster._offset * nrm
+    org = pts - caster.centre + caster._offset * nrm  # the caster's centred coordinates
     hit = caster._ray.intersects_any(org, np.ascontiguousarray(np.broadcast_to(u, org.shape)))
     return ~np.asarray(hit, bool)
 
@@ -776,8 +793,8 @@ def _clear(caster: VisibilityCaster, pts, nrm, targets):
     it (hits within 1e-6 of its length, or the caster's offset, of the end count as the end)."""
     if len(pts) == 0:
         return np.zeros(0, bool)
-    org = pts + caster._offset * nrm
-    d = targets - org
+    org = pts - caster.centre + caster._offset * nrm  # the caster's centred coordinates
+    d = targets - caster.centre - org
     dist = np.linalg.norm(d, axis=1)
     dirs = d / np.maximum(dist, 1e-300)[:, None]
     loc, ray, _ = caster._ray.intersects_location(org, dirs, multiple_hits=False)
