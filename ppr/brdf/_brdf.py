@@ -189,7 +189,9 @@ def _log_lobe3(m: Array, h: Vec, nr: Vec) -> Array:
     hn_ok = hn > tiny(hn.dtype)
     lp_big = jnp.log(jnp.where(hn_ok, hn, 1.0))
     lp = jnp.where(small, lp_small, lp_big)
-    return jnp.where(m > 0, m * lp, 0.0)
+    # lp is finite (log of a clamped cosine), so m * lp is 0 at m = 0 with d/dm = lp there (a
+    # where on m > 0 gave d/dm = 0 at m = 0)
+    return m * lp
 
 
 def _azimuth_factor3(ki: Vec, ko: Vec, nr: Vec, ci: Array, co: Array) -> Array:

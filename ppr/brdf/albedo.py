@@ -228,9 +228,17 @@ def _cr_eval(cubics, i: Array, t: Array) -> Array:
     return ((c3 * t + c2) * t + c1) * t + c0
 
 
+def clamp_in(v, lo, hi):
+    """``v`` clamped to ``[lo, hi]`` with derivative 1 on the closed interval: at a bound
+    (``m = 0``, the first node of a table) the one-sided derivative into the domain.
+    ``jnp.clip`` splits a tie's gradient in half (``d max(v, lo) / dv = 1/2`` at ``v = lo``),
+    which halved ``d/dm`` of every tabulated term at ``m = 0``."""
+    return jnp.where(v < lo, lo, jnp.where(v > hi, hi, v))
+
+
 def _cell(coord, lo, step, n):
     """Cell index in [0, n-2] and local coordinate t in [0, 1] (clamped at the ends)."""
-    s = jnp.clip((coord - lo) / step, 0.0, n - 1.0)
+    s = clamp_in((coord - lo) / step, 0.0, n - 1.0)
     i = jnp.clip(jnp.floor(s), 0, n - 2)
     return i.astype(jnp.int32), s - i
 
@@ -387,7 +395,7 @@ def interpolate_nodes(table: AlbedoTable, nodes_pad: ArrayLike, m: Array, mu: Ar
     """Catmull-Rom interpolation of padded node values ``nodes_pad`` (the shape of
     ``table.L_pad``) on ``table``'s (log1p m, warped mu) grid at broadcast ``m``, ``mu``."""
     dt = mu.dtype
-    x = jnp.log1p(jnp.clip(m, 0.0, M_MAX))
+    x = jnp.log1p(clamp_in(m, 0.0, M_MAX))
     v = warp_mu(jnp.clip(mu, 0.0, 1.0))
     i, t = _cell(x, table.x_lo, table.dx, table.nx)
     j, s = _cell(v, table.v_lo, table.dv, table.nv)
@@ -418,7 +426,7 @@ def log_deficit_one_material(table: AlbedoTable, m0: ArrayLike, mu: ArrayLike) -
     dt = float_dtype(m0, mu)
     m0 = jnp.asarray(m0, dt)
     mu = jnp.asarray(mu, dt)
-    x = jnp.log1p(jnp.clip(m0, 0.0, M_MAX))
+    x = jnp.log1p(clamp_in(m0, 0.0, M_MAX))
     i, t = _cell(x, table.x_lo, table.dx, table.nx)
     L = jnp.asarray(table.L_pad, dt)
     rows = jax.lax.dynamic_slice_in_dim(L, i, 4, axis=0)  # (4, nv + 3)
@@ -437,7 +445,7 @@ def log_deficit_avg(table: AlbedoTable, m: ArrayLike) -> Array:
     """Interpolated ``log D_avg(m)``, ``D_avg = 2 int_0^1 D(m, mu) mu dmu`` of the 2-D
     interpolant (exact at the fine x nodes, Catmull-Rom between them)."""
     m = jnp.asarray(m, float_dtype(m))
-    x = jnp.log1p(jnp.clip(m, 0.0, M_MAX))
+    x = jnp.log1p(clamp_in(m, 0.0, M_MAX))
     i, t = _cell(x, table.x_lo, table.dxa, table.nxa)
     La = jnp.asarray(table.La_pad, m.dtype)
     w = _cr_weights(t)
