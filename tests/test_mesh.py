@@ -123,6 +123,21 @@ def test_degenerate_faces_error_or_drop():
         ppr.check_mesh(m)
     d = ppr.check_mesh(m, on_degenerate="drop")
     assert d.n_faces == 1
+    # degenerate is the face's own shape, not its size: a 0.1 mm facet (area 5e-9 m^2) on a
+    # 100 m plate is a face; three collinear points or one point are not, at any scale
+    big = ppr.shapes.plate(100.0)
+    for pts, bad in (
+        ([[0, 0, 1.0], [1e-4, 0, 1.0], [0, 1e-4, 1.0]], False),
+        ([[0, 0, 1.0], [1e-4, 0, 1.0], [3e-4, 0, 1.0]], True),
+        ([[0, 0, 1.0], [0, 0, 1.0], [0, 0, 1.0]], True),
+        ([[0, 0, 1.0], [1e-13, 0, 1.0], [0, 1e-13, 1.0]], True),  # 1e-15 of the mesh
+    ):
+        both = ppr.shapes.concatenate([big, ppr.Mesh(np.asarray(pts), [[0, 1, 2]])])
+        if bad:
+            with pytest.raises(ValueError, match=f"face {big.n_faces} "):
+                ppr.check_mesh(both)
+        else:
+            assert ppr.check_mesh(both).n_faces == big.n_faces + 1
 
 
 def test_duplicate_faces_error_or_drop_but_two_sided_kept():

@@ -80,6 +80,10 @@ def test_sensor_geometry():
         ppr.Sensor.make(receiver_dir=(0, 0.1, 1.0), bistatic_angle=0.1)
     with pytest.raises(ValueError, match="perpendicular"):
         ppr.Sensor([0, 0, 1.0], [0, 0, 1.0], [0, 0.6, 0.8], [1.0, 0, 0])
+    # the constructor refuses what Sensor.make refuses: a bistatic angle of 90 deg or more
+    for u_out, deg in (([1.0, 0, 0], "90"), ([0.6, 0, -0.8], "143.1"), ([0, 0, -1.0], "180")):
+        with pytest.raises(ValueError, match=rf"bistatic angle .* is {deg} deg; it must be below"):
+            ppr.Sensor([0, 0, 1.0], u_out, [1.0, 0, 0], [0, 1.0, 0])
 
 
 def test_pulse_and_bins_validation():

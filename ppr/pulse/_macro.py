@@ -450,7 +450,10 @@ def _build_geometry(tri, part, plates):
     else:
         mt, mp, mplate = tri, part, np.arange(len(tri))
     ma, mn = face_areas_normals(mt)
-    keep = ma > 1e-12 * scale * scale
+    # a fan triangle of collinear points carries nothing (ppr.check_mesh's shape test: a
+    # small real facet on a large mesh stays)
+    longest = np.linalg.norm(mt - np.roll(mt, 1, axis=1), axis=-1).max(-1)
+    keep = ma > 1e-12 * longest * longest
     mt, mp, mplate, ma, mn = mt[keep], mp[keep], mplate[keep], ma[keep], mn[keep]
     cand = _facing(mt, mn, scale)
     cand = cand[mplate[cand[:, 0]] != mplate[cand[:, 1]]]

@@ -132,6 +132,16 @@ class Sensor(eqx.Module):
                     raise ValueError(
                         f"Sensor.{name} must be a finite unit vector, got {a.tolist()}"
                     )
+        a, b = self.laser_dir, self.receiver_dir
+        if _concrete(a) and _concrete(b):
+            cos_b = np.sum(np.asarray(a, np.float64) * np.asarray(b, np.float64), -1)
+            if np.any(cos_b <= 0):
+                angle = np.degrees(np.arccos(np.clip(np.min(cos_b), -1.0, 1.0)))
+                raise ValueError(
+                    f"Sensor: the bistatic angle between laser_dir and receiver_dir is "
+                    f"{angle:.4g} deg; it must be below 90 deg (as Sensor.make requires: the "
+                    "range of a point is measured along their bisector, 0 at 180 deg)"
+                )
         for f, d in (("frame_tx", "laser_dir"), ("frame_rx", "receiver_dir")):
             a, b = getattr(self, f), getattr(self, d)
             if _concrete(a) and _concrete(b):
