@@ -174,7 +174,7 @@ def glossy_section():
     default_broad = pmacro.MacroOptions(glossy_m=1e7)  # every pair through the quadrature
     for m in (100.0, 300.0, 1e3, 1e4, 1e5):
         sc = scene_of(dihedral(), u, [ppr.Material(AL, m)] * 2)
-        img, t_img, _, _ = macro(sc, pmacro.MacroOptions(glossy_m=50.0))
+        img, t_img, _, _ = macro(sc, pmacro.MacroOptions(glossy_m=100.0))
         ref = area * lobe_reference(m, u)
         row = dict(
             m=m,

@@ -481,6 +481,15 @@ def test_bad_input_is_named():
     with pytest.raises(ValueError, match="build them with the same capacities"):
         ppr.stack_macro_pairs([a, b])
     assert ppr.stack_macro_pairs([a, a]).g_vis.shape == (2, CAPS[1])
+    # the image method below its measured range, and knobs that are not counts
+    for kw, needle in (
+        ({"glossy_m": 1.0}, "glossy_m must be a number >= 100"),
+        ({"glossy_m": float("nan")}, "glossy_m must be a number >= 100"),
+        ({"order": 0}, "order must be an integer >= 1"),
+        ({"samples": -4}, "samples must be an integer >= 1"),
+    ):
+        with pytest.raises(ValueError, match=needle):
+            ppr.MacroOptions(**kw)
 
 
 def test_database_signatures_and_inversion_model_include_the_double_bounce():

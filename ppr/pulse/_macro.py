@@ -63,6 +63,7 @@ import dataclasses
 import functools
 import hashlib
 import math
+import numbers
 
 import equinox as eqx
 import jax
@@ -1175,7 +1176,11 @@ class MacroOptions:
     - `plates`: merge coplanar faces into plates (:func:`macro_geometry`).
     - `level`, `rule`, `order`: broad pairs' quadrature (:func:`broad_nodes`).
     - `samples`: visibility samples per fan triangle of a glossy pair's overlap.
-    - `glossy_m`: parts with ``m >= glossy_m`` take the image method.
+    - `glossy_m`: parts with ``m >= glossy_m`` take the image method (at least
+      :data:`GLOSSY_M_MIN`: below it the Laplace approximation of the lobes fails: on a 1 m
+      aluminium dihedral 10 deg off its bisector the image method gives +16 % at m = 10 and
+      +98 % at m = 1 against the broad quadrature, which converges there; a larger value sends
+      more parts through the quadrature).
     - `terms`: BRDF terms of the macro-bounce evaluations.
     """
 
@@ -1186,6 +1191,19 @@ class MacroOptions:
     samples: int = 16
     glossy_m: float = GLOSSY_M_MIN
     terms: tuple = DEFAULT_TERMS
+
+    def __post_init__(self):
+        for name in ("level", "rule", "order", "samples"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+                raise ValueError(f"MacroOptions.{name} must be an integer >= 1, got {v!r}")
+        g = self.glossy_m
+        if isinstance(g, bool) or not isinstance(g, numbers.Real) or not g >= GLOSSY_M_MIN:
+            raise ValueError(
+                f"MacroOptions.glossy_m must be a number >= {GLOSSY_M_MIN:g} (the image method "
+                f"is measured from m = {GLOSSY_M_MIN:g} up; below it the lobes' Laplace "
+                f"approximation fails), got {g!r}"
+            )
 
     def pair_options(self) -> dict:
         return dict(
