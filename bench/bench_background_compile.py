@@ -28,7 +28,7 @@ import sys
 import time
 from pathlib import Path
 
-from _timing import load_average, write_result
+from _timing import write_result
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -105,7 +105,7 @@ def main() -> None:
                 check=True,
             )
             res[mode].append(json.loads(out.stdout.strip().splitlines()[-1]))
-            loads.append(load_average()[0])
+            loads.append(os.getloadavg()[0])
             print(mode, res[mode][-1], flush=True)
     med = {m: {k: statistics.median(r[k] for r in rs) for k in rs[0]} for m, rs in res.items()}
     lines = [
