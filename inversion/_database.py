@@ -478,7 +478,9 @@ def _open_store(path: Path, mode: str) -> zarr.Group:
     """The store's zarr group; unreadable metadata is an error naming its file."""
     try:
         return zarr.open_group(str(path), mode=mode)
-    except Exception as err:  # noqa: BLE001 - re-raised naming the file
+    except OSError:  # permissions, I/O: the store may be intact; say what the system said
+        raise
+    except Exception as err:  # noqa: BLE001 - undecodable metadata, re-raised naming the file
         meta = Path(path) / "zarr.json"
         raise ValueError(
             f"database {path}: its metadata {meta} cannot be read ({type(err).__name__}: "

@@ -1391,7 +1391,9 @@ def _warm_jacobian(refiner: _Refiner, phys: PhysicalParams) -> threading.Thread:
         except Exception as err:  # noqa: BLE001 - a warm-up must not fail the inversion
             log.debug("background compilation of the Jacobian program: %s", err)
 
-    thread = threading.Thread(target=run, name="ppr-warm-jacobian", daemon=True)
+    # not a daemon: an interpreter shutting down under a running XLA compilation crashes
+    # (exit 139 instead of the error's status); the caller joins it on every path
+    thread = threading.Thread(target=run, name="ppr-warm-jacobian", daemon=False)
     thread.start()
     return thread
 
@@ -1739,21 +1741,24 @@ def invert(
         first = next(iter(starts))
         refiners[first] = _Refiner(by_name[first].model, noise, data, free_fixed, cfg)
         warm = _warm_jacobian(refiners[first], starts[first][0])
-        screen(starts, "screening starts")
-        n_batches = 1
-        ranked = _ranked_rows(cls, bank_)
-        while n_batches <= cfg.escalate and screened_mismatch():
-            more = [c for c in ranked if c not in used_cols][: cfg.top_k]
-            if not more:
-                break
-            used_cols.update(more)
-            log.info(
-                "best screened fit is a model mismatch: screening %d more templates", len(more)
-            )
-            screen(make_starts(more, have=set(screened)), f"more starts ({n_batches})")
-            n_batches += 1
+        try:
+            screen(starts, "screening starts")
+            n_batches = 1
+            ranked = _ranked_rows(cls, bank_)
+            while n_batches <= cfg.escalate and screened_mismatch():
+                more = [c for c in ranked if c not in used_cols][: cfg.top_k]
+                if not more:
+                    break
+                used_cols.update(more)
+                log.info(
+                    "best screened fit is a model mismatch: screening %d more templates",
+                    len(more),
+                )
+                screen(make_starts(more, have=set(screened)), f"more starts ({n_batches})")
+                n_batches += 1
+        finally:
+            warm.join()  # before the polish's covariance uses the program, and on any error
         n_templates = len(used_cols)
-        warm.join()  # before the polish's covariance uses the program
         best_screen = min(v[0].cost for v in screened.values())
         if not np.isfinite(best_screen):
             raise RuntimeError(

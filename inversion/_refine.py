@@ -806,7 +806,13 @@ def refine(
     dt = starts[0].m.dtype
     data_j = jnp.asarray(data_np, dt)
     run = functools.partial(
-        _refine_start, model, noise, data_j, free, range_scale, max_steps=max_steps,
+        _refine_start,
+        model,
+        noise,
+        data_j,
+        free,
+        range_scale,
+        max_steps=max_steps,
         bounds=bounds,
     )
 
@@ -863,7 +869,19 @@ def refine(
 
 
 def _refine_start(
-    model, noise, data_j, free, range_scale, idx, start, phys, solv, rounds, aux, *, max_steps,
+    model,
+    noise,
+    data_j,
+    free,
+    range_scale,
+    idx,
+    start,
+    phys,
+    solv,
+    rounds,
+    aux,
+    *,
+    max_steps,
     bounds=None,
 ) -> StartSummary:
     """Refine one start from ``phys`` in up to ``rounds`` visibility/weight rounds (kept in
@@ -1155,8 +1173,18 @@ def mirror_check(
 
 
 def _refit_from(
-    model, data, fit: RefineResult, q_start, range_shift: float, *, noise, max_steps, rounds,
-    solver, bounds, start: PhysicalParams | None = None,
+    model,
+    data,
+    fit: RefineResult,
+    q_start,
+    range_shift: float,
+    *,
+    noise,
+    max_steps,
+    rounds,
+    solver,
+    bounds,
+    start: PhysicalParams | None = None,
 ) -> RefineResult:
     """Refine from ``fit``'s parameters with the attitude ``q_start`` and the range offset
     moved by ``range_shift`` (same free groups and range scale as ``fit``), kept inside
@@ -1999,7 +2027,10 @@ class SimulatorModel:
             mixed=True,
             dtype=pm.arrays.tri.dtype,
         )
-        self._macro_caps = (pairs.tri.shape[1], pairs.g_i.shape[1], pairs.r_i.shape[1])
+        new = (pairs.tri.shape[1], pairs.g_i.shape[1], pairs.r_i.shape[1])
+        # capacities only grow (inversion.invert prepares from a background thread too: a
+        # smaller result written last must not shrink them and recompile the solver)
+        self._macro_caps = tuple(max(a, b) for a, b in zip(self._macro_caps, new, strict=True))
         return jax.tree_util.tree_map(lambda a: a[0], pairs)  # the one row
 
     def subset_capacities(self, n_poses: int = 256) -> tuple[int, int]:

@@ -360,7 +360,7 @@ def _set_override(data: dict, key: str, value, path) -> None:
         if isinstance(step, int):
             if not isinstance(node, list):
                 raise ConfigError(
-                    f"{path}: override {key!r}: {_written(steps[:i])!r} is not a list"
+                    f"{path}: override {key!r}: {_written(steps[:i])!r} is a table, not a list"
                 )
             if step >= len(node):
                 raise ConfigError(
@@ -374,13 +374,22 @@ def _set_override(data: dict, key: str, value, path) -> None:
                     f"{path}: override {key!r}: {_written(steps[:i])!r} is a list: index it "
                     f"({_written(steps[:i])}[0].{step})"
                 )
+            if step not in node and isinstance(steps[i + 1], int):
+                raise ConfigError(
+                    f"{path}: override {key!r}: {where!r} is not in the config (an index "
+                    "reaches an entry of a list the config holds)"
+                )
             node = node.setdefault(step, {})
         if not isinstance(node, (dict, list)):
             raise ConfigError(f"{path}: override {key!r}: {where!r} is {node!r}, not a table")
     last = steps[-1]
     if isinstance(last, int):
-        if not isinstance(node, list) or last >= len(node):
-            n = len(node) if isinstance(node, list) else 0
+        if not isinstance(node, list):
+            raise ConfigError(
+                f"{path}: override {key!r}: {_written(steps[:-1])!r} is a table, not a list"
+            )
+        if last >= len(node):
+            n = len(node)
             raise ConfigError(
                 f"{path}: override {key!r}: {_written(steps[:-1])!r} has {n} entries "
                 "(an override replaces an entry; it cannot add one)"

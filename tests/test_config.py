@@ -179,7 +179,10 @@ def test_override_indexes_a_list_of_tables_as_errors_write_it(tmp_path):
         ("shapes[2].symmetry", "'shapes' has 2 entries (indices 0 to 1)"),
         ("shapes.symmetry", "'shapes' is a list: index it (shapes[0].symmetry)"),
         ("shapes[x].symmetry", "'shapes[x]' is not a key"),
-        ("shapes[0].symmetry[0]", "'shapes[0].symmetry' has 0 entries"),
+        ("shapes[0].symmetry[0]", "'shapes[0].symmetry' is not in the config"),
+        ("shapes[0][0]", "'shapes[0]' is a table, not a list"),
+        ("missing[0].a", "'missing' is not in the config"),
+        ("shapes[1][0].a", "'shapes[1]' is a table, not a list"),
     ]:
         with pytest.raises(ConfigError) as e:
             load_toml_model(Spec, p, {key: "dihedral:4"})

@@ -487,6 +487,7 @@ def test_bad_input_is_named():
         ({"glossy_m": float("nan")}, "glossy_m must be a number >= 100"),
         ({"order": 0}, "order must be an integer >= 1"),
         ({"samples": -4}, "samples must be an integer >= 1"),
+        ({"samples": 10}, "samples must be a perfect square"),
     ):
         with pytest.raises(ValueError, match=needle):
             ppr.MacroOptions(**kw)

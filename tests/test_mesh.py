@@ -138,6 +138,22 @@ def test_degenerate_faces_error_or_drop():
                 ppr.check_mesh(both)
         else:
             assert ppr.check_mesh(both).n_faces == big.n_faces + 1
+    # collinear in the stored precision: float32 rounds three collinear points 6 m from the
+    # origin to a 1 mm sliver of height ~1e-7 m (area ~1e-10 of its edge squared, not 1e-12)
+    d = np.array([0.48, -0.6, 0.64])
+    a = 6.0 * np.array([0.6, 0.0, 0.8])
+    pts = np.stack([a, a + 1e-3 * d, a + 2.5e-3 * d]).astype(np.float32)
+    box = ppr.shapes.box((0.1, 0.1, 0.1))
+    nv = np.asarray(box.vertices).shape[0]
+    sliver = ppr.Mesh(
+        np.vstack([np.asarray(box.vertices), pts]).astype(np.float32),
+        np.vstack([np.asarray(box.faces), [[nv, nv + 1, nv + 2]]]),
+    )
+    assert np.asarray(sliver.vertices).dtype == np.float32
+    with pytest.raises(ValueError, match=f"face {box.n_faces} "):
+        ppr.check_mesh(sliver)
+    # the same points held in float64 are a real (if thin) face
+    assert ppr.check_mesh(ppr.Mesh(np.asarray(sliver.vertices, np.float64), sliver.faces))
 
 
 def test_duplicate_faces_error_or_drop_but_two_sided_kept():

@@ -36,7 +36,8 @@ from .._types import Array, Bool, Float, Int
 
 AREA_RTOL = 1e-12
 """Faces with area below ``AREA_RTOL * (longest edge)^2`` (collinear vertices: float64
-rounding leaves ~1e-16 of it) or with every edge below ``AREA_RTOL`` of the bounding-box
+rounding leaves ~1e-16 of it), a height within 8 rounding steps of their coordinates' size
+(collinear in the stored precision), or every edge below ``AREA_RTOL`` of the bounding-box
 diagonal (collapsed to a point) count as degenerate. The test is the face's own shape, not its
 size against the mesh: a real 0.1 mm facet on a 100 m structure is kept."""
 
@@ -184,7 +185,17 @@ def _degenerate_and_duplicate(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     diag = float(np.linalg.norm(v.max(0) - v.min(0)))
     area, _ = face_areas_normals(tri)
     edge = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max(-1)
-    degenerate = (area <= AREA_RTOL * edge**2) | (edge <= AREA_RTOL * max(diag, 1e-300))
+    # collinear up to the rounding of the stored coordinates: a float32 mesh 6 m from its
+    # origin rounds a collinear triple to heights of ~1e-6 m, far above AREA_RTOL of a short
+    # edge
+    eps = float(np.finfo(np.asarray(mesh.vertices).dtype).eps)
+    height = 2.0 * area / np.maximum(edge, 1e-300)
+    size = np.abs(tri).max(axis=(1, 2))
+    degenerate = (
+        (area <= AREA_RTOL * edge**2)
+        | (edge <= AREA_RTOL * max(diag, 1e-300))
+        | (height <= 8.0 * eps * size)
+    )
     # duplicates: same positions, same orientation (cyclic rotations of one ordered triple)
     scale = max(diag, 1e-300) * 1e-9
     key = np.round(tri / scale).astype(np.int64)  # (F, 3, 3)

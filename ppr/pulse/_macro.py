@@ -1175,7 +1175,8 @@ class MacroOptions:
 
     - `plates`: merge coplanar faces into plates (:func:`macro_geometry`).
     - `level`, `rule`, `order`: broad pairs' quadrature (:func:`broad_nodes`).
-    - `samples`: visibility samples per fan triangle of a glossy pair's overlap.
+    - `samples`: visibility samples per fan triangle of a glossy pair's overlap (a perfect
+      square).
     - `glossy_m`: parts with ``m >= glossy_m`` take the image method (at least
       :data:`GLOSSY_M_MIN`: below it the Laplace approximation of the lobes fails: on a 1 m
       aluminium dihedral 10 deg off its bisector the image method gives +16 % at m = 10 and
@@ -1197,6 +1198,11 @@ class MacroOptions:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
                 raise ValueError(f"MacroOptions.{name} must be an integer >= 1, got {v!r}")
+        if math.isqrt(self.samples) ** 2 != self.samples:
+            raise ValueError(
+                "MacroOptions.samples must be a perfect square (1, 4, 9, 16, ...: a k-fold "
+                f"subdivision of each fan triangle), got {self.samples!r}"
+            )
         g = self.glossy_m
         if isinstance(g, bool) or not isinstance(g, numbers.Real) or not g >= GLOSSY_M_MIN:
             raise ValueError(
