@@ -317,6 +317,8 @@ def render_mueller_image(
 
     Directions and frames are world vectors as in :class:`ppr.Sensor` (see
     :mod:`ppr.pulse._scene`): the camera is the receiver, looking along ``-receiver_dir``.
+    Faces are two-sided here (the side facing the camera is shaded), unlike
+    :func:`ppr.simulate`, whose faces return light only on their outward side.
 
     **Arguments:**
 

@@ -945,6 +945,11 @@ def simulate(
       ``exp(-LOBE_CUT / 2)`` of their peak). ``True`` always evaluates it, ``False`` never.
     - `macro_options`: :class:`ppr.MacroOptions` (accuracy knobs of the double bounce).
 
+    Faces are one-sided: a face returns light only to the side its outward normal points to
+    (counter-clockwise seen from outside); a thin sheet seen from both sides needs two
+    back-to-back faces (:func:`ppr.check_mesh` keeps them). ``ppr.image.render_mueller_image``
+    shades either side of a face (docs/limits.md).
+
     Raises ``ValueError`` (before computing anything) if the range gate does not contain every
     visible facet's depth interval +- ``COVER_NSIG`` pulse sigmas (and the double-bounce
     paths' ranges when they are included).
