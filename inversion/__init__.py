@@ -32,6 +32,7 @@ from ._database import (
 
 # calibrated goodness of fit, observability, posterior files (issue 26)
 from ._gof import (
+    GofComponent,
     GoodnessOfFit,
     detection_power,
     detection_power_bound,
@@ -205,6 +206,7 @@ __all__ = [
     "refine",
     "refine_bounded",
     "fisher_at",
+    "GofComponent",
     "GoodnessOfFit",
     "goodness_of_fit",
     "fit_goodness_of_fit",

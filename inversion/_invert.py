@@ -2014,7 +2014,8 @@ def invert(
     if gof.model_mismatch:
         n_starts = len(screened.get(cand.name, ()))
         reasons.append(
-            f"model mismatch: p = {gof.p_value:.3g} < {gof.threshold:g} (z = {gof.z:+.1f}): no "
+            f"model mismatch: p = {gof.p_value:.3g} < {gof.threshold:g} ({gof.strongest.name}: "
+            f"z = {gof.strongest.z:+.1f}): no "
             f"fit of shape {cand.name!r} from {n_starts} starts ({n_templates} template "
             "attitudes) explains the data: a target unlike the candidates, or an optimum the "
             "search missed (more templates: top_k, escalate, grid.size)"
