@@ -696,6 +696,10 @@ def test_invert_end_to_end(tmp_path, capsys):
     gof = summary["goodness_of_fit"]
     assert gof["statistic"] == "poisson_deviance" and 0 <= gof["p_value"] <= 1
     assert abs(gof["deviance"] - summary["fit"]["deviance"]) < 1e-6 * gof["deviance"]
+    # the deviance and the marginal tests, combined (Bonferroni) into the reported p-value
+    comps = gof["components"]
+    assert [c["name"] for c in comps][:2] == ["all values", "range profile"], comps
+    assert gof["p_value"] == min(1.0, len(comps) * min(c["p_value"] for c in comps))
     obs = summary["observability"]
     nulls = [lab for lab, sg in zip(obs["labels"], obs["sigma"], strict=True) if sg is None]
     assert nulls == obs["unobservable_on_own"]

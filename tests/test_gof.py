@@ -456,3 +456,99 @@ def test_marginal_tests_find_a_profile_error_the_deviance_misses():
         marginals=False,
     )
     assert len(g.components) == 1 and g.p_value == g.tail(g.deviance)
+
+
+def test_marginal_statistics_gaussian_linear_fit_brute_force_and_exact_law():
+    """Known Gaussian noise (sigma varying over the values) and a weighted least-squares fit
+    of the linear model ``mu_cb = s_c (b0 + b1 x + b2 x^2) + b3 t_c x``: each summed
+    statistic is exactly ``e^T (I - P) U U^T (I - P) e``, so 4000 fits match its predicted
+    mean and spread (sampling error 2-4 %); the null law does not depend on the fit."""
+    rng = np.random.default_rng(21)
+    C, B, r = 4, 24, 4000
+    x = np.linspace(-1.0, 1.0, B)
+    s = np.repeat(_PATTERN, B)
+    xx = np.tile(x, C)
+    X = np.stack([s, s * xx, s * xx * xx, np.repeat(_TILT, B) * xx], 1)
+    sigma = 0.5 + rng.uniform(size=C * B)
+    mu = X @ np.array([2.0, 0.5, -1.0, 0.3])
+    y = mu + sigma * rng.normal(size=(r, mu.size))
+    w = 1.0 / sigma**2
+    beta = np.linalg.solve(X.T @ (w[:, None] * X), ((y * w) @ X).T).T
+    res = (y - beta @ X.T).reshape(r, C, B)
+    var = (sigma**2).reshape(C, B)
+    sims = [
+        np.sum(res**2 / var, axis=(1, 2)),
+        np.sum(res.sum(1) ** 2 / var.sum(0), axis=1),
+        np.sum(res.sum(2) ** 2 / var.sum(1), axis=1),
+    ]
+    noise = GaussianNoise(sigma.reshape(C, B))
+    g = goodness_of_fit(y[0].reshape(C, B), (beta[0] @ X.T).reshape(C, B), noise, jacobian=X)
+    assert [c.name for c in g.components] == ["all values", "range profile", "channel totals"]
+    for c, sim in zip(g.components, sims, strict=True):
+        assert abs(sim.mean() - c.expected) < 4 * c.std / math.sqrt(r), (c.name, sim.mean())
+        assert sim.std() == pytest.approx(c.std, rel=0.06), (c.name, sim.std(), c.std)
+    assert g.components[0].expected == pytest.approx(C * B - 4)
+    # the channel totals: 4 sums, of which the fit takes tr G (between 0 and 4)
+    assert 0.5 < g.components[2].expected < 3.5
+    # exactly: with Gaussian data the summed statistic is e^T (I - P) U U^T (I - P) e, a
+    # weighted sum of chi-square(1) with weights the eigenvalues of I - G, G = U^T P U (not a
+    # chi-square unless G is a projector): cumulants tr(I - G)^j, built here independently
+    Q, _ = np.linalg.qr(X / sigma[:, None])
+    P = Q @ Q.T
+    for c, ax, k in zip(g.components[1:], (0, 1), (B, C), strict=True):
+        grp = np.tile(np.arange(B), C) if ax == 0 else np.repeat(np.arange(C), B)
+        V = np.bincount(grp, sigma**2, k)
+        U = np.zeros((C * B, k))
+        U[np.arange(C * B), grp] = sigma / np.sqrt(V[grp])
+        IG = np.eye(k) - U.T @ P @ U
+        assert not np.allclose(IG @ IG, IG, atol=1e-3)  # G is no projector here
+        # sigma^2 is evaluated in float32 by the noise model: rel 1e-6
+        assert c.expected == pytest.approx(np.trace(IG), rel=1e-6)
+        assert c.std**2 == pytest.approx(2 * np.trace(IG @ IG), rel=1e-6)
+        assert c.skewness * c.std**3 == pytest.approx(8 * np.trace(IG @ IG @ IG), rel=1e-6)
+
+
+@pytest.mark.parametrize("b0", [-2.0, 0.0, 3.0])
+def test_marginal_moments_reduce_to_the_validated_own_fit_formula(b0):
+    """Two exact identities tie the marginal moments to the deviance's (checked by brute force
+    above), sparse to dense: (1) for ``mu_cb = s_c I_b(theta)`` the range profile is
+    sufficient, so its component equals the goodness of fit of the 1-D sums fitted with the
+    summed Jacobian (every plug-in, curvature and kurtosis term included); (2) with nothing
+    summed (``U = I``) the marginal moments are the own-fit moments. And they do not depend
+    on the parameters' units (a column in units 1e5 times larger, nearly collinear with
+    another)."""
+    from inversion._gof import _fitted_moments, _marginal
+
+    C, B = 4, 40
+    x = np.linspace(-1.0, 1.0, B)
+    Xb = np.stack([np.ones(B), x, x * x], 1)
+    mu = _PATTERN[:, None] * np.exp(Xb @ np.array([b0, 0.3, -2.0]))[None, :]
+    J = (mu[..., None] * Xb[None]).reshape(C * B, 3)
+    noise = PoissonCounts(background=1e-12)
+    y = np.random.default_rng(3).poisson(mu).astype(float)
+    prof = goodness_of_fit(y, mu, noise, jacobian=J).components[1]
+    Y, M = y.sum(0), mu.sum(0)
+    g1 = goodness_of_fit(Y, M, noise, jacobian=M[:, None] * Xb)
+    assert prof.name == "range profile"
+    for a, b in [(prof.expected, g1.expected), (prof.std, g1.std), (prof.deviance, g1.deviance)]:
+        assert a == pytest.approx(b, rel=1e-9, abs=1e-9)
+    assert prof.skewness == pytest.approx(g1.skewness, rel=1e-8, abs=1e-9)
+    # (2) U = I, with a background and a channel-dependent parameter
+    X, off = _channel_design(B)
+    noise = PoissonCounts(background=0.05)
+    mu = np.exp(X @ np.array([b0, 0.3, -2.0, 0.4]) + off)
+    Jf = mu[:, None] * X
+    y = np.random.default_rng(2).poisson(mu + 0.05).astype(float)
+    c = _marginal("U = I", 1, y[:, None], mu[:, None], noise, None, Jf, None, 0.0)
+    mean, var, third, _ = _fitted_moments(noise, mu, None, Jf, None)
+    assert (c.expected, c.std**2, c.skewness * c.std**3) == pytest.approx(
+        (mean, var, third), rel=1e-9
+    )
+    # units: one column x 1e5 and a fifth nearly collinear with x change no component
+    X5 = np.c_[X, np.tile(x + 1e-3 * x**3, 4)]
+    ref = goodness_of_fit(y.reshape(4, B), mu.reshape(4, B), noise, jacobian=mu[:, None] * X5)
+    sc = np.array([1.0, 1.0, 1.0, 1e5, 1.0])
+    alt = goodness_of_fit(y.reshape(4, B), mu.reshape(4, B), noise, jacobian=mu[:, None] * X5 * sc)
+    for c0, c1 in zip(ref.components, alt.components, strict=True):
+        assert c1.expected == pytest.approx(c0.expected, rel=1e-7)
+        assert c1.std == pytest.approx(c0.std, rel=1e-7)
