@@ -618,10 +618,20 @@ def summarize(records, meta) -> str:
         (w[0] for r in records for w in r.get("worst_rhat", []) if w is not None and w[1] > 1.1),
     )
     tally(
-        "Unobservable directions named at the final fit (observations)",
-        (n for r in records for n in set(r.get("unobservable", []))),
+        "Unobservable directions named at the final fit, without their axes and exponents "
+        "(observations)",
+        (k for r in records for k in {direction_kind(n) for n in r.get("unobservable", [])}),
     )
     return "\n".join(lines) + "\n"
+
+
+def direction_kind(name: str) -> str:
+    """An unobservable direction's name without its axes, exponents and remarks (nested
+    parentheses), its parameters in sorted order: ``"roll about the line of sight"``,
+    ``"gain vs n_re[0]"``."""
+    while (stripped := re.sub(r" ?\([^()]*\)", "", name)) != name:
+        name = stripped
+    return " vs ".join(sorted(name.split(" vs ")))
 
 
 def reason_kind(reason: str) -> str:
