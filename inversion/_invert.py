@@ -1362,6 +1362,44 @@ def _mode_material_optima(refiner, params: PhysicalParams, fits, lib_n, max_deg:
     return out
 
 
+def _polish_material_fits(refiner, fits: list, lz: list, local: list, priors) -> None:
+    """Polish to convergence, in place, the material stage's local refits that can matter.
+
+    A local refit (one round at tolerance 1e-6 from another material's optimum) can stop
+    early on a ridge the data barely constrain (a glossy target's roughness, the index
+    against the gain), where the Laplace Occam factor differs by ~1 in log evidence at equal
+    deviance (a fused-silica 3U at SNR 1000: probability 0.09 as a local refit, 0.28
+    converged). Polished: every local refit whose log evidence is within
+    ``MATERIAL_POLISH_WINDOW`` of the best, and every one whose solver did not converge
+    (its deviance can be far above its optimum), repeated while a polish moves the best.
+    A converged local refit further behind is kept: a polish lowers its deviance only by
+    what the 1e-6 tolerance left and moves its Occam factor by O(1), so its probability stays
+    below ~e^-8 of the best's. A polish is kept only if it is finite and no worse than the
+    refit it started from (a visibility round or the box-bounded fallback can end higher)."""
+    polished = [not x for x in local]
+    while True:
+        top = max(lz)
+        todo = [
+            i
+            for i, f in enumerate(fits)
+            if not polished[i] and (lz[i] >= top - MATERIAL_POLISH_WINDOW or not f.success)
+        ]
+        if not todo:
+            return
+        for i in todo:
+            polished[i] = True
+            g = refiner.polish(fits[i].params)
+            if np.isfinite(g.cost) and g.cost <= fits[i].cost + 1e-9 * max(1.0, abs(fits[i].cost)):
+                fits[i], lz[i] = g, log_evidence(g, priors)
+            else:
+                log.info(
+                    "material refit: the polish ended at deviance %.6g above the local refit's "
+                    "%.6g; the local refit is kept",
+                    g.cost,
+                    fits[i].cost,
+                )
+
+
 def _set_part(a, k: int, v):
     a = np.array(np.asarray(a))
     a[k] = v
@@ -1819,24 +1857,14 @@ def invert(
                     local.append(f is not fit)
                     bar.step()
                 lz = [log_evidence(f, priors) for f in fits]
-                # a competitive local refit is polished to convergence: along a ridge the
-                # data barely constrain (a glossy target's roughness, the index against the
-                # gain) a refit stopped early sits where the Occam factor differs by ~1 in
-                # log evidence (a fused-silica 3U at SNR 1000: probability 0.09 at equal
-                # deviance, 0.29 converged); one that trails by MATERIAL_POLISH_WINDOW keeps
-                # its local refit (its probability stays below ~1e-4 of the best's)
-                top = max(lz)
-                for i, f in enumerate(fits):
-                    if local[i] and lz[i] >= top - MATERIAL_POLISH_WINDOW:
-                        fits[i] = refiner.polish(f.params)
-                        lz[i] = log_evidence(fits[i], priors)
+                _polish_material_fits(refiner, fits, lz, local, priors)
                 p = _probabilities(lz)
                 table = [
                     MaterialFit(part, nm, materials[nm], f, z, float(pp))
                     for nm, f, z, pp in zip(mat_names, fits, lz, p, strict=True)
                 ]
                 tables.append(table)
-                best_m = max(table, key=lambda m: m.probability)
+                best_m = max(table, key=lambda m: (m.probability, -m.fit.cost))
                 changed |= abs(complex(n_best[part]) - best_m.n) > 1e-5
                 n_best[part] = best_m.n
                 fit = best_m.fit
@@ -2252,8 +2280,8 @@ ROLL_GRID = 360
 ROLL_STARTS = 4
 # sweeps of the material stage over the parts (stops early when no part changed)
 MATERIAL_SWEEPS = 2
-# log-evidence window of the material stage: a library material's local refit within it of
-# the best is polished to convergence, one further behind (probability < e^-10 of the best's)
+# log-evidence window of the material stage (_polish_material_fits): a library material's
+# converged local refit within it of the best is polished to convergence, one further behind
 # is not
 MATERIAL_POLISH_WINDOW = 10.0
 ROLL_MODES = 3

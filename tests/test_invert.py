@@ -407,3 +407,62 @@ def test_index_fisher_scoring_follows_the_reflectance_ridge_to_the_noise_free_op
         fit = _index_fit(refiner, refiner.at(start), free, cfg)
         assert fit.success, (name, fit.message, fit.cost)
         assert fit.cost < 1e-3, (name, fit.cost, complex(np.asarray(fit.params.n)[0]))
+
+
+def test_material_stage_polishes_every_refit_that_can_matter(monkeypatch):
+    """The material stage's polish rule (``_polish_material_fits``): a local refit within the
+    log-evidence window of the best is polished, and so is an unconverged one however far
+    behind; a converged one far behind is not; a polish that ends worse is rejected; a polish
+    that lowers the best brings a refit newly inside the window in on the next pass; the
+    current fit (not a local refit) is never touched."""
+    from types import SimpleNamespace as NS
+
+    import inversion._invert as inv_mod
+
+    monkeypatch.setattr(inv_mod, "MATERIAL_POLISH_WINDOW", 10.0)
+    monkeypatch.setattr(inv_mod, "log_evidence", lambda f, priors=None: f.lz)
+
+    def fit(name, cost, lz, success=True):
+        return NS(name=name, cost=cost, lz=lz, success=success, params=name)
+
+    # what a polish of each local refit returns (keyed by the refit's params = its name); a
+    # polish lowers the deviance, its log evidence moves either way
+    polished = {
+        "near": fit("near*", 99.0, -5.0),
+        "far": fit("far*", 0.0, 0.0),  # would win, but a converged far refit is not polished
+        "stuck": fit("stuck*", 50.0, -3.0),  # unconverged, far behind: polished
+        "worse": fit("worse*", 120.0, 5.0),  # the polish ended higher: rejected
+        "best": fit("best*", 4.0, -6.0),  # the polish lowers the best's evidence ...
+        "edge": fit("edge*", 30.0, -2.5),  # ... which brings this one into the window
+    }
+    calls = []
+
+    class Refiner:
+        def polish(self, params):
+            calls.append(params)
+            return polished[params]
+
+    # first pass: top 0, window [-10, 0]; after it the top is stuck*'s -3: window [-13, -3]
+    fits = [
+        fit("current", 40.0, -20.0),  # the current fit: never polished
+        fit("near", 100.0, -1.0),
+        fit("far", 500.0, -15.0),
+        fit("stuck", 900.0, -30.0, success=False),
+        fit("worse", 110.0, -4.0),
+        fit("best", 5.0, 0.0),
+        fit("edge", 31.0, -12.0),
+    ]
+    lz = [f.lz for f in fits]
+    local = [False] + [True] * 6
+    inv_mod._polish_material_fits(Refiner(), fits, lz, local, None)
+    assert sorted(calls) == sorted(["near", "stuck", "worse", "best", "edge"])
+    assert [f.name for f in fits] == [
+        "current",
+        "near*",
+        "far",
+        "stuck*",
+        "worse",
+        "best*",
+        "edge*",
+    ]
+    assert lz == [f.lz for f in fits]
