@@ -290,6 +290,10 @@ def run_one(o, models, prep, cfg, meshes):
         if inv.classification is None
         else bool(inv.classification.no_template_fits[0]),
         material_probabilities=inv.material_probabilities[0],
+        # each library material's deviance and Laplace log evidence (part 0): the weights
+        # exp(-D/2) (the profile likelihood, one Occam factor for all) as an alternative
+        material_deviance={r.name: float(r.fit.cost) for r in inv.materials[0]},
+        material_log_evidence={r.name: float(r.log_evidence) for r in inv.materials[0]},
         chain_material_fractions=chain_material_fractions(inv),
         material_fit=inv.material[0],
         n_modes=len(inv.modes),
@@ -353,6 +357,17 @@ def reliability_pairs(records, key="material_probabilities"):
         if r["kind"] == "in" and r.get(key)
         for name, p in r[key].items()
     ]
+
+
+def _softmax_half(dev: dict[str, float]) -> dict[str, float]:
+    """``{name: exp(-D/2) / sum}`` over finite deviances (0 for a failed fit)."""
+    d = {k: v for k, v in dev.items() if math.isfinite(v)}
+    if not d:
+        return {k: 0.0 for k in dev}
+    lo = min(d.values())
+    w = {k: math.exp(-0.5 * (v - lo)) for k, v in d.items()}
+    tot = sum(w.values())
+    return {k: w.get(k, 0.0) / tot for k in dev}
 
 
 def reliability_bins(pairs, edges=(0.0, 0.1, 0.3, 0.5, 0.7, 0.9, 1.0001)):
@@ -605,6 +620,30 @@ def summarize(records, meta) -> str:
             f"instead, on the {n_obs} in-bank observations with a chain: Brier score "
             f"{br[1]:.3f}, against {br[0]:.3f} for the evidence-weighted probabilities above on "
             "the same observations.",
+        ]
+    prof = [
+        dict(r, profile_probabilities=_softmax_half(r["material_deviance"]))
+        for r in records
+        if r.get("material_deviance")
+    ]
+    if prof:
+        alt = reliability_pairs(prof, "profile_probabilities")
+        same = reliability_pairs(prof)
+        br = [np.mean([(q - y) ** 2 for q, y in pp]) for pp in (same, alt)]
+        off = [
+            f"[{a:.1f}, {min(b, 1):.1f}): {sum(y for _, y in sel)}/{len(sel)} at "
+            f"{np.mean([q for q, _ in sel]):.2f} (p = "
+            f"{poisson_binomial_p(sum(y for _, y in sel), [q for q, _ in sel]):.2g})"
+            for a, b, sel in reliability_bins(alt)
+            if sel
+        ]
+        lines += [
+            "",
+            "The profile likelihood's weights, exp(-D/2) over the same material fits (one "
+            "Occam factor for all), as the prediction instead: Brier score "
+            f"{br[1]:.3f}, against {br[0]:.3f} for the evidence weights; bins: "
+            + "; ".join(off)
+            + ".",
         ]
     t = [r["wall_s"] for r in records]
     cpu = [r["cpu_s"] for r in records]

@@ -1356,10 +1356,29 @@ def _mode_material_optima(refiner, params: PhysicalParams, fits, lib_n, max_deg:
                 if np.degrees(2.0 * np.arccos(dot)) <= max_deg:
                     new_row.append(ph)
                     continue
-            f = refiner.polish(_with(params, n=_set_part(params.n, part, n)), local=True)
+            f = refiner.polish(
+                _gain_profiled(refiner, _with(params, n=_set_part(params.n, part, n))), local=True
+            )
             new_row.append(f.params if np.isfinite(f.cost) else ph)
         out.append(new_row)
     return out
+
+
+def _gain_profiled(refiner, phys: PhysicalParams) -> PhysicalParams:
+    """``phys`` with the gain at its closed-form optimum for the data: the expected total
+    equal to the observed one (the Poisson maximum-likelihood gain without background). A
+    start with another material's index keeps the previous material's gain otherwise, off by
+    the ratio of their reflectances (aluminium to fused silica: ~25x), and a refit from
+    there can settle in another basin (a fused-silica cylinder at SNR 1000: deviance 441.7
+    against 428.0 from the truth). Unchanged when the gain is not free or a total is not
+    positive."""
+    if "gain" not in refiner.free:
+        return phys
+    mu = _expect(refiner.model, phys, refiner.model.prepare(phys))
+    tot, y = float(np.sum(mu)), float(np.sum(np.asarray(refiner.data_j)))
+    if not (np.isfinite(tot) and tot > 0 and y > 0):
+        return phys
+    return _with(phys, gain=phys.gain * (y / tot))
 
 
 def _polish_material_fits(refiner, fits: list, lz: list, local: list, priors) -> None:
@@ -1851,7 +1870,10 @@ def invert(
                         f = fit  # the current fit already holds this material (n'' lifted)
                     else:
                         f = refiner.polish(
-                            _with(fit.params, n=_set_part(n_best, part, n)), local=True
+                            _gain_profiled(
+                                refiner, _with(fit.params, n=_set_part(n_best, part, n))
+                            ),
+                            local=True,
                         )
                     fits.append(f)
                     local.append(f is not fit)

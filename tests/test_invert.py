@@ -86,6 +86,20 @@ def test_invert_recovers_box_attitude_material_and_is_reliable(box_case, tmp_pat
     probs = inv.material_probabilities[0]
     assert set(probs) == set(MATERIALS) and abs(sum(probs.values()) - 1.0) < 1e-12
     assert inv.material == ("aluminium",) and probs["aluminium"] > 0.9, probs
+    # each library material's row is that material's optimum: no worse than a refit of it
+    # started at the truth's attitude, m and offset (the gain scaled by the data's total; a
+    # dielectric's reflectance is ~25x below aluminium's, which the row's start must absorb)
+    noise = inversion.PoissonCounts(background=inversion.InvertConfig().background)
+    for row in inv.materials[0]:
+        start = PhysicalParams(Q0, truth.m, [row.n], range_offset=truth.range_offset, gain=1.0)
+        mu = np.asarray(_expected(cands[0].model, start, cands[0].model.prepare(start)))
+        start = PhysicalParams(
+            Q0, truth.m, [row.n], range_offset=truth.range_offset, gain=data.sum() / mu.sum()
+        )
+        ref = inversion.refine(
+            cands[0].model, data, [start], noise=noise, free=CONFIG["free"], rounds=3
+        )
+        assert row.fit.cost <= ref.cost * (1 + 1e-6), (row.name, row.fit.cost, ref.cost)
     # acceptable fit, converged solver, one mode: reliable, with no reasons
     assert not inv.goodness_of_fit.model_mismatch and inv.converged
     assert inv.reliable and inv.reasons == (), inv.summary()
