@@ -25,7 +25,9 @@ Stages (each logged with its wall time on the ``inversion.invert`` logger):
    most ``MATERIAL_SWEEPS``); each fit weighted by its evidence (Laplace
    approximation, :func:`log_evidence`, ``docs/physics/model_evidence.md``): posterior
    probabilities over the materials. A material whose reflectance the gain absorbs gives
-   (nearly) equal deviances and volumes, hence spread probabilities.
+   (nearly) equal deviances and volumes, hence spread probabilities. When another
+   single-slot shape keeps a probability >= ``ambiguity``, its own table is computed too and
+   the probabilities are averaged over the shapes (weighted by theirs).
 5. **modes**: every equivalent and near-equivalent attitude of the best fit refit and
    weighted (:func:`inversion.mode_check` with the candidate mesh's own symmetry at the
    config's near tolerance: mirror images, near symmetries, the half turn of a bistatic
@@ -655,7 +657,12 @@ class ShapeFit:
 
 @dataclasses.dataclass(frozen=True)
 class MaterialFit:
-    """One library material in one material slot (mesh part) of the chosen shape."""
+    """One library material in one material slot (mesh part) of the chosen shape: its fit
+    and Laplace log evidence on that shape, and its posterior probability. With single-slot
+    shapes that the data do not rule out (probability >= ``ambiguity``), the probability is
+    averaged over them, each shape's own material table weighted by the shape's probability
+    (a wrong shape's table alone gave confident wrong materials); otherwise it is the chosen
+    shape's."""
 
     part: int
     name: str
@@ -1381,6 +1388,64 @@ def _gain_profiled(refiner, phys: PhysicalParams) -> PhysicalParams:
     return _with(phys, gain=phys.gain * (y / tot))
 
 
+def _material_tables(refiner, fit, k_parts: int, materials: dict, priors, progress):
+    """The material stage on one shape: every library material in every slot refit from
+    ``fit`` (the other slots at their best), swept again while a slot's best changed (at most
+    ``MATERIAL_SWEEPS``; the tables are the last sweep's, each slot's conditional on the
+    others' best). Returns ``(tables, fit)``: per slot the :class:`MaterialFit` rows, and the
+    fit with every slot at its most probable material."""
+    mat_names = list(materials)
+    n_best = np.asarray(fit.params.n).copy()
+    tables: list[list[MaterialFit]] = []
+    for sweep in range(MATERIAL_SWEEPS):
+        tables = []
+        changed = False
+        bar = _Bar(progress, k_parts * len(mat_names), f"material fits (sweep {sweep + 1})")
+        for part in range(k_parts):
+            fits, local = [], []
+            for name in mat_names:
+                n = materials[name]
+                if abs(complex(np.asarray(fit.params.n)[part]) - n) < 1e-5:
+                    f = fit  # the current fit already holds this material (n'' lifted)
+                else:
+                    f = refiner.polish(
+                        _gain_profiled(refiner, _with(fit.params, n=_set_part(n_best, part, n))),
+                        local=True,
+                    )
+                fits.append(f)
+                local.append(f is not fit)
+                bar.step()
+            lz = [log_evidence(f, priors) for f in fits]
+            _polish_material_fits(refiner, fits, lz, local, priors)
+            p = _probabilities(lz)
+            table = [
+                MaterialFit(part, nm, materials[nm], f, z, float(pp))
+                for nm, f, z, pp in zip(mat_names, fits, lz, p, strict=True)
+            ]
+            tables.append(table)
+            best_m = max(table, key=lambda m: (m.probability, -m.fit.cost))
+            changed |= abs(complex(n_best[part]) - best_m.n) > 1e-5
+            n_best[part] = best_m.n
+            fit = best_m.fit
+        bar.close()
+        if not changed or k_parts == 1:
+            break
+    return tables, fit
+
+
+def _shape_averaged(tables, p_best: float, others) -> list[list]:
+    """The best shape's single-slot table with each row's probability averaged over the
+    shapes: ``sum_s P(s) P(material | s) / sum_s P(s)`` over the best shape (``p_best``) and
+    ``others`` (``(P(s), tables of s)``); fits and log evidences stay the best shape's."""
+    (rows,) = tables
+    tot = p_best + sum(p for p, _ in others)
+    mix = {r.name: p_best * r.probability for r in rows}
+    for p, (other_rows,) in others:
+        for r in other_rows:
+            mix[r.name] = mix.get(r.name, 0.0) + p * r.probability
+    return [[dataclasses.replace(r, probability=mix[r.name] / tot) for r in rows]]
+
+
 def _polish_material_fits(refiner, fits: list, lz: list, local: list, priors) -> None:
     """Polish to convergence, in place, the material stage's local refits that can matter.
 
@@ -1852,47 +1917,32 @@ def invert(
     # ---------------------------------------------------------------- materials
     with stages("materials"):
         k_parts = cand.n_materials
-        mat_names = list(materials)
-        n_best = np.asarray(fit.params.n).copy()
-        # coordinate descent over the parts: a part's best material depends on the others'
-        # (a start has one material everywhere), so sweep again while any part changed; the
-        # tables (and probabilities) are those of the last sweep, each part's conditional on
-        # the others' best materials
-        for sweep in range(MATERIAL_SWEEPS):
-            tables: list[list[MaterialFit]] = []
-            changed = False
-            bar = _Bar(cfg.progress, k_parts * len(mat_names), f"material fits (sweep {sweep + 1})")
-            for part in range(k_parts):
-                fits, local = [], []
-                for name in mat_names:
-                    n = materials[name]
-                    if abs(complex(np.asarray(fit.params.n)[part]) - n) < 1e-5:
-                        f = fit  # the current fit already holds this material (n'' lifted)
-                    else:
-                        f = refiner.polish(
-                            _gain_profiled(
-                                refiner, _with(fit.params, n=_set_part(n_best, part, n))
-                            ),
-                            local=True,
-                        )
-                    fits.append(f)
-                    local.append(f is not fit)
-                    bar.step()
-                lz = [log_evidence(f, priors) for f in fits]
-                _polish_material_fits(refiner, fits, lz, local, priors)
-                p = _probabilities(lz)
-                table = [
-                    MaterialFit(part, nm, materials[nm], f, z, float(pp))
-                    for nm, f, z, pp in zip(mat_names, fits, lz, p, strict=True)
-                ]
-                tables.append(table)
-                best_m = max(table, key=lambda m: (m.probability, -m.fit.cost))
-                changed |= abs(complex(n_best[part]) - best_m.n) > 1e-5
-                n_best[part] = best_m.n
-                fit = best_m.fit
-            bar.close()
-            if not changed or k_parts == 1:
-                break
+        tables, fit = _material_tables(refiner, fit, k_parts, materials, priors, cfg.progress)
+        # a shape the data do not rule out weighs in its own table (single-slot shapes,
+        # whose one slot is the same thing on both): P(material) = sum over shapes of
+        # P(shape) P(material | shape), the best shape's table otherwise
+        others = [
+            s
+            for s in shapes
+            if s.name != cand.name
+            and s.fit is not None
+            and s.probability >= cfg.ambiguity
+            and by_name[s.name].n_materials == 1
+        ]
+        if others and k_parts == 1:
+            tables = _shape_averaged(
+                tables,
+                best_shape.probability,
+                [
+                    (
+                        s.probability,
+                        _material_tables(
+                            refiners[s.name], s.fit, 1, materials, priors, cfg.progress
+                        )[0],
+                    )
+                    for s in others
+                ],
+            )
 
     # ---------------------------------------------------------------- modes
     with stages("modes"):

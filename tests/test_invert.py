@@ -480,3 +480,36 @@ def test_material_stage_polishes_every_refit_that_can_matter(monkeypatch):
         "edge*",
     ]
     assert lz == [f.lz for f in fits]
+
+
+def test_material_probabilities_are_averaged_over_unresolved_shapes():
+    """P(material) = sum_s P(s) P(material | s) / sum_s P(s) over the shapes kept: a shape
+    read with probability 0.6 whose table says gold 0.9, and one with 0.4 saying aluminium
+    0.95, give gold 0.6 x 0.9 + 0.4 x 0.05 = 0.56 (normalised over 1.0), the rows' fits and
+    evidences those of the chosen shape."""
+    import dataclasses
+
+    import inversion._invert as inv_mod
+
+    @dataclasses.dataclass(frozen=True)
+    class Row:  # MaterialFit's fields that the average reads or keeps
+        name: str
+        fit: str
+        log_evidence: float
+        probability: float
+
+    def rows(probs):
+        return [
+            [Row(name, f"fit-{name}", -float(k), p) for k, (name, p) in enumerate(probs.items())]
+        ]
+
+    best = rows({"gold": 0.9, "aluminium": 0.1})
+    other = rows({"gold": 0.05, "aluminium": 0.95})
+    (mixed,) = inv_mod._shape_averaged(best, 0.6, [(0.4, other)])
+    got = {r.name: r.probability for r in mixed}
+    assert got == pytest.approx({"gold": 0.56, "aluminium": 0.44}, abs=1e-15)
+    assert [r.fit for r in mixed] == ["fit-gold", "fit-aluminium"]
+    assert [r.log_evidence for r in mixed] == [r.log_evidence for r in best[0]]
+    # kept shapes below total probability 1 (a third shape dropped): renormalised
+    (mixed,) = inv_mod._shape_averaged(best, 0.3, [(0.2, other)])
+    assert sum(r.probability for r in mixed) == pytest.approx(1.0, abs=1e-15)
