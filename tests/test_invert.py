@@ -513,3 +513,50 @@ def test_material_probabilities_are_averaged_over_unresolved_shapes():
     # kept shapes below total probability 1 (a third shape dropped): renormalised
     (mixed,) = inv_mod._shape_averaged(best, 0.3, [(0.2, other)])
     assert sum(r.probability for r in mixed) == pytest.approx(1.0, abs=1e-15)
+
+
+@pytest.mark.parametrize("tilt_deg, m", [(0.5, 300.0), (2.0, 50.0)])
+def test_materials_the_data_cannot_tell_apart_are_not_ruled_out(tilt_deg, m):
+    """A glossy box seen nearly face-on returns one normal-incidence glint: aluminium, gold
+    and fused silica differ there by their reflectance, which the gain absorbs, and (to second
+    order in the tilt) by their diattenuation. Their fits reach the same deviance (within 1),
+    so none may be ruled out. Each material's refit stops somewhere of its own on the flat
+    ridge of roughness against tilt and gain, where the point Laplace estimate varies by many
+    units of log evidence (measured here before the carry: gold 11 below aluminium at equal
+    deviance, fused silica -inf; probabilities 1, 0, 0); the evidence taken also at the best
+    optimum carried over (``_carry_best_optimum``) gives each at least 0.05. The carried
+    estimate is never below the material's own, and each is a Laplace estimate at a real
+    point: its log evidence is at most the best's plus what the deviance and the Occam
+    factor of that point allow (checked by recomputing it)."""
+    import inversion._invert as inv_mod
+
+    box = ppr.shapes.box(BOX)
+    cand = Candidate("box", _toy(box), symmetry=box, bin_width_m=WIDTH)
+    q = np.asarray(axis_angle_quat([1.0, 0.3, 0.0], math.radians(tilt_deg)))
+    _, data = _observe(cand.model, q, m=m, gain=5.0, seed=1)
+    mats = {k: complex(np.asarray(ppr.load_material(k).n)) for k in MATERIALS}
+    near = quat_mul(axis_angle_quat([0.3, -0.5, 0.8], math.radians(6.0)), q)
+    bank = inversion.screening_bank(
+        [cand], mats, {"rough": 6.0, "glossy": 100.0}, attitudes=np.vstack([q, near])
+    )
+    cfg = dict(CONFIG, mcmc=None)
+    rows = inversion.invert(data, [cand], config=cfg, bank=bank).materials[0]
+    d_min = min(r.fit.cost for r in rows)
+    assert all(r.fit.cost <= d_min + 1.0 for r in rows), [r.fit.cost for r in rows]
+    probs = {r.name: r.probability for r in rows}
+    assert min(probs.values()) >= 0.05, probs
+    assert sum(probs.values()) == pytest.approx(1.0, abs=1e-12)
+    refiner = inv_mod._Refiner(
+        cand.model, inversion.PoissonCounts(), data, tuple(cfg["free"]), inv_mod._as_config(cfg)
+    )
+    for r in rows:
+        own = inv_mod.log_evidence(r.fit)
+        assert r.log_evidence >= own or not math.isfinite(own)
+        if r.evidence_at is not None:  # the carried estimate, recomputed at its point
+            src = next(x for x in rows if x.name == r.evidence_at)
+            base = src.fit.params
+            p = inv_mod._gain_profiled(refiner, inv_mod._with(base, n=np.array([r.n])))
+            assert inv_mod.log_evidence(refiner.at(p)) == pytest.approx(r.log_evidence, abs=1e-6)
+            # carried from the best of the materials' own optima
+            assert src.evidence_at is None
+            assert src.log_evidence >= max(inv_mod.log_evidence(x.fit) for x in rows)
