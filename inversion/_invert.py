@@ -77,6 +77,7 @@ from scipy.spatial.transform import Rotation
 
 import ppr
 from ppr.config import ConfigError, StrictModel, first_nonfinite, validate_data
+from ppr.geometry import quat_from_axis_angle, quat_multiply_host
 
 from ._classifier import (
     Classification,
@@ -89,7 +90,13 @@ from ._classifier import (
 )
 from ._database import TemplateBank
 from ._gof import GoodnessOfFit, fit_goodness_of_fit, goodness_of_fit
-from ._grid import AttitudeGrid, as_symmetry, fibonacci_sphere, symmetry_group
+from ._grid import (
+    AttitudeGrid,
+    as_symmetry,
+    face_on_attitudes,
+    fibonacci_sphere,
+    symmetry_group,
+)
 from ._mcmc import (
     ChainTooShortWarning,
     MCMCConfig,
@@ -309,6 +316,14 @@ class InvertConfig(StrictModel):
         description="while the best screened fit is a model mismatch (p < mismatch_p), screen "
         "the next top_k templates, at most this many times (a missed optimum looks like a "
         "mismatch)",
+    )
+    face_on: int = pydantic.Field(
+        3,
+        ge=0,
+        le=1000,
+        description="each candidate's largest flat sides (classes under its symmetry) turned "
+        "to face the sensor as extra screening starts, at the glossiest finish: a glint is "
+        "narrower than the template grid's spacing (0: none)",
     )
     polish_factor: float = pydantic.Field(
         1.25, ge=1.0, description="shapes polished: screened deviance <= factor x best + abs"
@@ -613,9 +628,13 @@ def log_evidence(fit: RefineResult, priors: PriorConfig | None = None) -> float:
         return -math.inf
     s = prior_scales(fit.parametrisation, priors)
     A = np.eye(len(s)) + s[:, None] * (0.5 * (F + F.T)) * s[None, :]
-    sign, logdet = np.linalg.slogdet(A)
-    if sign <= 0:
+    # A = I + S F S has every eigenvalue >= 1; a Fisher matrix of condition ~1e23 (a tilt
+    # the data pin to 1e-11 rad beside an unobservable roll) leaves round-off eigenvalues of
+    # either sign ~1e-16 x the largest, which a determinant's sign cannot survive
+    ev = np.linalg.eigvalsh(0.5 * (A + A.T))
+    if not np.all(np.isfinite(ev)):
         return -math.inf
+    logdet = float(np.sum(np.log(np.maximum(ev, 1.0))))
     return float(-0.5 * fit.cost - 0.5 * logdet)
 
 
@@ -1526,6 +1545,36 @@ def _carry_best_optimum(
     return at
 
 
+def _centred(c: Candidate, p: PhysicalParams, data) -> PhysicalParams:
+    """``p`` with the range offset that puts the model's range centroid (summed over channels)
+    on the data's: of the offsets ``0`` and ``+-`` the centroids' difference in bin widths,
+    the one whose centroid lands nearest (the sign convention is the model's). Unchanged
+    without a bin width or a positive total."""
+    w = c.bin_width
+    d = np.asarray(data, np.float64).reshape(-1, np.shape(data)[-1]).sum(0)
+    if w is None or not d.sum() > 0:
+        return p
+
+    def centroid(q: PhysicalParams) -> float:
+        mu = np.asarray(_expect(c.model, q, c.model.prepare(q)), np.float64)
+        prof = np.maximum(mu.reshape(-1, mu.shape[-1]).sum(0), 0.0)
+        tot = prof.sum()
+        return float(prof @ np.arange(len(prof)) / tot) if tot > 0 else math.nan
+
+    target = float(d @ np.arange(len(d)) / d.sum())
+    c0 = centroid(p)
+    if not np.isfinite(c0):
+        return p
+    shift = (target - c0) * w
+    best, err = p, abs(c0 - target)
+    for sgn in (1.0, -1.0):
+        q = _with(p, range_offset=jnp.asarray(float(np.asarray(p.range_offset)) + sgn * shift))
+        e = abs(centroid(q) - target)
+        if e < err:
+            best, err = q, e
+    return best
+
+
 def _set_part(a, k: int, v):
     a = np.array(np.asarray(a))
     a[k] = v
@@ -1784,6 +1833,31 @@ def invert(
         # cannot tell a broad lobe from a narrow glint of the same face, the deviance can),
         # the gain matching the total counts; a start whose gain lies outside the physical
         # range (a glint too faint for any real sensor) is dropped unless it is all there is
+        def seed_start(c, p: PhysicalParams, aux=None) -> PhysicalParams:
+            """``p`` with the gain matching the total counts and, for a monostatic sensor,
+            the best roll about the line of sight: the template grid's roll is coarse, and
+            the deviance is multimodal in it (five model calls: inversion._roll; the turn
+            keeps the visibility)."""
+            aux = c.model.prepare(p) if aux is None else aux
+            total = float(_expect(c.model, p, aux).sum())
+            gain = float(max(data.sum(), 1.0) / max(total, 1e-300))
+            p = _with(p, gain=jnp.asarray(min(max(gain, 1e-300), 1e300), p.m.dtype))
+            los_c = _roll_los(c.model)
+            if los_c is not None:
+                sc = roll_scan(
+                    c.model,
+                    data,
+                    p,
+                    noise=noise,
+                    los=los_c,
+                    monostatic=True,
+                    aux=aux,
+                    n_grid=ROLL_GRID,
+                )
+                if sc.minima[0] != 0:
+                    p = sc.params(p, int(sc.minima[0]))
+            return p
+
         def make_starts(cols, have=()) -> dict[str, list[PhysicalParams]]:
             starts: dict[str, list[PhysicalParams]] = {}
             spare: dict[str, list[tuple[float, PhysicalParams]]] = {}
@@ -1795,33 +1869,14 @@ def invert(
                 w = c.bin_width
                 off = 0.0 if w is None else float(cls.shift_refined[0, col]) * w
                 aux = None
-                los_c = _roll_los(c.model)
                 for m in bank_.names["finish_m"]:
                     p = PhysicalParams(
                         bank_.quat[row], [m] * k, [n] * k, range_offset=off, gain=1.0
                     )
                     if aux is None or getattr(c.model, "multibounce", False):
                         aux = c.model.prepare(p)
-                    total = float(_expect(c.model, p, aux).sum())
-                    gain = float(max(data.sum(), 1.0) / max(total, 1e-300))
-                    p = _with(p, gain=jnp.asarray(min(max(gain, 1e-300), 1e300), p.m.dtype))
-                    if los_c is not None:
-                        # the template grid's roll about the line of sight is coarse, and the
-                        # deviance is multimodal in it: start at the template's best roll
-                        # (five model calls: inversion._roll); the turn keeps the visibility
-                        sc = roll_scan(
-                            c.model,
-                            data,
-                            p,
-                            noise=noise,
-                            los=los_c,
-                            monostatic=True,
-                            aux=aux,
-                            n_grid=ROLL_GRID,
-                        )
-                        if sc.minima[0] != 0:
-                            p = sc.params(p, int(sc.minima[0]))
-                            gain = float(np.asarray(p.gain))
+                    p = seed_start(c, p, aux)
+                    gain = float(np.asarray(p.gain))
                     if BOUNDS.gain[0] <= gain <= BOUNDS.gain[1]:
                         starts.setdefault(c.name, []).append(p)
                     else:
@@ -1832,6 +1887,46 @@ def invert(
             return starts
 
         starts = make_starts(cols)
+
+        def face_on_starts() -> dict[str, list[PhysicalParams]]:
+            """Each candidate's largest sides face-on (:func:`face_on_attitudes`), at the
+            glossiest finish and the material of the shape's best template, the range offset
+            matching the data's range centroid, the gain their total, the roll scanned."""
+            out: dict[str, list[PhysicalParams]] = {}
+            if cfg.face_on == 0:
+                return out
+            m = max(bank_.names["finish_m"])
+            for c in cands:
+                mesh = c.mesh if c.mesh is not None else c.symmetry
+                if not isinstance(mesh, ppr.Mesh):
+                    continue
+                sym = c.exact_symmetry(cfg.symmetry)
+                los_c = line_of_sight_of(c.model)
+                los_c = np.array([0.0, 0.0, 1.0]) if los_c is None else los_c
+                rows = [int(cls.index[0, j]) for j in _ranked_rows(cls, bank_)]
+                rows = [r for r in rows if bank_.names["shapes"][bank_.shape_id[r]] == c.name]
+                n = bank_mats[bank_.material_id[rows[0]]] if rows else bank_mats[0]
+                k = c.n_materials
+                for q in face_on_attitudes(
+                    mesh,
+                    los_c,
+                    symmetry=sym,
+                    max_classes=cfg.face_on,
+                ):
+                    # the roll about the line of sight: scanned by seed_start for a monostatic
+                    # sensor, else ROLL_STARTS turns over the half circle
+                    turns = (
+                        [0.0]
+                        if _roll_los(c.model) is not None
+                        else [j * math.pi / ROLL_STARTS for j in range(ROLL_STARTS)]
+                    )
+                    for a in turns:
+                        qa = quat_multiply_host(quat_from_axis_angle(los_c, a), q)
+                        p = PhysicalParams(qa, [m] * k, [n] * k, range_offset=0.0, gain=1.0)
+                        p = seed_start(c, _centred(c, p, data))
+                        if BOUNDS.gain[0] <= float(np.asarray(p.gain)) <= BOUNDS.gain[1]:
+                            out.setdefault(c.name, []).append(p)
+            return out
 
     # ---------------------------------------------------------------- screened refinement
     with stages("refine"):
@@ -1907,6 +2002,9 @@ def invert(
         warm = _warm_jacobian(refiners[first], starts[first][0])
         try:
             screen(starts, "screening starts")
+            face = face_on_starts()
+            if face:
+                screen(face, "face-on starts")
             n_batches = 1
             ranked = _ranked_rows(cls, bank_)
             while n_batches <= cfg.escalate and screened_mismatch():

@@ -15,7 +15,7 @@ from inversion._grid import (
     stated_resolution_deg,
     symmetry_group,
 )
-from ppr.geometry import quat_angle_deg, quat_multiply_host
+from ppr.geometry import quat_angle_deg, quat_multiply_host, quat_to_matrix_host
 
 
 @pytest.mark.parametrize("nside", [1, 2, 3, 4])
@@ -205,3 +205,35 @@ def test_grid_and_database_take_a_mesh_group():
     spec["shapes"] = [{"name": "box3u", "symmetry": "auto"}]
     with pytest.raises(ValueError, match=r"shapes\[0\]\.symmetry = 'auto': .* needs model = 'ppr'"):
         spec_from_dict(spec)
+
+
+def test_face_on_attitudes_turn_each_side_class_to_the_sensor():
+    """Each attitude takes one side's outward normal exactly onto the line of sight; sides
+    the mesh's rotations map onto each other are one class (a 3U CubeSat: its four long sides
+    one class, its two ends another; a cube: one), largest side area first; a box of three
+    different sides has three classes (opposite sides swapped by its half turns), cut at
+    ``max_classes``."""
+    import ppr
+    from inversion._grid import face_on_attitudes
+
+    los = np.array([0.3, -0.2, 0.93])
+    los /= np.linalg.norm(los)
+    cases = [
+        (ppr.shapes.box((0.1, 0.1, 0.34)), [(1, 0, 0), (0, 0, 1)]),  # long side, then end
+        (ppr.shapes.box((0.1, 0.1, 0.1)), [(1, 0, 0)]),
+        (ppr.shapes.box((0.1, 0.2, 0.34)), [(1, 0, 0), (0, 1, 0), (0, 0, 1)]),
+    ]
+    for mesh, axes in cases:
+        q = face_on_attitudes(mesh, los, max_classes=6)
+        rot = quat_to_matrix_host(q)
+        body_los = np.einsum("kji,j->ki", rot, los)  # R^T los: the side facing the sensor
+        # each one a side normal (up to its sign: the outward one of either of a pair)
+        got = [tuple(np.abs(np.round(v, 9))) for v in body_los]
+        assert sorted(got) == sorted(tuple(map(float, a)) for a in axes), (got, axes)
+        # largest side area first: the box's sides are 0.1 x 0.34 > 0.1 x 0.1 (3U)
+        if len(axes) == 2:
+            assert got[0] == (1.0, 0.0, 0.0) or got[0] == (0.0, 1.0, 0.0)
+    # the box of three sides: its largest (0.2 x 0.34, normal x) first, cut at max_classes
+    q = face_on_attitudes(cases[2][0], los, max_classes=6)
+    assert abs(abs((quat_to_matrix_host(q[0]).T @ los)[0]) - 1.0) < 1e-9
+    assert len(face_on_attitudes(cases[2][0], los, max_classes=2)) == 2

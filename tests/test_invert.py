@@ -160,7 +160,7 @@ def test_a_missed_optimum_is_searched_for_before_a_mismatch_is_reported(box_case
 
     worst = lambda cls, bank_, top_k, per_shape: _invert._ranked_rows(cls, bank_)[-1:]  # noqa: E731
     monkeypatch.setattr(_invert, "_pick_rows", worst)
-    cfg = {**CONFIG, "top_k": 1, "per_shape": 0}
+    cfg = {**CONFIG, "top_k": 1, "per_shape": 0, "face_on": 0}  # the escalation alone
     inv = inversion.invert(data, cands, config={**cfg, "escalate": 0}, bank=bank)
     assert sum(s.n_starts for s in inv.shapes) == 1
     gof = inversion.goodness_of_fit(
