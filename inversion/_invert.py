@@ -1477,7 +1477,9 @@ def _polish_material_fits(refiner, fits: list, lz: list, local: list, priors) ->
     deviance (a fused-silica 3U at SNR 1000: probability 0.09 as a local refit, 0.28
     converged). Polished: every local refit whose log evidence is within
     ``MATERIAL_POLISH_WINDOW`` of the best, and every one whose solver did not converge
-    (its deviance can be far above its optimum), repeated while a polish moves the best.
+    (its deviance can be far above its optimum) unless even the optimistic bound of
+    :func:`_polish_gain` (its Fisher-scoring decrement plus ``MATERIAL_OCCAM_SLACK``) leaves it
+    outside the window, repeated while a polish moves the best.
     A converged local refit further behind is kept: a polish lowers its deviance only by
     what the 1e-6 tolerance left and moves its Occam factor by O(1), so its probability stays
     below ~e^-8 of the best's. A polish is kept only if it is finite and no worse than the
@@ -1488,7 +1490,11 @@ def _polish_material_fits(refiner, fits: list, lz: list, local: list, priors) ->
         todo = [
             i
             for i, f in enumerate(fits)
-            if not polished[i] and (lz[i] >= top - MATERIAL_POLISH_WINDOW or not f.success)
+            if not polished[i]
+            and (
+                lz[i] >= top - MATERIAL_POLISH_WINDOW
+                or (not f.success and lz[i] + _polish_gain(f) >= top - MATERIAL_POLISH_WINDOW)
+            )
         ]
         if not todo:
             return
@@ -1504,6 +1510,17 @@ def _polish_material_fits(refiner, fits: list, lz: list, local: list, priors) ->
                     g.cost,
                     fits[i].cost,
                 )
+
+
+def _polish_gain(fit) -> float:
+    """An optimistic bound on what polishing ``fit`` can add to its log evidence: the whole
+    Fisher-scoring decrement of its deviance (twice the half that enters ``log Z``) plus
+    ``MATERIAL_OCCAM_SLACK`` for the Occam factor moving along a ridge; ``inf`` (always
+    polish) when the decrement is unknown."""
+    dec = getattr(fit, "decrement", None)
+    if dec is None or not math.isfinite(dec):
+        return math.inf
+    return float(dec) + MATERIAL_OCCAM_SLACK
 
 
 def _carry_best_optimum(
@@ -2496,6 +2513,9 @@ MATERIAL_SWEEPS = 2
 # converged local refit within it of the best is polished to convergence, one further behind
 # is not
 MATERIAL_POLISH_WINDOW = 10.0
+# what the Occam factor of an unconverged material refit may move by when polished (a ridge:
+# up to ~4 units measured); with its deviance decrement, the bound of _polish_gain
+MATERIAL_OCCAM_SLACK = 5.0
 ROLL_MODES = 3
 ROLL_MODE_DELTA = 50.0
 # the rise of the deviance between the fit's roll and another minimum that makes it a mode

@@ -300,6 +300,10 @@ class RefineResult:
       matrix ``J^T J`` itself and `physical_jacobian` ``d physical_vector / d theta``.
       :meth:`observability` names the unconstrained directions and gives finite
       uncertainties in the observable subspace.
+    - `decrement`: how much further the deviance can drop from here by the Fisher-scoring
+      (Gauss-Newton) model, ``g^T F^+ g`` with ``g = J^T r`` (``r`` the Pearson residuals
+      at the point): about 0 at an optimum; for a fit the solver left unconverged, what
+      polishing it can gain, to second order. ``None`` when not evaluated.
     - `starts`: summaries of every start, best first; `elapsed_s`: wall time.
     """
 
@@ -322,6 +326,7 @@ class RefineResult:
     method: str = "levenberg_marquardt"
     fisher_theta: np.ndarray | None = None
     physical_jacobian: np.ndarray | None = None
+    decrement: float | None = None
 
     @property
     def reduced_chi2(self) -> float:
@@ -1007,8 +1012,13 @@ def _message(code: int) -> str:
 
 def _finish(model, noise, data_j, best: StartSummary, ordered, free, range_scale, t0, method):
     phys = best.params
+    decrement = None
     if np.isfinite(best.cost):
-        fisher, G, param, chi2 = fisher_at(model, noise, data_j, phys, free, None, range_scale)
+        J, inv_sigma, mu, G, param, chi2 = weighted_jacobian(
+            model, noise, data_j, phys, free, None, range_scale
+        )
+        fisher = J.T @ J
+        decrement = _decrement(J, inv_sigma, mu, np.asarray(data_j, np.float64), noise)
         cov, cov_theta, cond = _covariance_from_fisher(fisher, G, param)
         labels = param.labels
     else:
@@ -1038,7 +1048,22 @@ def _finish(model, noise, data_j, best: StartSummary, ordered, free, range_scale
         method=method,
         fisher_theta=fisher,
         physical_jacobian=G,
+        decrement=decrement,
     )
+
+
+def _decrement(J, inv_sigma, mu, data, noise) -> float:
+    """``g^T (J^T J)^+ g`` with ``g = J^T r``, ``r`` the Pearson residuals ``(y - lam) / sd``
+    (``lam`` the expectation with the background of :class:`PoissonCounts`): the deviance
+    decrease one Fisher-scoring step predicts (the score of the log-likelihood is ``-g`` and
+    its Fisher information ``J^T J``), i.e. the squared norm of ``r`` projected onto the
+    columns of ``J``. ``nan`` if not finite."""
+    lam = mu + (noise.background if isinstance(noise, PoissonCounts) else 0.0)
+    r = ((data - lam) * inv_sigma).reshape(-1)
+    x, *_ = np.linalg.lstsq(J, r, rcond=1e-12)
+    v = J @ x
+    dec = float(v @ v)
+    return dec if np.isfinite(dec) else math.nan
 
 
 def predicted(model, phys: PhysicalParams) -> Float[Array, "C B"]:

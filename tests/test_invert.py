@@ -428,7 +428,8 @@ def test_material_stage_polishes_every_refit_that_can_matter(monkeypatch):
     log-evidence window of the best is polished, and so is an unconverged one however far
     behind; a converged one far behind is not; a polish that ends worse is rejected; a polish
     that lowers the best brings a refit newly inside the window in on the next pass; the
-    current fit (not a local refit) is never touched."""
+    current fit (not a local refit) is never touched; an unconverged refit whose deviance
+    decrement cannot bring it into the window is not polished (unknown decrement: it is)."""
     from types import SimpleNamespace as NS
 
     import inversion._invert as inv_mod
@@ -436,8 +437,8 @@ def test_material_stage_polishes_every_refit_that_can_matter(monkeypatch):
     monkeypatch.setattr(inv_mod, "MATERIAL_POLISH_WINDOW", 10.0)
     monkeypatch.setattr(inv_mod, "log_evidence", lambda f, priors=None: f.lz)
 
-    def fit(name, cost, lz, success=True):
-        return NS(name=name, cost=cost, lz=lz, success=success, params=name)
+    def fit(name, cost, lz, success=True, decrement=None):
+        return NS(name=name, cost=cost, lz=lz, success=success, params=name, decrement=decrement)
 
     # what a polish of each local refit returns (keyed by the refit's params = its name); a
     # polish lowers the deviance, its log evidence moves either way
@@ -448,6 +449,7 @@ def test_material_stage_polishes_every_refit_that_can_matter(monkeypatch):
         "worse": fit("worse*", 120.0, 5.0),  # the polish ended higher: rejected
         "best": fit("best*", 4.0, -6.0),  # the polish lowers the best's evidence ...
         "edge": fit("edge*", 30.0, -2.5),  # ... which brings this one into the window
+        "hopeless": fit("hopeless*", 0.0, 0.0),  # never asked for: see below
     }
     calls = []
 
@@ -465,9 +467,12 @@ def test_material_stage_polishes_every_refit_that_can_matter(monkeypatch):
         fit("worse", 110.0, -4.0),
         fit("best", 5.0, 0.0),
         fit("edge", 31.0, -12.0),
+        # unconverged, but its whole decrement (3) plus the Occam slack (5) leaves it at
+        # -14, outside every window of the passes (the lowest: [-13, -3])
+        fit("hopeless", 80.0, -22.0, success=False, decrement=3.0),
     ]
     lz = [f.lz for f in fits]
-    local = [False] + [True] * 6
+    local = [False] + [True] * 7
     inv_mod._polish_material_fits(Refiner(), fits, lz, local, None)
     assert sorted(calls) == sorted(["near", "stuck", "worse", "best", "edge"])
     assert [f.name for f in fits] == [
@@ -478,6 +483,7 @@ def test_material_stage_polishes_every_refit_that_can_matter(monkeypatch):
         "worse",
         "best*",
         "edge*",
+        "hopeless",
     ]
     assert lz == [f.lz for f in fits]
 
@@ -560,3 +566,33 @@ def test_materials_the_data_cannot_tell_apart_are_not_ruled_out(tilt_deg, m):
             # carried from the best of the materials' own optima
             assert src.evidence_at is None
             assert src.log_evidence >= max(inv_mod.log_evidence(x.fit) for x in rows)
+
+
+def test_decrement_predicts_the_deviance_a_fisher_scoring_step_removes(box_case):
+    """``RefineResult.decrement`` (``g^T F^+ g``, g the score in the solver coordinates):
+    ~0 at the maximum-likelihood fit, and off it the deviance drop to second order: at points
+    0.5-2 sd (of the fit's own covariance) away along each coordinate, the decrement equals
+    ``D(point) - D(fit)`` to within the third-order terms (10 % here), and it never
+    exceeds what a polish from the point then actually removes by more than that."""
+    import inversion._invert as inv_mod
+
+    cands, truth, data, _ = box_case
+    cfg = inv_mod._as_config(CONFIG)
+    ref = inv_mod._Refiner(cands[0].model, inversion.PoissonCounts(), data, tuple(cfg.free), cfg)
+    best = ref.polish(truth)
+    assert best.success
+    assert best.decrement < 1e-6 * max(1.0, best.cost), best.decrement
+    sd = np.sqrt(np.diag(best.covariance_theta))
+    checked = 0
+    for i in range(len(best.theta)):
+        if not np.isfinite(sd[i]) or sd[i] == 0:
+            continue
+        for k in (0.5, 2.0):
+            th = np.array(best.theta, np.float64)
+            th[i] += k * sd[i]
+            phys = inv_mod._to_physical(best.parametrisation, jnp.asarray(th))
+            at = ref.at(phys)
+            rise = at.cost - best.cost
+            assert at.decrement == pytest.approx(rise, rel=0.1, abs=1e-3), (i, k, rise)
+            checked += 1
+    assert checked >= 8
