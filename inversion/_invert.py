@@ -101,6 +101,7 @@ from ._mcmc import (
     ChainTooShortWarning,
     MCMCConfig,
     MCMCResult,
+    ModeMixture,
     PriorConfig,
     _ReflectanceShear,
     sample_posterior,
@@ -896,6 +897,24 @@ class Inversion:
     @property
     def posteriors(self) -> tuple[MCMCResult, ...]:
         return tuple(m.posterior for m in self.modes if m.posterior is not None)
+
+    @property
+    def mixture(self) -> ModeMixture | None:
+        """The posterior over every sampled mode (:class:`~inversion.ModeMixture`: each mode's
+        chain weighted by its posterior weight, renormalised over the sampled modes), or None
+        without sampling. Its ``interval(label, level)`` is the interval a parameter has
+        when the modes are not resolved (two modes of weight 0.5 whose range offsets differ
+        by more than either's width: one mode's interval covers the truth half the time)."""
+        kept = [m for m in self.modes if m.posterior is not None]
+        if not kept:
+            return None
+        w = np.array([m.weight for m in kept], np.float64)
+        w = w / w.sum() if w.sum() > 0 else np.full(len(kept), 1.0 / len(kept))
+        return ModeMixture(
+            modes=tuple(m.posterior for m in kept),
+            weights=w,
+            costs=np.array([m.fit.cost for m in kept], np.float64),
+        )
 
     @functools.cached_property
     def posterior(self):

@@ -117,6 +117,14 @@ def test_invert_recovers_box_attitude_material_and_is_reliable(box_case, tmp_pat
     assert d["reliable"] is False and d["converged"] is True and d["reasons"] == list(inv.reasons)
     assert '"success"' not in json.dumps(d)
     assert d["goodness_of_fit"]["model_mismatch"] is False
+    # the posterior over the sampled modes: the mirror image weighs < 1e-6, so its intervals
+    # are mode 0's (to the resampling error of 2e4 draws)
+    mix = inv.mixture
+    assert mix.weights.sum() == pytest.approx(1.0, abs=1e-12) and mix.weights[0] > 0.999
+    post0 = inv.modes[0].posterior
+    for lab in ("gain", "range_offset [m]"):
+        lo, hi = post0.interval(0.68)[post0.labels.index(lab)]
+        np.testing.assert_allclose(mix.interval(lab, 0.68), [lo, hi], atol=0.05 * (hi - lo))
     import arviz as az
 
     idata = az.from_netcdf(tmp_path / "out" / "invert_posterior.nc")
