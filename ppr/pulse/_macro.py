@@ -1439,10 +1439,12 @@ def macro_profile(
 ):
     """Traceable: the macro double bounce ``(C, n_bins)`` (m^2/sr per bin) at the body-to-world
     rotation ``rot`` (module docstring). ``materials``: stacked per part (as
-    :func:`ppr.render`); ``brdf``: the render's BRDF (broad sides). Two ``brdf`` calls: the
-    broad sides of the glossy pairs, and both bounces of the broad point pairs under a
-    ``lax.cond`` on any live point (padded broad slots cost nothing at run time outside
-    ``vmap``, so a model can pad them to a fixed capacity and compile once)."""
+    :func:`ppr.render`); ``brdf``: the render's BRDF (broad sides). One compiled ``brdf``
+    copy (:func:`_chunked_brdf`) for the broad sides of the glossy pairs and both bounces of
+    the broad point pairs, in chunks skipped when none of their rows is live, and the broad
+    pairs' profile under a ``lax.cond`` on any live point (padded broad slots cost nothing
+    at run time outside ``vmap``, so a model can pad them to a fixed capacity and compile
+    once)."""
     from ._pulse import _tent_profile  # noqa: PLC0415
 
     dt = pairs.tri.dtype
