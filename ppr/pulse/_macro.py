@@ -1439,12 +1439,10 @@ def macro_profile(
 ):
     """Traceable: the macro double bounce ``(C, n_bins)`` (m^2/sr per bin) at the body-to-world
     rotation ``rot`` (module docstring). ``materials``: stacked per part (as
-    :func:`ppr.render`); ``brdf``: the render's BRDF (broad sides). One compiled ``brdf``
-    copy (:func:`_chunked_brdf`) for the broad sides of the glossy pairs and both bounces of
-    the broad point pairs, in chunks skipped when none of their rows is live, and the broad
-    pairs' profile under a ``lax.cond`` on any live point (padded broad slots cost nothing
-    at run time outside ``vmap``, so a model can pad them to a fixed capacity and compile
-    once)."""
+    :func:`ppr.render`); ``brdf``: the render's BRDF (broad sides). Two ``brdf`` calls: the
+    broad sides of the glossy pairs, and both bounces of the broad point pairs under a
+    ``lax.cond`` on any live point (padded broad slots cost nothing at run time outside
+    ``vmap``, so a model can pad them to a fixed capacity and compile once)."""
     from ._pulse import _tent_profile  # noqa: PLC0415
 
     dt = pairs.tri.dtype
@@ -1528,17 +1526,27 @@ def macro_profile(
             )
         )
         if pairs.mixed:
-            requests.append((*g_args, *g_frames, jnp.concatenate([live_s, live_s])))
-    if n_r:
-        # the broad point pairs' two bounces join the same BRDF call
-        geo = dict(u_in=u_in, u_out=u_out, x_tx=x_tx, x_rx=x_rx, shift=shift, mat=mat)
-        broad = _broad_pairs_request(pairs, geo, dt)
-        requests.append(broad["request"])
-    results = _chunked_brdf(brdf, requests, sensor.wavelength, pairs.terms, dt) if requests else []
+            requests.append((*g_args, *g_frames))
+    full = None
+    if requests:
+        cat_all = lambda *xs: jnp.concatenate(xs)  # noqa: E731
+        ki_, ko_, nr_, mt_, fi_, fo_ = (
+            jax.tree_util.tree_map(cat_all, *[rq[c] for rq in requests]) for c in range(6)
+        )
+        full = brdf(
+            ki_,
+            ko_,
+            nr_,
+            mt_,
+            frame_in=fi_,
+            frame_out=fo_,
+            wavelength=sensor.wavelength,
+            terms=pairs.terms,
+        )
     if n_g:
         first, second = spec[:n_gs], spec[n_gs:]
         if pairs.mixed:
-            fg = results[0]
+            fg = full[: 2 * n_gs]
             kind_s = jnp.repeat(kind, n_s)
             first = jnp.where((kind_s == KIND_BG)[:, None, None], fg[:n_gs], first)
             second = jnp.where((kind_s == KIND_GB)[:, None, None], fg[n_gs:], second)
@@ -1565,17 +1573,14 @@ def macro_profile(
         prof = _tent_profile(w, depth, sigma, start, width, n_bins=n_bins, window=window)
         out = prof if out is None else out + prof
     if n_r:
-        # the broad point pairs' profile, skipped at run time when no point is live (a model
-        # pads its broad slots to a fixed capacity: one compiled program for every pose and
-        # roughness; their BRDF chunks are skipped the same way, _chunked_brdf)
-        bins = dict(sigma=sigma, start=start, width=width, n_bins=n_bins)
-        fr = results[-1]
+        # the broad point pairs in their own BRDF call, skipped at run time when no point is
+        # live: a model pads its broad slots to a fixed capacity (one compiled program for
+        # every pose and roughness), and dead slots then cost nothing outside vmap
+        geo = dict(u_in=u_in, u_out=u_out, x_tx=x_tx, x_rx=x_rx, shift=shift, mat=mat)
+        bins = dict(sensor=sensor, sigma=sigma, start=start, width=width, n_bins=n_bins)
+        live_r, prof_r = _broad_pairs_profile(pairs, geo, bins, projection, brdf, dt)
         c = 16 if projection is None else projection.shape[1]
-        prof = jax.lax.cond(
-            jnp.any(broad["live"]),
-            lambda: _broad_pairs_profile(pairs, broad, fr, geo, bins, projection, dt),
-            lambda: jnp.zeros((c, n_bins), dt),
-        )
+        prof = jax.lax.cond(jnp.any(live_r), prof_r, lambda: jnp.zeros((c, n_bins), dt))
         out = prof if out is None else out + prof
     if out is None:
         c = 16 if projection is None else projection.shape[1]
@@ -1583,74 +1588,15 @@ def macro_profile(
     return out
 
 
-# rows of one BRDF evaluation of the macro bounces (a scan over chunks of this many rows, each
-# skipped when none of its rows is live): one compiled copy of the BRDF for the glossy pairs'
-# broad sides and the broad point pairs
-MACRO_BRDF_CHUNK = 512
+def _broad_pairs_profile(pairs, geo: dict, bins: dict, projection, brdf, dt):
+    """The broad point pairs of :func:`macro_profile`: ``(live (R Q Q',), profile())``, the
+    profile a thunk (its BRDF call is only traced where the caller's ``cond`` takes it)."""
+    from ._pulse import _tent_profile  # noqa: PLC0415
 
-
-def _chunked_brdf(brdf, requests, wavelength, terms, dt) -> list:
-    """``brdf`` on the concatenated rows of ``requests`` (each ``(k_in, k_out, normal,
-    material, frame_in, frame_out, live)`` with per-row materials), one compiled copy for all
-    of them: a ``lax.scan`` over chunks of :data:`MACRO_BRDF_CHUNK` rows whose body skips a
-    chunk without a live row (``lax.cond``; dead rows carry harmless directions, so a chunk
-    is evaluated whole). Returns each request's ``(rows, 4, 4)`` Mueller matrices.
-
-    Why: each call of the full BRDF traces ~2000-2900 StableHLO operations, and every large
-    program of a model with macro pairs (the solver round, the Jacobian, the expected counts,
-    the sampler) held one copy for the glossy pairs' broad sides and one for the broad point
-    pairs; XLA compiles each copy (the forward model's compile time scales with its size)."""
-    cat = lambda *xs: jnp.concatenate(xs)  # noqa: E731
-    sizes = [rq[0].shape[0] for rq in requests]
-    ki, ko, nr, mt, fi, fo, live = (
-        jax.tree_util.tree_map(cat, *[rq[c] for rq in requests]) for c in range(7)
+    u_in, u_out, x_tx, x_rx, shift, mat = (
+        geo[k] for k in ("u_in", "u_out", "x_tx", "x_rx", "shift", "mat")
     )
-    n = ki.shape[0]
-    chunk = min(MACRO_BRDF_CHUNK, n)
-    n_chunks = -(-n // chunk)
-    pad = n_chunks * chunk - n
-
-    def padded(a):
-        a = jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])]) if pad else a
-        return a.reshape((n_chunks, chunk) + a.shape[1:])
-
-    xs = jax.tree_util.tree_map(padded, (ki, ko, nr, mt, fi, fo))
-    live_c = padded(live) if not pad else padded(live).at[-1, chunk - pad :].set(False)
-
-    def body(carry, x):
-        (k_in, k_out, normal, mat, f_in, f_out), lv = x
-        m = jax.lax.cond(
-            jnp.any(lv),
-            lambda: brdf(
-                k_in,
-                k_out,
-                normal,
-                mat,
-                frame_in=f_in,
-                frame_out=f_out,
-                wavelength=wavelength,
-                terms=terms,
-            ).astype(dt),
-            lambda: jnp.zeros((chunk, 4, 4), dt),
-        )
-        return carry, m
-
-    if n_chunks == 1:
-        full = body(None, jax.tree_util.tree_map(lambda a: a[0], (xs, live_c)))[1]
-    else:
-        full = jax.lax.scan(body, None, (xs, live_c))[1].reshape(n_chunks * chunk, 4, 4)
-    out, i = [], 0
-    for sz in sizes:
-        out.append(full[i : i + sz])
-        i += sz
-    return out
-
-
-def _broad_pairs_request(pairs, geo: dict, dt) -> dict:
-    """The BRDF rows of the broad point pairs of :func:`macro_profile` (both bounces of every
-    quadrature point pair, dead points at harmless directions) and what their profile needs:
-    ``{"request", "live" (R Q Q',), "k", "nib", "nj", "n_pts"}``."""
-    u_in, u_out, x_tx, x_rx, mat = (geo[k] for k in ("u_in", "u_out", "x_tx", "x_rx", "mat"))
+    sensor, n_bins = bins["sensor"], bins["n_bins"]
     n_r = pairs.r_i.shape[0]
     rni, rnj = pairs.normals[pairs.r_i], pairs.normals[pairs.r_j]
     nq, nd = pairs.r_k.shape[1], pairs.r_k.shape[2]
@@ -1660,51 +1606,45 @@ def _broad_pairs_request(pairs, geo: dict, dt) -> dict:
     njb = jnp.broadcast_to(rnj[:, None, None, :], shape + (3,)).reshape(-1, 3)
     live_r = (pairs.r_w.reshape(-1) > 0) & (jnp.sum(nib * k0, -1) > COS_MIN)
     live_r &= jnp.sum(njb * k0, -1) < -COS_MIN
-    k = jnp.where(live_r[:, None], k0, nib)
-    nj_r = jnp.where(live_r[:, None], njb, -nib)
-    xk_r = _perp(jnp, k)
-    cat = lambda a, b: jnp.concatenate([a, b])  # noqa: E731
-    n_pts = k.shape[0]
-    mir = mat(pairs.part[pairs.r_i], shape)
-    mjr = mat(pairs.part[pairs.r_j], shape)
-    m_r = jax.tree_util.tree_map(lambda a, b: cat(a.reshape(-1), b.reshape(-1)), mir, mjr)
-    request = (
-        cat(jnp.broadcast_to(u_in, (n_pts, 3)), -k),
-        cat(k, jnp.broadcast_to(u_out, (n_pts, 3))),
-        cat(nib, nj_r),
-        m_r,
-        cat(jnp.broadcast_to(x_tx, (n_pts, 3)), xk_r),
-        cat(xk_r, jnp.broadcast_to(x_rx, (n_pts, 3))),
-        cat(live_r, live_r),
-    )
-    return dict(request=request, live=live_r, k=k, nib=nib, nj=nj_r, n_pts=n_pts)
 
+    def profile():
+        k = jnp.where(live_r[:, None], k0, nib)
+        nj_r = jnp.where(live_r[:, None], njb, -nib)
+        xk_r = _perp(jnp, k)
+        cat = lambda a, b: jnp.concatenate([a, b])  # noqa: E731
+        n_pts = k.shape[0]
+        mir = mat(pairs.part[pairs.r_i], shape)
+        mjr = mat(pairs.part[pairs.r_j], shape)
+        m_r = jax.tree_util.tree_map(lambda a, b: cat(a.reshape(-1), b.reshape(-1)), mir, mjr)
+        fr = brdf(
+            cat(jnp.broadcast_to(u_in, (n_pts, 3)), -k),
+            cat(k, jnp.broadcast_to(u_out, (n_pts, 3))),
+            cat(nib, nj_r),
+            m_r,
+            frame_in=cat(jnp.broadcast_to(x_tx, (n_pts, 3)), xk_r),
+            frame_out=cat(xk_r, jnp.broadcast_to(x_rx, (n_pts, 3))),
+            wavelength=sensor.wavelength,
+            terms=pairs.terms,
+        )
+        m1, m2 = fr[:n_pts], fr[n_pts:]
+        g = (rni @ u_in)[:, None, None] * pairs.r_w
+        g = jnp.where(live_r, g.reshape(-1) * jnp.sum(nib * k, -1) * (nj_r @ u_out), 0.0)
+        m44 = (m2 @ m1).reshape(-1, 16) * g[:, None]
+        w = m44 if projection is None else m44 @ projection.astype(dt)
+        # one-way path laser -> x -> x + t k -> receiver
+        y = pairs.r_x[:, :, None, :] + pairs.r_t[..., None] * pairs.r_k
+        depth = 0.5 * (-(pairs.r_x @ u_in)[:, :, None] + pairs.r_t - (y @ u_out)) - shift
+        depth = jnp.broadcast_to(depth.reshape(-1)[:, None], (n_pts, 3))
+        # in the kernel's dtype, as the skip branch (a complex128 index under x64 would
+        # otherwise promote a float32 model's profile)
+        return _tent_profile(
+            w,
+            depth,
+            bins["sigma"],
+            bins["start"],
+            bins["width"],
+            n_bins=n_bins,
+            window=pairs.point_window,
+        ).astype(dt)
 
-def _broad_pairs_profile(pairs, broad: dict, fr, geo: dict, bins: dict, projection, dt):
-    """The broad point pairs' profile from their BRDF rows ``fr`` (first bounces, then second
-    bounces) and :func:`_broad_pairs_request`'s geometry."""
-    from ._pulse import _tent_profile  # noqa: PLC0415
-
-    u_in, u_out, shift = geo["u_in"], geo["u_out"], geo["shift"]
-    live_r, k, nib, nj_r, n_pts = (broad[x] for x in ("live", "k", "nib", "nj", "n_pts"))
-    rni = pairs.normals[pairs.r_i]
-    m1, m2 = fr[:n_pts], fr[n_pts:]
-    g = (rni @ u_in)[:, None, None] * pairs.r_w
-    g = jnp.where(live_r, g.reshape(-1) * jnp.sum(nib * k, -1) * (nj_r @ u_out), 0.0)
-    m44 = (m2 @ m1).reshape(-1, 16) * g[:, None]
-    w = m44 if projection is None else m44 @ projection.astype(dt)
-    # one-way path laser -> x -> x + t k -> receiver
-    y = pairs.r_x[:, :, None, :] + pairs.r_t[..., None] * pairs.r_k
-    depth = 0.5 * (-(pairs.r_x @ u_in)[:, :, None] + pairs.r_t - (y @ u_out)) - shift
-    depth = jnp.broadcast_to(depth.reshape(-1)[:, None], (n_pts, 3))
-    # in the kernel's dtype, as the skip branch (a complex128 index under x64 would
-    # otherwise promote a float32 model's profile)
-    return _tent_profile(
-        w,
-        depth,
-        bins["sigma"],
-        bins["start"],
-        bins["width"],
-        n_bins=bins["n_bins"],
-        window=pairs.point_window,
-    ).astype(dt)
+    return live_r, profile
