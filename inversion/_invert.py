@@ -1028,6 +1028,7 @@ class Inversion:
                 "materials": [[m.to_dict() for m in ms] for ms in self.materials],
                 "index": [e.to_dict() for e in self.index],
                 "modes": [m.to_dict(self.line_of_sight_world) for m in self.modes],
+                "posterior_over_modes": self._mixture_intervals(),
                 "classification": cls_d,
                 "timings_s": self.timings,
                 "provenance": {k: v for k, v in self.provenance.items() if not k.startswith("_")},
@@ -1087,9 +1088,41 @@ class Inversion:
                 lines.append(
                     f"  {lab:>22s} median {med[i]: .6g}  95% [{iv[i, 0]:.6g}, {iv[i, 1]:.6g}]"
                 )
+        mix = self._mixture_intervals()
+        if mix is not None and len(mix["weights"]) > 1:
+            w = ", ".join(f"{x:.3g}" for x in mix["weights"])
+            lines.append(f"posterior over the {len(mix['weights'])} sampled modes (weights {w}):")
+            for lab, v in mix["intervals"].items():
+                lo, hi = v["95"]
+                lines.append(f"  {lab:>22s} median {v['median']: .6g}  95% [{lo:.6g}, {hi:.6g}]")
         t = ", ".join(f"{k} {v:.2f} s" for k, v in self.timings.items())
         lines.append(f"timings: {t}")
         return "\n".join(lines)
+
+    def _mixture_intervals(self) -> dict | None:
+        """Median and 68 / 95 % equal-tailed intervals of every parameter but the attitude
+        over :attr:`mixture` (physical units, the posterior labels), or None unsampled."""
+        mix = self.mixture
+        if mix is None:
+            return None
+        out = {}
+        for lab in mix.modes[0].labels:
+            if lab.startswith("rot_"):
+                continue
+            lo68, hi68 = mix.interval(lab, 0.68)
+            lo95, hi95 = mix.interval(lab, 0.95)
+            med = float(mix.interval(lab, 0.0)[0])  # the 0 % interval: the median
+            out[lab] = {
+                "median": med,
+                "68": [float(lo68), float(hi68)],
+                "95": [float(lo95), float(hi95)],
+            }
+        return {
+            "weights": [float(x) for x in mix.weights],
+            "intervals": out,
+            "note": "every sampled mode's samples weighted by its weight (the attitude is "
+            "per mode: see modes)",
+        }
 
     def output_names(self) -> list[str]:
         return list(INVERT_FILES)

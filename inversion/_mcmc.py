@@ -1049,7 +1049,8 @@ class ModeMixture:
         """``n`` draws from the mixture: (mode index, row of that mode's ``samples``)."""
         rng = np.random.default_rng(seed)
         k = rng.choice(len(self.modes), size=n, p=self.weights)
-        rows = np.array([rng.integers(len(self.modes[j].samples)) for j in k], dtype=int)
+        sizes = np.array([len(m.samples) for m in self.modes], dtype=np.int64)
+        rows = np.minimum((rng.random(n) * sizes[k]).astype(np.int64), sizes[k] - 1)
         return k, rows
 
     def quaternions(self, n: int = 4000, seed: int = 0) -> np.ndarray:
@@ -1071,7 +1072,10 @@ class ModeMixture:
             )
         i = self.modes[0].labels.index(label)
         k, rows = self.draw(n, seed)
-        x = np.array([self.modes[j].samples[r, i] for j, r in zip(k, rows, strict=True)])
+        x = np.empty(n)
+        for j, mode in enumerate(self.modes):
+            sel = k == j
+            x[sel] = mode.samples[rows[sel], i]
         q = 50 * (1 - level)
         return np.percentile(x, [q, 100 - q])
 

@@ -117,6 +117,12 @@ def test_invert_recovers_box_attitude_material_and_is_reliable(box_case, tmp_pat
     assert d["reliable"] is False and d["converged"] is True and d["reasons"] == list(inv.reasons)
     assert '"success"' not in json.dumps(d)
     assert d["goodness_of_fit"]["model_mismatch"] is False
+    # the posterior over the sampled modes, in the JSON: weights and ordered intervals
+    pm = d["posterior_over_modes"]
+    assert abs(sum(pm["weights"]) - 1.0) < 1e-12
+    for lab in ("gain", "range_offset [m]"):
+        v = pm["intervals"][lab]
+        assert v["95"][0] <= v["68"][0] <= v["median"] <= v["68"][1] <= v["95"][1], v
     # the posterior over the sampled modes: the mirror image weighs < 1e-6, so its intervals
     # are mode 0's (to the resampling error of 2e4 draws)
     mix = inv.mixture
