@@ -533,6 +533,8 @@ def face_on_attitudes(mesh, los, *, symmetry=None, max_classes: int = 3) -> np.n
     first. Each attitude is the smallest rotation taking the side's outward normal to the
     world direction ``los`` (toward the sensor); the roll about ``los`` is left to the
     caller (a roll scan). Host NumPy; quaternions ``(w, x, y, z)``."""
+    if max_classes <= 0:
+        return np.zeros((0, 4))
     tri = np.asarray(mesh.triangles(), np.float64)
     cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     dbl = np.linalg.norm(cr, axis=1)

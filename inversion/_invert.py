@@ -628,13 +628,23 @@ def log_evidence(fit: RefineResult, priors: PriorConfig | None = None) -> float:
     if F is None or not np.isfinite(fit.cost) or not np.all(np.isfinite(F)):
         return -math.inf
     s = prior_scales(fit.parametrisation, priors)
-    A = np.eye(len(s)) + s[:, None] * (0.5 * (F + F.T)) * s[None, :]
-    # A = I + S F S has every eigenvalue >= 1; a Fisher matrix of condition ~1e23 (a tilt
-    # the data pin to 1e-11 rad beside an unobservable roll) leaves round-off eigenvalues of
-    # either sign ~1e-16 x the largest, which a determinant's sign cannot survive
-    ev = np.linalg.eigvalsh(0.5 * (A + A.T))
-    if not np.all(np.isfinite(ev)):
+    if not np.all(np.isfinite(s)):
         return -math.inf
+    # A glint's Fisher matrix can have condition ~1e23 (a tilt pinned to 1e-11 rad beside an
+    # unobservable roll): formed as J^T J, its small eigenvalues are round-off of either sign
+    # ~1e-16 x the largest (a determinant of sign -1; clamped, errors of several units in
+    # log Z). From J's R factor, det(I + S F S) = prod(1 + sigma_i^2) over the singular
+    # values of R S, whose condition is the square root of F's.
+    R = getattr(fit, "jacobian_r", None)
+    if R is not None and R.shape[1] == len(s) and np.all(np.isfinite(R)):
+        sv = np.linalg.svd(R * s[None, :], compute_uv=False)
+        logdet = float(np.sum(np.log1p(sv * sv)))
+        return float(-0.5 * fit.cost - 0.5 * logdet)
+    A = np.eye(len(s)) + s[:, None] * (0.5 * (F + F.T)) * s[None, :]
+    if not np.all(np.isfinite(A)):
+        return -math.inf
+    # otherwise (a Fisher matrix without its Jacobian): A's eigenvalues are >= 1 exactly
+    ev = np.linalg.eigvalsh(0.5 * (A + A.T))
     logdet = float(np.sum(np.log(np.maximum(ev, 1.0))))
     return float(-0.5 * fit.cost - 0.5 * logdet)
 
@@ -1529,7 +1539,7 @@ def _polish_material_fits(refiner, fits: list, lz: list, local: list, priors) ->
     deviance (a fused-silica 3U at SNR 1000: probability 0.09 as a local refit, 0.28
     converged). Polished: every local refit whose log evidence is within
     ``MATERIAL_POLISH_WINDOW`` of the best, and every one whose solver did not converge
-    (its deviance can be far above its optimum) unless even the optimistic bound of
+    (its deviance can be far above its optimum) unless even the generous estimate of
     :func:`_polish_gain` (its Fisher-scoring decrement plus ``MATERIAL_OCCAM_SLACK``) leaves it
     outside the window, repeated while a polish moves the best.
     A converged local refit further behind is kept: a polish lowers its deviance only by
@@ -1545,7 +1555,13 @@ def _polish_material_fits(refiner, fits: list, lz: list, local: list, priors) ->
             if not polished[i]
             and (
                 lz[i] >= top - MATERIAL_POLISH_WINDOW
-                or (not f.success and lz[i] + _polish_gain(f) >= top - MATERIAL_POLISH_WINDOW)
+                or (
+                    not f.success
+                    and (
+                        not math.isfinite(lz[i])
+                        or lz[i] + _polish_gain(f) >= top - MATERIAL_POLISH_WINDOW
+                    )
+                )
             )
         ]
         if not todo:
@@ -1565,8 +1581,9 @@ def _polish_material_fits(refiner, fits: list, lz: list, local: list, priors) ->
 
 
 def _polish_gain(fit) -> float:
-    """An optimistic bound on what polishing ``fit`` can add to its log evidence: the whole
-    Fisher-scoring decrement of its deviance (twice the half that enters ``log Z``) plus
+    """A generous estimate (a heuristic, not a bound: the decrement is second order and
+    local) of what polishing ``fit`` can add to its log evidence: the whole Fisher-scoring
+    decrement of its deviance (twice the half that enters ``log Z``) plus
     ``MATERIAL_OCCAM_SLACK`` for the Occam factor moving along a ridge; ``inf`` (always
     polish) when the decrement is unknown."""
     dec = getattr(fit, "decrement", None)
@@ -1593,7 +1610,8 @@ def _carry_best_optimum(
     log evidence: a material the data cannot tell from the best gets the best's estimate,
     one they rule out keeps its own (its carried point has the higher deviance). Returns
     per material ``None`` (its own optimum) or the name of the material whose optimum gave
-    the estimate; ``lz`` is updated in place. ``docs/physics/model_evidence.md``."""
+    the estimate; ``lz`` and ``fits`` are updated in place (a carried estimate's row holds
+    the carried point, evaluated without refitting). ``docs/physics/model_evidence.md``."""
     at: list = [None] * len(fits)
     src = int(np.argmax(lz))
     if not np.isfinite(lz[src]):
@@ -1606,27 +1624,34 @@ def _carry_best_optimum(
             refiner, _with(base, n=_set_part(np.asarray(base.n), part, materials[name]))
         )
         try:
-            z = log_evidence(refiner.at(p), priors)
+            g = refiner.at(p)
         except FloatingPointError:  # a non-finite Jacobian there: no estimate
             continue
+        z = log_evidence(g, priors)
         if np.isfinite(z) and z > lz[k]:
-            lz[k], at[k] = z, names[src]
+            # the row's fit is the point its evidence was taken at (its own refit stopped
+            # elsewhere on the ridge, with less evidence): the stages after take it from here
+            fits[k], lz[k], at[k] = g, z, names[src]
     return at
 
 
 def _centred(c: Candidate, p: PhysicalParams, data) -> PhysicalParams:
     """``p`` with the range offset that puts the model's range centroid (summed over channels)
     on the data's: of the offsets ``0`` and ``+-`` the centroids' difference in bin widths,
-    the one whose centroid lands nearest (the sign convention is the model's). Unchanged
-    without a bin width or a positive total."""
+    the one whose centroid lands nearest (the sign convention is the model's). Both profiles
+    lose their floor first (the data's median bin, the model's smallest: a background would
+    pull a centroid to the middle of the window) and are clipped at 0. Unchanged without a
+    bin width or a positive total."""
     w = c.bin_width
     d = np.asarray(data, np.float64).reshape(-1, np.shape(data)[-1]).sum(0)
+    d = np.maximum(d - np.median(d), 0.0)
     if w is None or not d.sum() > 0:
         return p
 
     def centroid(q: PhysicalParams) -> float:
         mu = np.asarray(_expect(c.model, q, c.model.prepare(q)), np.float64)
-        prof = np.maximum(mu.reshape(-1, mu.shape[-1]).sum(0), 0.0)
+        prof = mu.reshape(-1, mu.shape[-1]).sum(0)
+        prof = np.maximum(prof - prof.min(), 0.0)
         tot = prof.sum()
         return float(prof @ np.arange(len(prof)) / tot) if tot > 0 else math.nan
 

@@ -304,6 +304,10 @@ class RefineResult:
       (Gauss-Newton) model, ``g^T F^+ g`` with ``g = J^T r`` (``r`` the Pearson residuals
       at the point): about 0 at an optimum; for a fit the solver left unconverged, what
       polishing it can gain, to second order. ``None`` when not evaluated.
+    - `jacobian_r`: the ``R`` factor of a QR decomposition of the weighted residuals'
+      Jacobian ``J`` (``fisher_theta = R^T R`` without squaring ``J``'s condition number:
+      :func:`inversion.log_evidence` takes its determinant from the singular values of
+      ``R S``); ``None`` when not evaluated.
     - `starts`: summaries of every start, best first; `elapsed_s`: wall time.
     """
 
@@ -327,6 +331,7 @@ class RefineResult:
     fisher_theta: np.ndarray | None = None
     physical_jacobian: np.ndarray | None = None
     decrement: float | None = None
+    jacobian_r: np.ndarray | None = None
 
     @property
     def reduced_chi2(self) -> float:
@@ -1012,13 +1017,14 @@ def _message(code: int) -> str:
 
 def _finish(model, noise, data_j, best: StartSummary, ordered, free, range_scale, t0, method):
     phys = best.params
-    decrement = None
+    decrement = jac_r = None
     if np.isfinite(best.cost):
         J, inv_sigma, mu, G, param, chi2 = weighted_jacobian(
             model, noise, data_j, phys, free, None, range_scale
         )
         fisher = J.T @ J
         decrement = _decrement(J, inv_sigma, mu, np.asarray(data_j, np.float64), noise)
+        jac_r = np.linalg.qr(J, mode="r") if J.shape[0] >= J.shape[1] else None
         cov, cov_theta, cond = _covariance_from_fisher(fisher, G, param)
         labels = param.labels
     else:
@@ -1049,6 +1055,7 @@ def _finish(model, noise, data_j, best: StartSummary, ordered, free, range_scale
         fisher_theta=fisher,
         physical_jacobian=G,
         decrement=decrement,
+        jacobian_r=jac_r,
     )
 
 

@@ -539,7 +539,7 @@ def test_material_probabilities_are_averaged_over_unresolved_shapes():
 def test_materials_the_data_cannot_tell_apart_are_not_ruled_out(tilt_deg, m):
     """A glossy box seen nearly face-on returns one normal-incidence glint: aluminium, gold
     and fused silica differ there by their reflectance, which the gain absorbs, and (to second
-    order in the tilt) by their diattenuation. Their fits reach the same deviance (within 1),
+    order in the tilt) by their diattenuation. Their fits reach the same deviance (within 2),
     so none may be ruled out. Each material's refit stops somewhere of its own on the flat
     ridge of roughness against tilt and gain, where the point Laplace estimate varies by many
     units of log evidence (measured here before the carry: gold 11 below aluminium at equal
@@ -562,7 +562,7 @@ def test_materials_the_data_cannot_tell_apart_are_not_ruled_out(tilt_deg, m):
     cfg = dict(CONFIG, mcmc=None)
     rows = inversion.invert(data, [cand], config=cfg, bank=bank).materials[0]
     d_min = min(r.fit.cost for r in rows)
-    assert all(r.fit.cost <= d_min + 1.0 for r in rows), [r.fit.cost for r in rows]
+    assert all(r.fit.cost <= d_min + 2.0 for r in rows), [r.fit.cost for r in rows]
     probs = {r.name: r.probability for r in rows}
     assert min(probs.values()) >= 0.05, probs
     assert sum(probs.values()) == pytest.approx(1.0, abs=1e-12)
@@ -579,7 +579,10 @@ def test_materials_the_data_cannot_tell_apart_are_not_ruled_out(tilt_deg, m):
             assert inv_mod.log_evidence(refiner.at(p)) == pytest.approx(r.log_evidence, abs=1e-6)
             # carried from the best of the materials' own optima
             assert src.evidence_at is None
-            assert src.log_evidence >= max(inv_mod.log_evidence(x.fit) for x in rows)
+            own = [x.log_evidence for x in rows if x.evidence_at is None]
+            assert src.log_evidence >= max(own)
+            # the row's fit is the carried point itself
+            assert r.fit.params.gain == pytest.approx(float(np.asarray(p.gain)), rel=1e-12)
 
 
 def test_decrement_predicts_the_deviance_a_fisher_scoring_step_removes(box_case):
@@ -610,3 +613,36 @@ def test_decrement_predicts_the_deviance_a_fisher_scoring_step_removes(box_case)
             assert at.decrement == pytest.approx(rise, rel=0.1, abs=1e-3), (i, k, rise)
             checked += 1
     assert checked >= 8
+
+
+def test_log_evidence_occam_factor_is_exact_at_a_glint_condition_number(box_case):
+    """``log_evidence``'s Occam factor ``1/2 log det(I + S F S)`` from the singular values of
+    ``R S`` (``RefineResult.jacobian_r``) where ``F = J^T J`` has condition ~1e20 (a glint
+    pins one tilt, another direction is unobservable): exact to 1e-9 against the closed form
+    ``sum log(1 + sigma_i^2)`` of a Jacobian built with those singular values, to the
+    round-off of the largest singular value. Formed as ``J^T J``, the small eigenvalues are
+    round-off of the largest (~1e4 here) and the estimate is off by units."""
+    import dataclasses
+
+    import inversion._invert as inv_mod
+
+    cands, truth, data, _ = box_case
+    cfg = inv_mod._as_config(CONFIG)
+    ref = inv_mod._Refiner(cands[0].model, inversion.PoissonCounts(), data, tuple(cfg.free), cfg)
+    fit = ref.polish(truth)
+    s = inv_mod.prior_scales(fit.parametrisation, None)
+    p = len(s)
+    rng = np.random.default_rng(7)
+    u, _ = np.linalg.qr(rng.normal(size=(200, p)))
+    v, _ = np.linalg.qr(rng.normal(size=(p, p)))
+    sig = np.array([1e10, 3.0, 0.5, 1e-3, 0.0, 2.0, 7.0][:p])
+    jac = (u * sig) @ v.T / s[None, :]  # J S = U diag(sig) V^T
+    exact = -0.5 * fit.cost - 0.5 * float(np.sum(np.log1p(sig**2)))
+    f2 = dataclasses.replace(fit, fisher_theta=jac.T @ jac, jacobian_r=np.linalg.qr(jac, mode="r"))
+    # to round-off of the largest singular value (1e-16 x 1e10) in the others
+    assert inv_mod.log_evidence(f2) == pytest.approx(exact, rel=0.0, abs=1e-6)
+    f_only = dataclasses.replace(f2, jacobian_r=None)  # the eigenvalues of I + S J^T J S
+    assert abs(inv_mod.log_evidence(f_only) - exact) > 1.0  # measured: 7.3 units off
+    # a fit's own R factor gives its own Fisher matrix's determinant (well conditioned here)
+    f3 = dataclasses.replace(fit, jacobian_r=None)
+    assert inv_mod.log_evidence(fit) == pytest.approx(inv_mod.log_evidence(f3), abs=1e-8)
