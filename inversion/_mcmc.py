@@ -1047,9 +1047,17 @@ class ModeMixture:
 
     def draw(self, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """``n`` draws from the mixture: (mode index, row of that mode's ``samples``)."""
+        sizes = np.array([len(m.samples) for m in self.modes], dtype=np.int64)
+        empty = [
+            j for j, (z, w) in enumerate(zip(sizes, self.weights, strict=True)) if z == 0 and w > 0
+        ]
+        if empty:
+            raise ValueError(
+                f"ModeMixture.draw: mode {empty[0]} has weight {self.weights[empty[0]]:.3g} but "
+                "no samples (a chain shorter than its burn-in?)"
+            )
         rng = np.random.default_rng(seed)
         k = rng.choice(len(self.modes), size=n, p=self.weights)
-        sizes = np.array([len(m.samples) for m in self.modes], dtype=np.int64)
         rows = np.minimum((rng.random(n) * sizes[k]).astype(np.int64), sizes[k] - 1)
         return k, rows
 

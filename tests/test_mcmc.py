@@ -389,6 +389,13 @@ def test_two_mode_mixture_matches_quadrature():
     np.testing.assert_allclose(np.log([lo, hi]), ref_q[[0, 3]], atol=0.1 * sd)
     with pytest.raises(ValueError, match="fits is empty"):
         sample_modes(model, data, [], config=cfg, noise=noise)
+    # a mode with weight but no samples is named, not indexed past its end
+    import dataclasses
+
+    starved = dataclasses.replace(mix.modes[1], samples=mix.modes[1].samples[:0])
+    bad = dataclasses.replace(mix, modes=(mix.modes[0], starved))
+    with pytest.raises(ValueError, match="mode 1 has weight .* but no samples"):
+        bad.draw(10)
 
 
 def test_library_index_posterior_is_the_closed_form_material_mixture():
