@@ -33,14 +33,15 @@ def unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-N_STIFF = 8
+N_STIFF = 10
 """Rows 0 .. N_STIFF - 1 of :func:`geometry` are stiff (and the last one)."""
 
 
 def geometry(n=48, seed=0):
     """Random directions over the upper hemisphere of random normals, plus the stiff rows:
-    normal incidence, grazing (k.n = 1e-4, 1e-7, exactly 0, 1e-6, 1e-5, 1e-3, 1e-2), and the
-    z normal."""
+    normal incidence, grazing (k.n = 1e-4, 1e-7, exactly 0, 1e-6, 1e-5, 1e-3, 1e-2, and 1e-20
+    and 1e-180: not grazing for float32's and float64's range respectively, where the double
+    term's incidence variable asinh(2 tan theta) overflowed its derivative), and the z normal."""
     rng = np.random.default_rng(seed)
     nrm = unit(rng.normal(size=(n, 3)) + np.array([0.0, 0.0, 2.0]))
     nrm[: n // 2] = [0.0, 0.0, 1.0]
@@ -48,7 +49,7 @@ def geometry(n=48, seed=0):
     k = np.where(np.sum(k * nrm, -1, keepdims=True) < 0, -k, k)
     # stiff rows: normal incidence, grazing at three depths, along a tilted normal
     k[0] = nrm[0]
-    for i, cz in enumerate((1e-4, 1e-7, 0.0, 1e-6, 1e-5, 1e-3, 1e-2), start=1):
+    for i, cz in enumerate((1e-4, 1e-7, 0.0, 1e-6, 1e-5, 1e-3, 1e-2, 1e-20, 1e-180), start=1):
         k[i] = [np.sqrt(1.0 - cz * cz), 0.0, cz]
     k[-1] = nrm[-1]
     fi = unit(np.cross(k, rng.normal(size=(n, 3))))
@@ -99,8 +100,12 @@ CASES = [
 
 @pytest.mark.parametrize("name,terms,frames", CASES)
 def test_monostatic_kernel_equals_general_kernel(name, terms, frames):
-    """float64: the two kernels agree to 1e-12 of each matrix's largest entry (measured
-    <= 1.5e-14), the outputs are realizable, and exactly grazing rows are 0."""
+    """float64: the two kernels agree to 1e-10 of each matrix's largest entry, the outputs
+    are realizable, and exactly grazing rows are 0. Measured: <= 2e-15 compiled with JAX's
+    defaults; 6.7e-12 under the suite's unoptimized compilation (tests/compile_level.py), on
+    the normal-incidence row, where the double term's one-material table contraction (a
+    low-rank basis whose terms cancel) rounds differently in the two programs (the double
+    term there moves by 1.6e-11 of itself between programs compiled that way)."""
     k, nrm, fi, fo = geometry()
     mat = materials(len(k), np.float64)[name]
     fi_, fo_ = {"none": (None, None), "both": (fi, fo), "in": (fi, None)}[frames]
@@ -108,7 +113,7 @@ def test_monostatic_kernel_equals_general_kernel(name, terms, frames):
     gen_terms = FULL_TABLE if terms is None else terms
     ref = np.asarray(general(k, k.copy(), nrm, mat, fi_, fo_, terms=gen_terms))
     assert np.all(np.isfinite(mono))
-    assert rel_err(mono, ref) <= 1e-12
+    assert rel_err(mono, ref) <= 1e-10
     assert np.all(mono[3] == 0.0)  # k.n = 0 exactly
     if terms is None:
         lam = np.asarray(cloude_eigenvalues(mono))

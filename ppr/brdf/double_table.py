@@ -487,7 +487,15 @@ def backscatter_local(k3, n3, material, m, dt, batch, scale) -> tuple[Array, Arr
     s2 = jnp.clip((1.0 - c_safe) * (1.0 + c_safe), 0.0, 1.0)
     s_ok = s2 > tiny(dt) * 1e8
     sn = jnp.where(s_ok, jnp.sqrt(jnp.where(s_ok, s2, 1.0)), 0.0)
-    x = jnp.arcsinh(TAU * sn / c_safe)
+    # near grazing (z = TAU s / c > 1e4) as log(TAU s + sqrt((TAU s)^2 + c^2)) - log c, which
+    # is asinh z exactly: asinh's own derivative 1 / sqrt(1 + z^2) underflows to 0 there while
+    # dz/dc = -z / c overflows float32 (c < 1e-19): a NaN gradient, double where
+    ts = TAU * sn
+    z_ok = ts < 1e4 * c_safe
+    x_mid = jnp.arcsinh(jnp.where(z_ok, ts, 0.0) / jnp.where(z_ok, c_safe, 1.0))
+    ts_b, c_b = jnp.where(z_ok, 1.0, ts), jnp.where(z_ok, 1.0, c_safe)
+    x_big = jnp.log(ts_b + jnp.sqrt(ts_b * ts_b + c_b * c_b)) - jnp.log(c_b)
+    x = jnp.where(z_ok, x_mid, x_big)
     m_safe = jnp.where(valid, m, 0.0)
     u = jnp.sqrt(m_safe + M_SHIFT) - math.sqrt(M_SHIFT)
     white = bool(getattr(material, "white", False))
