@@ -201,6 +201,20 @@ def test_bistatic_shadow_ray():
     assert np.array_equal(mono.lit, mono.part >= 0)
 
 
+def test_no_ray_hits_gives_an_empty_image():
+    """Plates seen exactly edge-on from beside them: no ray hits, and the image is empty
+    (NaN Mueller, part -1, nothing lit) with the dtypes of a hit image, not an error."""
+    mesh = _plates()
+    mats = [ppr.Material(n=1.5, m=5.0)] * 2
+    kw = dict(receiver_dir=(1, 0, 0), frame_tx=(0, 0, 1), frame_rx=(0, 0, 1), n_pixels=8,
+              half_width=0.1, terms=("single",), dtype=np.float32)
+    img = _image.render_mueller_image(mesh, mats, laser_dir=(1, 0, 0), **kw)
+    assert img.part.dtype.kind == "i" and img.lit.dtype == bool
+    assert np.all(img.part == -1) and not img.lit.any()
+    assert np.all(np.isnan(img.mueller)) and np.all(np.isnan(img.cos_in))
+    assert img.normal.shape == (8, 8, 3)
+
+
 def test_render_input_errors():
     mesh = _plates()
     mats = [ppr.Material(n=1.5, m=5.0)] * 2

@@ -73,6 +73,28 @@ def test_subdivide_keeps_area_and_parts():
         )
 
 
+def test_face_counts_past_the_budget_are_refused_before_allocating():
+    """Count parameters whose shapes would exceed ``MAX_FACES`` are errors naming the
+    parameter, the value and the face count (an icosphere of 12 subdivisions, 3.4e8 faces,
+    exhausted memory instead); the budget's face counts are the shapes' exact ones, and the
+    subdivision's estimate is exact on a box (every face splits the same number of times)."""
+    for make, match in (
+        (lambda: shapes.sphere(0.25, subdivisions=12), "subdivisions = 12 would make 3.36e"),
+        (lambda: shapes.plate(1.0, subdivisions=5000), "subdivisions = 5000 would make 5e"),
+        (lambda: shapes.cylinder(0.1, 0.2, sections=10**6), "sections = 1000000 would make 4e"),
+        (lambda: shapes.cone(0.1, 0.2, sections=10**7), "sections = 10000000 would make 2e"),
+        (lambda: shapes.box((0.1, 0.1, 0.1), max_edge=1e-5), "max_edge = 1e-05 m would make"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            make()
+    assert len(shapes.sphere(1.0, subdivisions=3).faces) == 20 * 4**3
+    assert len(shapes.plate(1.0, subdivisions=7).faces) == 2 * 7**2
+    assert len(shapes.cylinder(0.1, 0.2, sections=9).faces) == 4 * 9
+    assert len(shapes.cone(0.1, 0.2, sections=9).faces) == 2 * 9
+    # a 0.1 m cube's face diagonals (0.141 m) need 4 halvings to reach 0.01 m: 12 x 4^4
+    assert len(shapes.box((0.1, 0.1, 0.1), max_edge=0.01).faces) == 12 * 4**4
+
+
 def test_shape_errors():
     with pytest.raises(ValueError, match="radius"):
         shapes.sphere(-1.0)

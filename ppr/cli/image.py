@@ -303,4 +303,10 @@ def run(args) -> int:
         img = run_image(cfg, cfg_path, progress=c.progress(args), inputs=inputs)
         write_image_outputs(img, cfg, cfg_path, out, seconds=time.perf_counter() - t0)
     c.wrote(args, NAME, OUTPUTS)
+    if not (img.part >= 0).any():
+        c.say(
+            args,
+            f"ppr image: warning: no pixel sees the mesh (hit_pixels = 0) in {cfg_path}: check "
+            "view.line_of_sight, the pose and render.half_width_m",
+        )
     return 0

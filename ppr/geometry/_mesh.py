@@ -274,6 +274,18 @@ def subdivide(mesh: Mesh, max_edge: float) -> Mesh:
 
     if not (max_edge > 0 and np.isfinite(max_edge)):
         raise ValueError(f"max_edge must be a positive finite length in metres, got {max_edge!r}")
+    from .shapes import MAX_FACES  # noqa: PLC0415
+
+    # each split quarters a face and halves its edges: faces * 4^(splits its longest edge needs)
+    tri = np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.faces)]
+    longest = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1), axis=-1)
+    splits = np.ceil(np.log2(np.maximum(longest / max_edge, 1.0)))
+    faces = float(np.sum(4.0**splits))
+    if faces > MAX_FACES:
+        raise ValueError(
+            f"max_edge = {max_edge!r} m would make ~{faces:.3g} faces, more than the "
+            f"{MAX_FACES:.3g} a subdivided mesh may have (ppr.shapes.MAX_FACES)"
+        )
     v, f, idx = trimesh.remesh.subdivide_to_size(
         np.asarray(mesh.vertices, np.float64),
         np.asarray(mesh.faces),

@@ -48,6 +48,19 @@ def _count(name: str, value, minimum: int) -> int:
     return int(value)
 
 
+MAX_FACES = 2_000_000
+"""Most faces a generated shape may have (a count parameter past it is refused before any
+memory is allocated: an icosphere of 12 subdivisions has 3.4e8 faces and exhausts memory)."""
+
+
+def _budget(name: str, value, faces: int) -> None:
+    if faces > MAX_FACES:
+        raise ValueError(
+            f"{name} = {value!r} would make {faces:.3g} faces, more than the {MAX_FACES:.3g} a "
+            "generated shape may have (ppr.shapes.MAX_FACES)"
+        )
+
+
 def _from_trimesh(tm, part: str) -> Mesh:
     return Mesh(np.asarray(tm.vertices, np.float64), np.asarray(tm.faces), None, (part,))
 
@@ -60,6 +73,7 @@ def plate(
     w = _positive("width", width)
     h = w if height is None else _positive("height", height)
     n = _count("subdivisions", subdivisions, 1)
+    _budget("subdivisions", subdivisions, 2 * n * n)
     xs = np.linspace(-w / 2, w / 2, n + 1)
     ys = np.linspace(-h / 2, h / 2, n + 1)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
@@ -102,10 +116,10 @@ def cylinder(
     """Closed cylinder along z, centred at the origin."""
     import trimesh
 
+    n = _count("sections", sections, 3)
+    _budget("sections", sections, 4 * n)
     tm = trimesh.creation.cylinder(
-        radius=_positive("radius", radius),
-        height=_positive("height", height),
-        sections=_count("sections", sections, 3),
+        radius=_positive("radius", radius), height=_positive("height", height), sections=n
     )
     return check_mesh(_from_trimesh(tm, part), name="cylinder")
 
@@ -116,10 +130,10 @@ def cone(
     """Closed cone along z, base at z = 0, apex at z = height."""
     import trimesh
 
+    n = _count("sections", sections, 3)
+    _budget("sections", sections, 2 * n)
     tm = trimesh.creation.cone(
-        radius=_positive("radius", radius),
-        height=_positive("height", height),
-        sections=_count("sections", sections, 3),
+        radius=_positive("radius", radius), height=_positive("height", height), sections=n
     )
     return check_mesh(_from_trimesh(tm, part), name="cone")
 
@@ -128,9 +142,9 @@ def sphere(radius: float = 0.5, *, subdivisions: int = 3, part: str = "body") ->
     """Icosphere (20 * 4^subdivisions faces) of circumradius ``radius``."""
     import trimesh
 
-    tm = trimesh.creation.icosphere(
-        subdivisions=_count("subdivisions", subdivisions, 0), radius=_positive("radius", radius)
-    )
+    n = _count("subdivisions", subdivisions, 0)
+    _budget("subdivisions", subdivisions, 20 * 4**n)
+    tm = trimesh.creation.icosphere(subdivisions=n, radius=_positive("radius", radius))
     return check_mesh(_from_trimesh(tm, part), name="sphere")
 
 

@@ -389,7 +389,9 @@ def render_mueller_image(
 
     inter = _intersector(verts, faces, allow_slow)
     tri, ray, loc = inter.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
-    tri, ray, loc = np.asarray(tri), np.asarray(ray), np.asarray(loc)
+    # (integer indices even when no ray hits: an empty result may come back as floats)
+    tri, ray = np.asarray(tri, np.int64), np.asarray(ray, np.int64)
+    loc = np.asarray(loc, np.float64).reshape(-1, 3)
 
     tris = verts[faces[tri]]
     fn = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
@@ -439,19 +441,21 @@ def render_mueller_image(
             progress=progress,
         )
 
-    def to_img(vals, fill, shape=()):
-        img = np.full((n_pix, *shape), fill, dtype=np.asarray(vals).dtype if len(vals) else float)
+    def to_img(vals, fill, shape=(), dtype=None):
+        # the dtype is given where no ray may hit (an empty `vals` has no meaningful one)
+        dt = np.asarray(vals).dtype if dtype is None else dtype
+        img = np.full((n_pix, *shape), fill, dtype=dt)
         img[ray] = vals
         return img.reshape(n_pixels, n_pixels, *shape)
 
-    cos_in = to_img(cos_in_hit, np.nan)
+    cos_in = to_img(cos_in_hit, np.nan, dtype=mueller.dtype)
     result = MuellerImage(
         mueller=mueller.reshape(n_pixels, n_pixels, 4, 4),
         cos_in=cos_in,
-        cos_out=to_img(cos_out_hit, np.nan),
-        normal=to_img(nrm, np.nan, (3,)),
-        part=to_img(pid, -1),
-        lit=to_img(lit, False),
+        cos_out=to_img(cos_out_hit, np.nan, dtype=mueller.dtype),
+        normal=to_img(nrm, np.nan, (3,), dtype=mueller.dtype),
+        part=to_img(pid, -1, dtype=np.int64),
+        lit=to_img(lit, False, dtype=bool),
         u=u,
         v=v,
         x_axis=x_ax,
