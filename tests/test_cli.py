@@ -594,6 +594,20 @@ def test_classify_end_to_end(tiny_db, tmp_path):
     assert json.loads((tmp_path / "cls3" / "classify.json").read_text())["no_signal"] == [2]
 
 
+def test_classify_figure_with_best_scores_ulps_apart(tmp_path):
+    """Best scores a few float32 ulps apart (copies of one observation with 1e-4 noise):
+    the figure is drawn (numpy's histogram refused 20 bins over that width, and classify
+    wrote nothing)."""
+    from ppr import plots
+
+    score = np.float32([[0.9999], [0.99990004], [0.9999001]])
+    data = np.ones((3, 2, 8))
+    sig = np.ones((1, 2, 8)) / 16.0
+    zeros = np.zeros((3, 1))
+    plots.plot_classification(tmp_path / "c.png", data, sig, zeros.astype(int), zeros, score)
+    assert (tmp_path / "c.png").stat().st_size > 1000
+
+
 def test_classify_top_k_beyond_the_database_is_said(tiny_db, tmp_path, capsys):
     """top_k above the database's template count returns every template, and says so."""
     _, db = tiny_db
@@ -981,6 +995,12 @@ BAD_INPUTS = [
     ),
     (
         "classify",
+        CLS + 'observations = "tiny.npz"\n',
+        [],
+        ["observations = 'tiny.npz'", "observation 0's largest value 1e-300 underflows float32"],
+    ),
+    (
+        "classify",
         CLS + 'observations = "complex.npz"\n',
         [],
         ["observations = 'complex.npz'", "dtype complex128", "imaginary part"],
@@ -1025,6 +1045,7 @@ def test_bad_input_is_one_line_exit_2(tiny_db, tmp_path, capsys, command, text, 
     np.save(tmp_path / "plain.npy", np.ones((2, 32)))
     np.savez(tmp_path / "complex.npz", data=np.ones((2, 32)) + 1j)
     np.savez(tmp_path / "huge.npz", data=np.full((2, 32), 1e300))
+    np.savez(tmp_path / "tiny.npz", data=np.full((2, 32), 1e-300))
     argv = command.split()
     if text is not None:
         cfg = _write(tmp_path / "cfg.toml", text.format(db=db / "database.zarr", spec=spec))

@@ -148,7 +148,13 @@ def plot_classification(path, data, signatures, index, shift, score) -> None:
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
     fig.subplots_adjust(left=0.07, right=0.98, bottom=0.14, top=0.88, wspace=0.25)
-    axes[0].hist(score[:, 0], bins=20, color="0.5")
+    best = np.asarray(score[:, 0], np.float64)
+    best = best[np.isfinite(best)]
+    if best.size:
+        lo, hi = float(best.min()), float(best.max())
+        if hi - lo <= 1e-9 * max(1.0, abs(hi)):  # equal scores: one bar, not 20 empty ones
+            lo, hi = lo - 5e-4, hi + 5e-4
+        axes[0].hist(best, bins=20, range=(lo, hi), color="0.5")
     axes[0].set_xlabel("best score")
     axes[0].set_ylabel("observations")
     x = data[0] / max(float(data[0].sum()), 1e-300)
