@@ -318,6 +318,24 @@ def test_load_objects_become_parts_named_as_keys(tmp_path):
     assert ppr.load_mesh(tmp_path / "bus.v2.stl").parts == ("bus_v2",)
 
 
+def test_load_refuses_a_closed_object_facing_inward(tmp_path):
+    """A closed box written with every face wound clockwise (normals inward) is refused,
+    naming the object (it rendered as an all-zero return); the same box wound outward, an
+    open inward plate and a mirrored-by-transform file are not closed-inward and load."""
+    import trimesh
+
+    box = trimesh.creation.box(extents=(0.1, 0.2, 0.3))
+    inward = trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False)
+    inward.export(tmp_path / "inward.obj")
+    with pytest.raises(ValueError, match=r"object 'inward' is closed and its faces point inward"):
+        ppr.load_mesh(tmp_path / "inward.obj")
+    box.export(tmp_path / "outward.obj")
+    assert len(ppr.load_mesh(tmp_path / "outward.obj").faces) == 12
+    plate = trimesh.Trimesh(box.vertices, box.faces[:2, ::-1], process=False)
+    plate.export(tmp_path / "plate.obj")
+    assert len(ppr.load_mesh(tmp_path / "plate.obj").faces) == 2
+
+
 def test_load_unreadable_files(tmp_path):
     stl = tmp_path / "broken.stl"
     stl.write_bytes(b"solid x\nfacet normal 0 0 1\n outer loop\n vertex 0 0 \xff\xfe junk")

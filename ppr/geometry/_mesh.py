@@ -336,6 +336,22 @@ def _read_scene(path: str):
         raise ValueError(f"mesh file {path!r} is not a valid {kind} file: {exc}") from None
 
 
+def _check_outward(tm, path: str, obj: str) -> None:
+    """A closed object whose faces all point inward (negative signed volume) reflects
+    nothing: ppr's facets scatter from their front side (counter-clockwise winding seen from
+    outside) only. Refused, naming the object, rather than rendered as an all-zero return."""
+    if len(tm.faces) < 4 or not (tm.is_watertight and tm.is_winding_consistent):
+        return
+    vol = float(tm.volume)
+    if vol < 0:
+        raise ValueError(
+            f"mesh file {path!r}: object {obj!r} is closed and its faces point inward (signed "
+            f"volume {vol:.3g} in the file's units^3): ppr's facets reflect from their front "
+            "side only (counter-clockwise seen from outside); reverse the faces' winding "
+            "(e.g. trimesh's mesh.invert())"
+        )
+
+
 def load_mesh(
     path: str | os.PathLike,
     *,
@@ -400,6 +416,7 @@ def load_mesh(
             )
         t = np.asarray(transform, np.float64)
         v = v @ t[:3, :3].T + t[:3, 3]
+        _check_outward(trimesh.Trimesh(v, f, process=False), path, stem if raw == base else raw)
         key = part_key(stem if raw == base else raw)  # trimesh names lone objects by file
         k, n = key, 1
         while k in used:
