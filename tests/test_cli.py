@@ -191,10 +191,21 @@ def test_brdf_geometries_below_the_horizon_are_marked_and_said(tmp_path, capsys)
         err = capsys.readouterr().err
         with np.load(out / "brdf.npz") as z:
             valid, mueller = z["valid"], z["mueller"]
-        assert np.all(valid == (z_out(inc, bis, plane) > 1e-6))
+        assert np.all(valid == (z_out(inc, bis, plane) > 1e-12))
         assert np.all(np.isfinite(mueller[valid])) and np.all(np.isnan(mueller[~valid]))
         n_bad = int((~valid).sum())
         assert n_bad > 0 and f"{n_bad} of {valid.size} geometries have k_out at or below" in err
+    # 1e-5 deg above the horizon is above it (k.n = 1.7e-7: a 1e-6 cut called it below and
+    # wrote NaN), keyed by the incidence as written
+    cfg = _write(
+        tmp_path / "brdf.toml",
+        'material = "aluminium/rough"\nincidence_deg = [89.99999]\nbistatic_deg = [0.0, 0.001]\n',
+    )
+    capsys.readouterr()
+    assert run("brdf", "-c", cfg, "-o", tmp_path / "grazing") == 0
+    assert "horizon" not in capsys.readouterr().err
+    back = json.loads((tmp_path / "grazing" / "brdf.json").read_text())["backscatter"]
+    assert list(back) == ["89.99999"] and back["89.99999"]["M00"] > 0
 
 
 def z_out(inc, bis, plane):

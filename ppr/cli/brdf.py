@@ -103,8 +103,13 @@ def brdf_geometry(incidence_deg, bistatic_deg, plane: str):
         f = y - np.sum(y * k, -1, keepdims=True) * k
         return f / np.linalg.norm(f, axis=-1, keepdims=True)
 
-    valid = k_out[..., 2] > 1e-6
-    return k_in, k_out, frame(k_in), frame(k_out), valid
+    # above the horizon (k.n = 1e-12 is 1e-10 deg: any k_out a sweep meant to be above it),
+    # and with a defined Stokes frame (k_out not along the frames' y axis)
+    perp = y - k_out[..., 1:2] * k_out
+    size = np.linalg.norm(perp, axis=-1, keepdims=True)
+    valid = (k_out[..., 2] > 1e-12) & (size[..., 0] > 1e-9)
+    f_out = np.where(valid[..., None], perp / np.where(valid[..., None], size, 1.0), np.nan)
+    return k_in, k_out, frame(k_in), f_out, valid
 
 
 def polarimetry(mueller: np.ndarray) -> dict[str, np.ndarray]:
@@ -160,8 +165,10 @@ def run(args) -> int:
             bad = np.argwhere(~valid)[0]
             print(
                 f"ppr {NAME}: {int((~valid).sum())} of {valid.size} geometries have k_out at or "
-                f"below the horizon (first: incidence {inc[bad[0]]:g} deg, bistatic "
-                f"{bis[bad[1]]:g} deg, {cfg.plane}-plane): NaN in brdf.npz (valid = false)",
+                f"below the horizon or along the Stokes frames' y axis (first: incidence "
+                f"{float(inc[bad[0]]):.10g} deg, bistatic {float(bis[bad[1]]):.10g} deg, "
+                f"{cfg.plane}-plane): NaN in "
+                "brdf.npz (valid = false)",
                 file=sys.stderr,
             )
         t0 = time.perf_counter()
@@ -202,8 +209,12 @@ def run(args) -> int:
             "n_geometries": int(valid.sum()),
             "seconds": elapsed,
             "units": {"mueller": "1/sr", "angles": "deg", "retardance": "rad"},
-            "backscatter": {
-                f"{a:g}": {"M00": mueller[i, 0, 0, 0], **{k: v[i, 0] for k, v in quants.items()}}
+            # the first bistatic angle's column, keyed by incidence (deg, as written)
+            "backscatter" if float(bis[0]) == 0.0 else f"bistatic_{float(bis[0]):.10g}_deg": {
+                f"{a:.10g}": {
+                    "M00": mueller[i, 0, 0, 0],
+                    **{k: v[i, 0] for k, v in quants.items()},
+                }
                 for i, a in enumerate(inc)
             },
             "outputs": OUTPUTS,
