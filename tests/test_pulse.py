@@ -727,8 +727,14 @@ def test_float32_in_float32_out():
 
 def test_bad_inputs_raise_before_computing():
     mesh = shapes.cubesat_with_panels(3)
-    with pytest.raises(ValueError, match="do not cover the visible object"):
+    with pytest.raises(ValueError, match="do not cover the visible object") as err:
         ppr.simulate(_scene(mesh, width=0.001, n_bins=100), brdf=lambertian_mueller)
+    assert "millimetres" not in str(err.value)  # 0.34 m deep in a 0.1 m window: no unit hint
+    # the same CubeSat read from a file in millimetres, turned: hundreds of metres deep, a
+    # hint at the mesh's scale
+    mm = ppr.Mesh(np.asarray(mesh.vertices) * 1000.0, mesh.faces, mesh.material_ids, mesh.parts)
+    with pytest.raises(ValueError, match=r"\d m deep along the line of sight: .* mesh.scale"):
+        ppr.simulate(_scene(mm, _random_rotation(6)), brdf=lambertian_mueller)
     with pytest.raises(ValueError, match="fwhm must be a positive"):
         ppr.Pulse.gaussian(0.0)
     with pytest.raises(ValueError, match="fwhm must be a positive"):

@@ -1037,10 +1037,19 @@ def simulate(
         lo = min(a for a, _ in spans) - COVER_NSIG * sigma_r
         hi = max(b for _, b in spans) + COVER_NSIG * sigma_r
         if lo < edges[0] or hi > edges[-1]:
+            span_m = float(hi - lo) - 2 * COVER_NSIG * sigma_r
+            hint = ""
+            if span_m > 100 * (edges[-1] - edges[0]):
+                # an object hundreds of times the window: a mesh in mm or cm read as metres?
+                hint = (
+                    f"; the object is {span_m:.4g} m deep along the line of sight: if its file "
+                    "is in millimetres or centimetres, set the mesh's scale (e.g. "
+                    "mesh.scale = 0.001)"
+                )
             raise ValueError(
                 f"range bins [{edges[0]:.4g}, {edges[-1]:.4g}] m do not cover the visible object "
                 f"[{lo:.4g}, {hi:.4g}] m (depth +- {COVER_NSIG:g} pulse sigmas); widen or move "
-                "the bins (start, width, count)"
+                f"the bins (start, width, count){hint}"
             )
     if not keep.any():
         keep = np.zeros(mesh.n_faces, bool)
