@@ -766,14 +766,34 @@ def main(argv=None):
     ap.add_argument(
         "--summarize",
         metavar="JSON",
-        help="only rewrite the .md next to a results .json this script wrote (no inversion)",
+        nargs="+",
+        help="only rewrite the .md next to a results .json this script wrote (no inversion); "
+        "several: their observations pooled into inversion_heldout{--tag}.md (runs of other "
+        "seeds are other truths: the binomial errors shrink)",
     )
     args = ap.parse_args(argv)
     if args.summarize:
-        src = Path(args.summarize)
-        res = json.loads(src.read_text())
-        md = summarize(res["observations"], res["meta"])
-        src.with_suffix(".md").write_text(md)
+        res = [json.loads(Path(p).read_text()) for p in args.summarize]
+        if len(res) == 1:
+            md = summarize(res[0]["observations"], res[0]["meta"])
+            Path(args.summarize[0]).with_suffix(".md").write_text(md)
+        else:
+            records = [r for x in res for r in x["observations"]]
+            meta = dict(res[0]["meta"])
+            meta.update(
+                command="python bench/bench_inversion.py "
+                + " ".join(sys.argv[1:] if argv is None else argv)
+                + " (pooling: "
+                + "; ".join(x["meta"]["command"] for x in res)
+                + ")",
+                n_in=sum(r["kind"] == "in" for r in records),
+                n_out=sum(r["kind"] == "out" for r in records),
+                compile_s=max(x["meta"]["compile_s"] for x in res),
+                total_s=sum(x["meta"]["total_s"] for x in res),
+                load=[" / ".join(x["meta"]["load"]) for x in res],
+            )
+            md = summarize(records, meta)
+            (OUT / f"inversion_heldout{args.tag or '_pooled'}.md").write_text(md)
         print(md)
         return
     if args.quick:
