@@ -93,6 +93,23 @@ def test_face_counts_past_the_budget_are_refused_before_allocating():
     assert len(shapes.cone(0.1, 0.2, sections=9).faces) == 2 * 9
     # a 0.1 m cube's face diagonals (0.141 m) need 4 halvings to reach 0.01 m: 12 x 4^4
     assert len(shapes.box((0.1, 0.1, 0.1), max_edge=0.01).faces) == 12 * 4**4
+    # counts far past the budget are the same error, not an OverflowError
+    for make in (
+        lambda: shapes.sphere(1.0, subdivisions=600),
+        lambda: shapes.plate(1.0, subdivisions=10**200),
+    ):
+        with pytest.raises(ValueError, match="would make"):
+            make()
+
+
+def test_subdivide_budgets_the_growth_not_the_input(monkeypatch):
+    """A mesh already past the face budget that ``max_edge`` leaves alone is returned as
+    is; one that it would grow past the budget is refused."""
+    m = shapes.sphere(1.0, subdivisions=2)  # 320 faces, edges ~0.3 m
+    monkeypatch.setattr(shapes, "MAX_FACES", 100)
+    assert len(ppr.subdivide(m, 10.0).faces) == 320
+    with pytest.raises(ValueError, match="max_edge = 0.1 m would make"):
+        ppr.subdivide(m, 0.1)
 
 
 def test_shape_errors():
@@ -320,20 +337,50 @@ def test_load_objects_become_parts_named_as_keys(tmp_path):
 
 def test_load_refuses_a_closed_object_facing_inward(tmp_path):
     """A closed box written with every face wound clockwise (normals inward) is refused,
-    naming the object (it rendered as an all-zero return); the same box wound outward, an
-    open inward plate and a mirrored-by-transform file are not closed-inward and load."""
+    naming the object (it rendered as an all-zero return), from OBJ and from STL (three
+    vertices per face: checked with coincident vertices merged); so is an inward box beside
+    an outward one. The same box wound outward, an open inward plate and an outward shell
+    around an inward cavity load; a node mirrored by its transform (the usual way to model
+    a symmetric panel in glTF) loads with its winding reversed, so its faces point outward
+    (it rendered as zero before)."""
     import trimesh
 
     box = trimesh.creation.box(extents=(0.1, 0.2, 0.3))
     inward = trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False)
-    inward.export(tmp_path / "inward.obj")
-    with pytest.raises(ValueError, match=r"object 'inward' is closed and its faces point inward"):
-        ppr.load_mesh(tmp_path / "inward.obj")
+    for ext in ("obj", "stl"):
+        inward.export(tmp_path / f"inward.{ext}")
+        with pytest.raises(ValueError, match=r"object 'inward' has a closed body whose faces"):
+            ppr.load_mesh(tmp_path / f"inward.{ext}")
     box.export(tmp_path / "outward.obj")
     assert len(ppr.load_mesh(tmp_path / "outward.obj").faces) == 12
     plate = trimesh.Trimesh(box.vertices, box.faces[:2, ::-1], process=False)
     plate.export(tmp_path / "plate.obj")
     assert len(ppr.load_mesh(tmp_path / "plate.obj").faces) == 2
+    small = inward.copy()
+    small.apply_scale(0.5)  # an inward box inside the outward one: a cavity
+    shell = trimesh.util.concatenate([box, small])
+    shell.export(tmp_path / "shell.obj")
+    assert len(ppr.load_mesh(tmp_path / "shell.obj").faces) == 24
+    beside = small.copy()
+    beside.apply_translation((1.0, 0.0, 0.0))
+    trimesh.util.concatenate([box, beside]).export(tmp_path / "beside.obj")
+    with pytest.raises(ValueError, match="closed body whose faces point inward"):
+        ppr.load_mesh(tmp_path / "beside.obj")
+    scene = trimesh.Scene()
+    scene.add_geometry(
+        box, node_name="left", transform=trimesh.transformations.translation_matrix((-0.5, 0, 0))
+    )
+    mirror = np.diag([-1.0, 1.0, 1.0, 1.0])
+    mirror[0, 3] = 0.5
+    scene.add_geometry(box, node_name="right", transform=mirror)
+    scene.export(tmp_path / "panels.glb")
+    mesh = ppr.load_mesh(tmp_path / "panels.glb")
+    assert set(mesh.parts) == {"left", "right"}
+    for k in range(2):
+        sel = np.asarray(mesh.material_ids) == k
+        part = trimesh.Trimesh(mesh.vertices, np.asarray(mesh.faces)[sel], process=False)
+        part.merge_vertices()
+        assert part.volume == pytest.approx(0.1 * 0.2 * 0.3, rel=1e-6)  # outward (float32 file)
 
 
 def test_load_unreadable_files(tmp_path):

@@ -280,8 +280,8 @@ def subdivide(mesh: Mesh, max_edge: float) -> Mesh:
     tri = np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.faces)]
     longest = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1), axis=-1)
     splits = np.ceil(np.log2(np.maximum(longest / max_edge, 1.0)))
-    faces = float(np.sum(4.0**splits))
-    if faces > MAX_FACES:
+    faces = float(np.sum(4.0 ** np.minimum(splits, 200.0)))
+    if faces > max(MAX_FACES, mesh.n_faces):  # the growth is budgeted, not the input
         raise ValueError(
             f"max_edge = {max_edge!r} m would make ~{faces:.3g} faces, more than the "
             f"{MAX_FACES:.3g} a subdivided mesh may have (ppr.shapes.MAX_FACES)"
@@ -336,20 +336,44 @@ def _read_scene(path: str):
         raise ValueError(f"mesh file {path!r} is not a valid {kind} file: {exc}") from None
 
 
-def _check_outward(tm, path: str, obj: str) -> None:
-    """A closed object whose faces all point inward (negative signed volume) reflects
-    nothing: ppr's facets scatter from their front side (counter-clockwise winding seen from
-    outside) only. Refused, naming the object, rather than rendered as an all-zero return."""
-    if len(tm.faces) < 4 or not (tm.is_watertight and tm.is_winding_consistent):
+def _check_outward(v: np.ndarray, f: np.ndarray, path: str, obj: str) -> None:
+    """A closed body whose faces all point inward (negative signed volume) reflects nothing
+    in the pulse model, whose facets scatter from their front side (counter-clockwise
+    winding seen from outside) only. Refused, naming the object, rather than rendered as an
+    all-zero return. Checked per connected body, on a copy whose coincident vertices are
+    merged (an STL stores three per face); open bodies, bodies with inconsistent winding and
+    cavities (an inward body inside an outward shell) are left alone."""
+    import trimesh
+
+    if len(f) < 4:
         return
-    vol = float(tm.volume)
-    if vol < 0:
-        raise ValueError(
-            f"mesh file {path!r}: object {obj!r} is closed and its faces point inward (signed "
-            f"volume {vol:.3g} in the file's units^3): ppr's facets reflect from their front "
-            "side only (counter-clockwise seen from outside); reverse the faces' winding "
-            "(e.g. trimesh's mesh.invert())"
-        )
+    tm = trimesh.Trimesh(v, f, process=False)
+    tm.merge_vertices()
+    bodies = [b for b in tm.split(only_watertight=False) if len(b.faces) >= 4]
+    closed = [b for b in bodies if b.is_watertight and b.is_winding_consistent]
+    if not closed:
+        return
+    vols = np.array([float(b.volume) for b in closed])
+    shells = [b for b, x in zip(closed, vols, strict=True) if x > 0]
+
+    def enclosed(body, vol) -> bool:  # a cavity: inside an outward shell larger than it
+        pt = np.asarray(body.vertices[:1], np.float64)
+        try:
+            return any(bool(s.contains(pt)[0]) for s in shells if float(s.volume) > -vol)
+        except Exception:  # noqa: BLE001 - no ray backend: the volume alone decides
+            return any(float(s.volume) > -vol for s in shells)
+
+    bad = [i for i, x in enumerate(vols) if x < 0 and not enclosed(closed[i], x)]
+    if not bad:
+        return
+    i = min(bad, key=lambda j: vols[j])
+    raise ValueError(
+        f"mesh file {path!r}: object {obj!r} has a closed body whose faces point inward "
+        f"({len(closed[i].faces)} faces, signed volume {vols[i]:.3g} in the file's units^3): "
+        "the pulse model's facets (ppr.simulate, inversion) reflect from their front side only "
+        "(counter-clockwise seen from outside); reverse that body's face winding (e.g. "
+        "trimesh's mesh.invert())"
+    )
 
 
 def load_mesh(
@@ -416,7 +440,11 @@ def load_mesh(
             )
         t = np.asarray(transform, np.float64)
         v = v @ t[:3, :3].T + t[:3, 3]
-        _check_outward(trimesh.Trimesh(v, f, process=False), path, stem if raw == base else raw)
+        if np.linalg.det(t[:3, :3]) < 0:
+            # a mirroring node transform turns the front side to the back (glTF: the winding
+            # is reversed with it; trimesh's apply_transform does the same)
+            f = f[:, ::-1]
+        _check_outward(v, f, path, stem if raw == base else raw)
         key = part_key(stem if raw == base else raw)  # trimesh names lone objects by file
         k, n = key, 1
         while k in used:

@@ -53,7 +53,9 @@ MAX_FACES = 2_000_000
 memory is allocated: an icosphere of 12 subdivisions has 3.4e8 faces and exhausts memory)."""
 
 
-def _budget(name: str, value, faces: int) -> None:
+def _budget(name: str, value, faces: float) -> None:
+    """``faces``: the count as a float, its count parameter clamped first (a huge integer
+    would overflow the conversion: the clamp is far above any budget)."""
     if faces > MAX_FACES:
         raise ValueError(
             f"{name} = {value!r} would make {faces:.3g} faces, more than the {MAX_FACES:.3g} a "
@@ -73,7 +75,7 @@ def plate(
     w = _positive("width", width)
     h = w if height is None else _positive("height", height)
     n = _count("subdivisions", subdivisions, 1)
-    _budget("subdivisions", subdivisions, 2 * n * n)
+    _budget("subdivisions", subdivisions, 2.0 * float(min(n, 10**9)) ** 2)
     xs = np.linspace(-w / 2, w / 2, n + 1)
     ys = np.linspace(-h / 2, h / 2, n + 1)
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
@@ -117,7 +119,7 @@ def cylinder(
     import trimesh
 
     n = _count("sections", sections, 3)
-    _budget("sections", sections, 4 * n)
+    _budget("sections", sections, 4.0 * min(n, 10**12))
     tm = trimesh.creation.cylinder(
         radius=_positive("radius", radius), height=_positive("height", height), sections=n
     )
@@ -131,7 +133,7 @@ def cone(
     import trimesh
 
     n = _count("sections", sections, 3)
-    _budget("sections", sections, 2 * n)
+    _budget("sections", sections, 2.0 * min(n, 10**12))
     tm = trimesh.creation.cone(
         radius=_positive("radius", radius), height=_positive("height", height), sections=n
     )
@@ -143,7 +145,7 @@ def sphere(radius: float = 0.5, *, subdivisions: int = 3, part: str = "body") ->
     import trimesh
 
     n = _count("subdivisions", subdivisions, 0)
-    _budget("subdivisions", subdivisions, 20 * 4**n)
+    _budget("subdivisions", subdivisions, 20.0 * 4.0 ** min(n, 100))
     tm = trimesh.creation.icosphere(subdivisions=n, radius=_positive("radius", radius))
     return check_mesh(_from_trimesh(tm, part), name="sphere")
 
