@@ -1008,7 +1008,7 @@ BAD_INPUTS = [
         "classify",
         CLS + 'observations = "tiny.npz"\n',
         [],
-        ["observations = 'tiny.npz'", "observation 0's largest value 1e-300 underflows float32"],
+        ["observations = 'tiny.npz'", "observation 0's largest value 1e-300 is too small for"],
     ),
     (
         "classify",

@@ -471,6 +471,27 @@ def _rot2a3(x_from, x_to, d):
     return jnp.where(ok, (c * c - s * s) * inv, 1.0), jnp.where(ok, 2.0 * c * s * inv, 0.0)
 
 
+def incidence_variable(c: Array) -> Array:
+    """The table's incidence variable ``x = asinh(TAU tan theta)`` of ``c = cos theta`` in
+    ``(0, 1]`` (``c`` above the grazing cut), with finite derivatives everywhere.
+
+    ``s = sin theta`` by the double where (the term has a cusp ``|theta|`` at normal
+    incidence: zero gradient there instead of ``0 * inf``). Near grazing (``z = TAU s / c >
+    1e4``) as ``log(TAU s + sqrt((TAU s)^2 + c^2)) - log c``, which is ``asinh z`` exactly:
+    there asinh's own derivative ``1 / sqrt(1 + z^2)`` underflows to 0 while ``dz/dc = -z /
+    c`` overflows (float32 below ``c ~ 1e-19``, float64 below ``1e-160``): a NaN gradient."""
+    dt = c.dtype
+    s2 = jnp.clip((1.0 - c) * (1.0 + c), 0.0, 1.0)
+    s_ok = s2 > tiny(dt) * 1e8
+    sn = jnp.where(s_ok, jnp.sqrt(jnp.where(s_ok, s2, 1.0)), 0.0)
+    ts = TAU * sn
+    z_ok = ts < 1e4 * c
+    x_mid = jnp.arcsinh(jnp.where(z_ok, ts, 0.0) / jnp.where(z_ok, c, 1.0))
+    ts_b, c_b = jnp.where(z_ok, 1.0, ts), jnp.where(z_ok, 1.0, c)
+    x_big = jnp.log(ts_b + jnp.sqrt(ts_b * ts_b + c_b * c_b)) - jnp.log(c_b)
+    return jnp.where(z_ok, x_mid, x_big)
+
+
 def backscatter_local(k3, n3, material, m, dt, batch, scale) -> tuple[Array, Array]:
     """The table's double term at exact backscatter in the shared frames ``e = normalize(n x
     k)`` (input beam along ``-k`` and output beam along ``+k``, both with x axis ``e``):
@@ -482,20 +503,7 @@ def backscatter_local(k3, n3, material, m, dt, batch, scale) -> tuple[Array, Arr
     c = _dot3(k3, n3)
     valid = (c > g_min) & (m <= M_MAX)
     c_safe = jnp.where(valid, jnp.clip(c, 0.0, 1.0), 1.0)
-    # x = asinh(TAU s / c); s by the double where (the term has a cusp |theta| at normal
-    # incidence: zero gradient there instead of 0 * inf)
-    s2 = jnp.clip((1.0 - c_safe) * (1.0 + c_safe), 0.0, 1.0)
-    s_ok = s2 > tiny(dt) * 1e8
-    sn = jnp.where(s_ok, jnp.sqrt(jnp.where(s_ok, s2, 1.0)), 0.0)
-    # near grazing (z = TAU s / c > 1e4) as log(TAU s + sqrt((TAU s)^2 + c^2)) - log c, which
-    # is asinh z exactly: asinh's own derivative 1 / sqrt(1 + z^2) underflows to 0 there while
-    # dz/dc = -z / c overflows float32 (c < 1e-19): a NaN gradient, double where
-    ts = TAU * sn
-    z_ok = ts < 1e4 * c_safe
-    x_mid = jnp.arcsinh(jnp.where(z_ok, ts, 0.0) / jnp.where(z_ok, c_safe, 1.0))
-    ts_b, c_b = jnp.where(z_ok, 1.0, ts), jnp.where(z_ok, 1.0, c_safe)
-    x_big = jnp.log(ts_b + jnp.sqrt(ts_b * ts_b + c_b * c_b)) - jnp.log(c_b)
-    x = jnp.where(z_ok, x_mid, x_big)
+    x = incidence_variable(c_safe)
     m_safe = jnp.where(valid, m, 0.0)
     u = jnp.sqrt(m_safe + M_SHIFT) - math.sqrt(M_SHIFT)
     white = bool(getattr(material, "white", False))

@@ -149,17 +149,19 @@ def read_observations(cfg, cfg_path: Path, bank) -> tuple[np.ndarray, str]:
             f"{where}: data value {float(data[first]):g} at index {first} overflows float32, "
             "the precision classify computes in; rescale the data"
         )
-    # ... and an observation whose values are all below float32's normal range would come
-    # out as 0 or a few denormal digits ("no return"): refused, not reported as empty
+    # ... and an observation whose values are all below tiny / eps (float32's normal range
+    # with its 24 bits of precision) would come out as 0 or a few denormal digits ("no
+    # return"): refused, not reported as empty
     f32 = np.finfo(np.float32)
     peak = np.max(np.abs(np.nan_to_num(data, nan=0.0)), axis=(1, 2))
     small = (peak > 0) & (peak < f32.tiny / f32.eps)
     if small.any():
         i = int(np.argmax(small))
         raise c.ConfigError(
-            f"{where}: observation {i}'s largest value {float(peak[i]):g} underflows float32 "
-            f"(smallest normal {float(f32.tiny):g}), the precision classify computes in; "
-            "rescale the data"
+            f"{where}: observation {i}'s largest value {float(peak[i]):g} is too small for "
+            f"float32, the precision classify computes in, to keep its digits (below "
+            f"{float(f32.tiny / f32.eps):.3g}; float32's smallest normal is "
+            f"{float(f32.tiny):.3g}); rescale the data"
         )
     return data, sensor
 

@@ -349,7 +349,8 @@ def _check_outward(v: np.ndarray, f: np.ndarray, path: str, obj: str) -> None:
         return
     tm = trimesh.Trimesh(v, f, process=False)
     tm.merge_vertices()
-    bodies = [b for b in tm.split(only_watertight=False) if len(b.faces) >= 4]
+    bodies = tm.split(only_watertight=False, repair=False, engine="scipy")  # no networkx
+    bodies = [b for b in bodies if len(b.faces) >= 4]
     closed = [b for b in bodies if b.is_watertight and b.is_winding_consistent]
     if not closed:
         return
