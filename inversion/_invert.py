@@ -1824,6 +1824,13 @@ def invert(
     """
     stages = _Stages()
     with stages("validate"):
+        if not jax.config.read("jax_enable_x64"):
+            # the Fisher matrix, the observability's rank decisions, the goodness of fit and
+            # the evidence need float64 (in float32 a glint's Fisher matrix is noise)
+            raise ValueError(
+                "inversion.invert needs float64: enable x64 before building the models "
+                "(jax.config.update('jax_enable_x64', True)); the library never sets it"
+            )
         cfg = _as_config(config)
         cands = _as_candidates(candidates)
         data, sensor = _observation_data(observation)
@@ -1887,11 +1894,6 @@ def invert(
         finishes = dict(DEFAULT_FINISHES if cfg.finishes is None else cfg.finishes)
         if bank_ is None:
             _check_bank_fits(cfg, cands, len(materials), len(finishes))
-        if cfg.mcmc is not None and not jax.config.jax_enable_x64:
-            raise ValueError(
-                "mcmc: posterior sampling needs float64 (jax.config.update("
-                "'jax_enable_x64', True) before building the models)"
-            )
         free_all = tuple(g for g in GROUPS if g in cfg.free)
         free_fixed = tuple(g for g in free_all if g != "n")
         if not free_fixed:

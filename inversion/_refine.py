@@ -2013,6 +2013,13 @@ class SimulatorModel:
         the model prunes."""
         import ppr
 
+        n_parts = len(self.scene.mesh.parts)
+        if phys.n_materials != n_parts:
+            raise ValueError(
+                f"PhysicalParams has {phys.n_materials} material slots (m, n) but the model's "
+                f"mesh has {n_parts} part{'s' if n_parts != 1 else ''} "
+                f"({', '.join(self.scene.mesh.parts)}): one material per part"
+            )
         vis = self.visibility(phys)
         macro = self.macro_pairs(phys)
         if not self.prune:

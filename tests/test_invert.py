@@ -22,6 +22,7 @@ import json
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -385,6 +386,14 @@ def test_bad_observation_or_argument_is_named_before_any_computation(observation
     msg = str(err.value)
     for w in words:
         assert w in msg, msg
+
+
+def test_float32_is_refused_before_any_computation():
+    """Without x64 the point fit ran in float32 unannounced (only the sampler refused it):
+    the observability named other directions (a roll at +-692 deg in the 'observable'
+    subspace) and a goodness-of-fit test was dropped. Refused by name, like the sampler."""
+    with jax.enable_x64(False), pytest.raises(ValueError, match="needs float64: enable x64"):
+        inversion.invert(np.ones((16, 64)), {"box": _Untouchable()}, config={"mcmc": None})
 
 
 @pytest.mark.parametrize(

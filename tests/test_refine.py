@@ -720,6 +720,17 @@ def _simulator_model(n_bins=32):
     return SimulatorModel(scene, chm, brdf=glossy_fresnel_mueller, dense=True)
 
 
+def test_simulator_refuses_material_slots_that_are_not_its_parts():
+    """Parameters with two material slots for a one-part mesh were fitted (phantom m[1],
+    n[1] reported as unobservable): refused by name before anything runs."""
+    model = _simulator_model()
+    two = PhysicalParams([1.0, 0.0, 0.0, 0.0], [10.0, 3.0], [1.5, 1.5], gain=1e3)
+    with pytest.raises(ValueError, match="2 material slots .* 1 part \\(body\\)"):
+        model.prepare(two)
+    with pytest.raises(ValueError, match="one material per part"):
+        refine(model, np.ones((2, 32)), two)
+
+
 def test_simulator_jacobian_finite_with_edge_on_faces():
     """ppr-backed residual Jacobians are finite along a path that starts with four faces of a
     cube exactly edge-on (identity attitude, line of sight along -z) and tilts them into view;
