@@ -1151,7 +1151,9 @@ class Inversion:
         with `plots`, ``invert_fit.png`` and ``invert_corner.png``, as one atomic commit into
         ``out_dir`` (:mod:`ppr.outputs`: a failed write leaves the previous result as it
         was; files of a previous run that this one does not produce are removed with it).
-        Returns the paths written."""
+        JSON has no NaN or inf: non-finite numbers, the result's own (a sigma of an
+        unobservable parameter) and those in `extra`, are written as ``null``. Returns the
+        paths written."""
         from ppr import outputs as _outputs
 
         optional = [n for n in INVERT_FILES if n not in ("invert.json", "invert_fit.npz")]

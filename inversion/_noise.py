@@ -425,8 +425,16 @@ def observe(
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
     x = _checked_intensities(x)
-    if not isinstance(seed, int | np.integer):
+    if not isinstance(noise, NoiseModel):
+        raise TypeError(
+            f"observe: noise must be an inversion.NoiseModel (the observation's noise "
+            f"recipe: snr, speckle, jitter, offset, gain), got {type(noise).__name__}; "
+            "PoissonCounts and the other likelihoods are what a fit assumes, not a recipe"
+        )
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer):
         raise ValueError(f"seed must be an integer, got {seed!r}")
+    if not 0 <= int(seed) < 2**63:
+        raise ValueError(f"seed must be in [0, 2^63), got {seed!r}")
     data, truth = _draw(jax.random.key(int(seed)), x, _noise_params(noise, x.dtype))
     return Observation(data=data, sensor=canonical_sensor(sensor), seed=int(seed), truth=truth)
 

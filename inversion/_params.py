@@ -307,6 +307,8 @@ class Parametrisation(eqx.Module):
         self.box = box_array(bounds)
 
     def __check_init__(self):
+        if not self.free:
+            raise ValueError(f"free: no parameter group is free; name at least one of {GROUPS}")
         bad = [g for g in self.free if g not in GROUPS]
         if bad:
             raise ValueError(f"Parametrisation.free: unknown group(s) {bad}; known: {GROUPS}")

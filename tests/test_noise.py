@@ -16,6 +16,7 @@ from inversion._noise import (
     observe,
     shift_profile,
 )
+from inversion._refine import PoissonCounts
 
 
 def test_full_preset_determines_mueller():
@@ -165,6 +166,11 @@ def test_observe_bad_input():
         observe(np.ones(4), NoiseModel(), 0)
     with pytest.raises((ValueError, TypeError)):  # beartype under pytest, ValueError otherwise
         observe(np.ones((2, 4)), NoiseModel(), 1.5)
+    # a likelihood is not a noise recipe (it raised AttributeError 'snr'); seeds past int64
+    with pytest.raises(TypeError):  # beartype under pytest, ours otherwise
+        observe(np.ones((2, 4)), PoissonCounts(), 0)
+    with pytest.raises(ValueError, match=r"seed must be in \[0, 2\^63\), got 118059"):
+        observe(np.ones((2, 4)), NoiseModel(), 2**70)
     with pytest.raises(ValueError, match="snr"):
         NoiseModel(snr=0.0)
     with pytest.raises(ValueError, match="speckle_cells"):

@@ -609,6 +609,8 @@ def test_bad_inputs_name_the_problem():
         refine(model, data, TRUTH, solver="newton")
     with pytest.raises(ValueError, match="unknown group"):
         Parametrisation(TRUTH, free=("attitude", "colour"))
+    with pytest.raises(ValueError, match="no parameter group is free"):  # was an IndexError
+        refine(model, data, TRUTH, free=())
     with pytest.raises(ValueError, match="n' > 0"):
         PhysicalParams([1, 0, 0, 0], 5.0, -1.5 + 0j)
     with pytest.raises(ValueError, match="shape"):
