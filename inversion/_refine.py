@@ -1018,10 +1018,18 @@ def _message(code: int) -> str:
 def _finish(model, noise, data_j, best: StartSummary, ordered, free, range_scale, t0, method):
     phys = best.params
     decrement = jac_r = None
+    success, result, message = best.success, best.result, best.message
     if np.isfinite(best.cost):
         J, inv_sigma, mu, G, param, chi2 = weighted_jacobian(
             model, noise, data_j, phys, free, None, range_scale
         )
+        if success and not np.any(np.asarray(mu) > 0) and np.any(np.asarray(data_j) > 0):
+            # a zero gradient because nothing is predicted, not an optimum
+            success, result = False, "no_signal"
+            message = (
+                "the model predicts no signal at this point (the object outside the range "
+                "window, or unlit): the solver had no gradient to follow"
+            )
         fisher = J.T @ J
         decrement = _decrement(J, inv_sigma, mu, np.asarray(data_j, np.float64), noise)
         jac_r = np.linalg.qr(J, mode="r") if J.shape[0] >= J.shape[1] else None
@@ -1040,9 +1048,9 @@ def _finish(model, noise, data_j, best: StartSummary, ordered, free, range_scale
         parametrisation=param,
         cost=float(chi2),
         dof=n_data - param.size,
-        success=best.success,
-        result=best.result,
-        message=best.message,
+        success=success,
+        result=result,
+        message=message,
         n_steps=best.n_steps,
         n_rounds=best.n_rounds,
         covariance=cov,

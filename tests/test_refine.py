@@ -733,6 +733,20 @@ def test_simulator_refuses_material_slots_that_are_not_its_parts():
         refine(model, np.ones((2, 32)), two)
 
 
+def test_a_start_that_predicts_no_signal_is_not_a_success():
+    """A start whose range offset puts the object outside the range window predicts 0 in
+    every bin: the gradient is 0 and the solver stopped at once, reported as a success (with
+    a reduced chi-square of 1e8). It is reported as no_signal, not converged."""
+    model = _simulator_model()
+    q = np.array([0.93, 0.25, 0.2, 0.17]) / np.linalg.norm([0.93, 0.25, 0.2, 0.17])
+    truth = PhysicalParams(q, [10.0], [1.5], range_offset=0.002, gain=1e4)
+    data = np.asarray(model.expected(truth, model.prepare(truth)))
+    far = PhysicalParams(truth.quaternion, [10.0], [1.5], range_offset=5.0, gain=1e4)
+    res = refine(model, data, far, free=("attitude", "m", "gain"))
+    assert not res.success and res.result == "no_signal", (res.result, res.message)
+    assert "predicts no signal" in res.message
+
+
 def test_simulator_jacobian_finite_with_edge_on_faces():
     """ppr-backed residual Jacobians are finite along a path that starts with four faces of a
     cube exactly edge-on (identity attitude, line of sight along -z) and tilts them into view;
