@@ -339,7 +339,15 @@ class RefineResult:
 
     @property
     def sigma(self) -> np.ndarray:
-        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+        """1-sigma of each entry of `labels` (:func:`_sigma_reported`: ``inf`` where the data
+        leave a parameter free, also a roughness or extinction near its floor 0)."""
+        return _sigma_reported(
+            self.covariance,
+            self.labels,
+            self.parametrisation,
+            self.fisher_theta,
+            self.physical_jacobian,
+        )
 
     def observability(self, line_of_sight=None, rtol: float | None = None):
         """:func:`inversion.observability` of this fit: the directions the data do not
@@ -664,6 +672,30 @@ def _covariance_from_fisher(JTJ, G, param: Parametrisation):
     return cov, cov_theta, cond
 
 
+def _sigma_reported(cov, labels, param, fisher, G) -> np.ndarray:
+    """``sqrt(diag(cov))``, with ``inf`` for a roughness or extinction (``m[j]``,
+    ``n_im[j]``, fitted as logarithms) that moves by more than a tenth of itself along a
+    direction the data do not constrain. The covariance keeps such a parameter finite (it
+    sits near its floor 0, where a unit step of its logarithm is a small absolute change,
+    :func:`_covariance_from_fisher`), which made its sigma ~1e-23: the opposite of what the
+    data say (no local information)."""
+    s = np.sqrt(np.clip(np.diag(np.asarray(cov, np.float64)), 0.0, None))
+    if param is None or fisher is None or G is None:
+        return s
+    F = np.asarray(fisher, np.float64)
+    if F.size == 0 or not np.all(np.isfinite(F)):
+        return s
+    ev, V = np.linalg.eigh(F)
+    null = ev <= 1e-12 * max(ev[-1], 1e-300)
+    if not np.any(null):
+        return s
+    vals = np.asarray(param.physical_vector(param.from_physical(param.reference)), np.float64)
+    moved = np.max(np.abs(np.asarray(G, np.float64) @ V[:, null]), axis=1)
+    logp = np.array([lab.startswith(("m[", "n_im[")) for lab in labels], bool)
+    free = logp & (moved > 0.1 * np.maximum(np.abs(vals), 1e-300))
+    return np.where(free, np.inf, s)
+
+
 @dataclasses.dataclass(frozen=True)
 class CramerRao:
     """The Cramer-Rao bound at a parameter point: inverse expected Fisher information.
@@ -686,7 +718,15 @@ class CramerRao:
 
     @property
     def sigma(self) -> np.ndarray:
-        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+        """1-sigma of each entry of `labels` (:func:`_sigma_reported`: ``inf`` where the data
+        leave a parameter free, also a roughness or extinction near its floor 0)."""
+        return _sigma_reported(
+            self.covariance,
+            self.labels,
+            self.parametrisation,
+            self.fisher_theta,
+            self.physical_jacobian,
+        )
 
     def observability(self, line_of_sight=None, rtol: float | None = None):
         """:func:`inversion.observability` of this bound: the unobservable directions by name

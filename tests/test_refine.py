@@ -16,7 +16,14 @@ import numpy as np
 import pytest
 
 from inversion._params import Parametrisation, PhysicalParams
-from inversion._refine import GaussianNoise, PoissonNoise, check_observation, refine
+from inversion._refine import (
+    GaussianNoise,
+    PoissonCounts,
+    PoissonNoise,
+    check_observation,
+    cramer_rao,
+    refine,
+)
 from ppr._safe import safe_div, safe_pow
 from ppr.geometry import quat_angle_deg, quat_from_rotvec, quat_multiply, rotvec_from_quat
 from ppr.optics._fresnel import fresnel_mueller_params
@@ -745,6 +752,25 @@ def test_a_start_that_predicts_no_signal_is_not_a_success():
     res = refine(model, data, far, free=("attitude", "m", "gain"))
     assert not res.success and res.result == "no_signal", (res.result, res.message)
     assert "predicts no signal" in res.message
+
+
+def test_sigma_of_a_free_extinction_near_its_floor_is_infinite():
+    """A dielectric (extinction 0) fitted with n free: the data do not constrain n_im,
+    fitted as its logarithm near the floor, where the covariance keeps it finite; its sigma
+    was ~1e-32 at the bound (Cramer-Rao) and ~1e-23 after a refit, claiming an exact value
+    where the observability names it unobservable. Both report inf; a constrained
+    parameter (the range offset) keeps its finite bound."""
+    model = _simulator_model()
+    q = np.array([0.93, 0.25, 0.2, 0.17]) / np.linalg.norm([0.93, 0.25, 0.2, 0.17])
+    truth = PhysicalParams(q, [20.0], [1.45], range_offset=0.003, gain=1e4)
+    crb = cramer_rao(model, truth, PoissonCounts())
+    sig = dict(zip(crb.labels, crb.sigma, strict=True))
+    assert sig["n_im[0]"] == np.inf
+    assert "n_im[0]" in " ".join(crb.observability().names)
+    assert 0 < sig["range_offset [m]"] < np.inf
+    data = np.asarray(model.expected(truth, model.prepare(truth)))
+    fit = refine(model, data, truth)
+    assert dict(zip(fit.labels, fit.sigma, strict=True))["n_im[0]"] == np.inf
 
 
 def test_simulator_jacobian_finite_with_edge_on_faces():
