@@ -659,6 +659,11 @@ class GoodnessOfFit:
       not explain the data within their noise (a model unlike the target, or, for a fit, an
       optimum its search missed).
     - `allowance`: model error allowed for (0: the model is exact).
+    - `lower_p_value`: the deviance's lower tail ``P(X <= deviance)`` under the same law;
+      `underdispersed`: ``lower_p_value < threshold`` and ``z < -3``: the data scatter less
+      than the noise model says they must (counts averaged, scaled or background-subtracted,
+      or a variance too large): the noise settings do not describe the data, and the
+      reported uncertainties, which rest on them, are not the data's.
     """
 
     statistic: str
@@ -675,6 +680,8 @@ class GoodnessOfFit:
     model_mismatch: bool
     allowance: float = 0.0
     components: tuple[GofComponent, ...] = ()
+    lower_p_value: float = math.nan
+    underdispersed: bool = False
 
     @property
     def strongest(self) -> GofComponent | None:
@@ -698,6 +705,12 @@ class GoodnessOfFit:
                 " (smallest of "
                 + ", ".join(f"{c.name} z = {c.z:+.2f} p = {c.p_value:.3g}" for c in self.components)
                 + f", times {len(self.components)})"
+            )
+        if self.underdispersed:
+            verdict += (
+                f"; DATA SCATTER BELOW THE NOISE MODEL (lower tail p = {self.lower_p_value:.3g}: "
+                "counts averaged, scaled or background-subtracted? the noise settings do not "
+                "describe these data, nor do the uncertainties that rest on them)"
             )
         return (
             f"goodness of fit: {name} {self.deviance:.6g}, expected {self.expected:.6g} +- "
@@ -739,6 +752,21 @@ def _upper_tail(x, mean: float, var: float, k3: float):
         scale = 0.5 * sd * skew
         loc = mean - shape * scale
         out = special.gammaincc(shape, np.maximum((x - loc) / scale, 0.0))
+    return float(out) if out.ndim == 0 else out
+
+
+def _lower_tail(x, mean: float, var: float, k3: float):
+    """P(X <= x) for the law of :func:`_upper_tail` (computed directly, not as 1 - upper)."""
+    x = np.asarray(x, np.float64)
+    sd = math.sqrt(var)
+    skew = k3 / var**1.5
+    if not skew > 1e-4:
+        out = stats.norm.cdf((x - mean) / sd)
+    else:
+        shape = 4.0 / skew**2
+        scale = 0.5 * sd * skew
+        loc = mean - shape * scale
+        out = special.gammainc(shape, np.maximum((x - loc) / scale, 0.0))
     return float(out) if out.ndim == 0 else out
 
 
@@ -909,6 +937,8 @@ def goodness_of_fit(
                 comps.append(c)
     full = comps[0]
     pval = min(1.0, len(comps) * min(c.p_value for c in comps))
+    var_f = full.std**2
+    lower = float(_lower_tail(dev, full.expected, var_f, full.skewness * var_f**1.5))
     return GoodnessOfFit(
         statistic="poisson_deviance" if kind == "poisson" else "pearson_chi2",
         deviance=dev,
@@ -924,6 +954,8 @@ def goodness_of_fit(
         model_mismatch=bool(pval < threshold),
         allowance=float(allowance),
         components=tuple(comps),
+        lower_p_value=lower,
+        underdispersed=bool(lower < threshold and full.z < -3.0),
     )
 
 

@@ -2367,6 +2367,13 @@ def invert(
             "attitudes) explains the data: a target unlike the candidates, or an optimum the "
             "search missed (more templates: top_k, escalate, grid.size)"
         )
+    if gof.underdispersed:
+        reasons.append(
+            f"noise model: the data scatter less than the likelihood allows (z = {gof.z:+.1f}, "
+            f"lower tail p = {gof.lower_p_value:.3g}): counts averaged, scaled or "
+            "background-subtracted? the uncertainties rest on the likelihood (likelihood, "
+            "background, or GaussianNoise with the data's own variance)"
+        )
     converged = bool(final.success)
     if not converged:
         reasons.append(f"solver did not converge ({final.result}: {final.message})")

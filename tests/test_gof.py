@@ -16,6 +16,7 @@ import pytest
 from scipy import stats
 
 from inversion._gof import (
+    _lower_tail,
     _poisson_exact,
     _poisson_fields,
     detection_power,
@@ -145,6 +146,14 @@ def test_null_moments_and_calibration_against_simulation(case):
     if case in ("poisson_sparse", "poisson_mixed", "counting_sparse"):
         # the normal reference rejects at least twice too often at 1e-3 here
         assert np.mean(stats.norm.sf(z) < 1e-3) > 2e-3
+    # the lower tail (data scattering less than the noise model allows): nominal rates, and
+    # the underdispersion verdict (lower tail < 1e-3 and z < -3) no more often than 1e-3
+    lo = _lower_tail(dev, g.expected, g.std**2, g.skewness * g.std**3)
+    for alpha in (0.1, 0.01):
+        band = 4.5 * math.sqrt(alpha * (1 - alpha) / r)
+        assert abs(np.mean(lo < alpha) - alpha) < band + 0.1 * alpha, (alpha, np.mean(lo < alpha))
+    assert np.mean((lo < 1e-3) & (z < -3.0)) <= 1e-3 + 4.5 * math.sqrt(1e-3 / r)
+    assert not g.underdispersed or lo[0] < 1e-3
 
 
 def _glm_fit(y, X, beta0, iters=30):
@@ -241,6 +250,14 @@ def test_mismatch_is_flagged_and_reported():
     assert not good.model_mismatch and "acceptable" in good.summary()
     d = good.to_dict()
     assert d["model_mismatch"] is False and isinstance(d["p_value"], float)
+    assert not good.underdispersed and d["underdispersed"] is False
+    # counts averaged over 16 shots (scatter 1/4 of Poisson's) fitted as photo-counts with
+    # the Gaussian mu + 1 variance: the data scatter far less than the noise model says;
+    # that is said, not called an acceptable fit
+    avg = rng.poisson(truth + 0.05, size=(16, n)).mean(0)
+    under = goodness_of_fit(avg, truth + 0.05, PoissonNoise(floor=1.0))
+    assert under.underdispersed and under.z < -3 and under.lower_p_value < 1e-3
+    assert not under.model_mismatch and "SCATTER BELOW THE NOISE MODEL" in under.summary()
     with pytest.raises(ValueError, match="shape"):
         goodness_of_fit(y[0, :-1], truth, PoissonCounts())
     with pytest.raises(ValueError, match="negative"):
