@@ -573,7 +573,7 @@ def _differences(old: dict, new: dict) -> list[str]:
                     diffs.append(f"{k}: stored {a.get(k)!r} != requested {b.get(k)!r}")
         elif json.dumps(a, sort_keys=True) != json.dumps(b, sort_keys=True):
             diffs.append(f"{key}: stored {a!r} != requested {b!r}")
-    return diffs
+    return list(dict.fromkeys(diffs))  # a field both in the spec and top level: said once
 
 
 def _check_same(old: dict, new: dict, path: Path) -> None:

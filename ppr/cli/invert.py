@@ -223,7 +223,9 @@ def run_invert(cfg, cfg_path: Path, out, overwrite: bool = False, progress: bool
         if data_file and msg.startswith("observation"):
             raise c.ConfigError(f"{where}: data{msg.removeprefix('observation')}") from None
         raise c.ConfigError(f"{cfg_path}: {msg}") from None
-    extra = {"command": "invert", "config_file": str(cfg_path), "observation": ob}
+    # the observation as it was used: a file's path, or the simulation's settings
+    ob_used = {"source": ob.source} if data_file else ob.model_dump(mode="json")
+    extra = {"command": "invert", "config_file": str(cfg_path), "observation": ob_used}
     if truth is not None:
         noise = inversion.PoissonCounts(lib_cfg.background)
         crb = inversion.cramer_rao(model, truth, noise, free=tuple(inv.fit.parametrisation.free))
@@ -294,7 +296,10 @@ def run(args) -> int:
         logging.getLogger("inversion.invert").setLevel(logging.INFO)
     inv = run_invert(cfg, cfg_path, args.out, args.overwrite, c.progress(args))
     c.say(args, inv.summary())
-    c.say(args, f"ppr invert: wrote {Path(args.out) / 'invert.json'} and the posterior files")
+    posts = (
+        " and the posterior files (invert_posterior*.nc)" if inv.posteriors else " (no sampling)"
+    )
+    c.say(args, f"ppr invert: wrote {Path(args.out) / 'invert.json'}{posts}")
     return 0
 
 
