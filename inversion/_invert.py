@@ -1396,10 +1396,72 @@ def screening_bank(
             "finishes": [n for n, _ in fins],
             "finish_m": [float(m) for _, m in fins],
             "symmetry": syms,
+            # the models' range bins, pulse, sensor and channels (invert checks candidates
+            # against it: a bank of other sensor settings ranks the wrong templates)
+            "model_sensor": _sensor_fingerprint(cands[0].model) if cands else None,
         },
         sensor="",
         resolution_deg=res,
     )
+
+
+def _sensor_fingerprint(model) -> dict | None:
+    """The settings a model's counts depend on besides the target: range bins, pulse, sensor
+    directions, wavelength and channel matrix (JSON values), or None for a model without a
+    ppr scene (a user's own forward model)."""
+    scene = getattr(model, "scene", None)
+    if scene is None:
+        return None
+    pure = getattr(model, "pure_model", None)
+    proj = getattr(pure, "projection", None)
+
+    def r(a):
+        return [round(float(x), 12) for x in np.asarray(a, np.float64).reshape(-1)]
+
+    b, p, s = scene.bins, scene.pulse, scene.sensor
+    return {
+        "bins.n_bins": int(b.n_bins),
+        "bins.width_m": r(b.width),
+        "bins.start_m": r(b.start),
+        "pulse.sigma_t_s": r(p.sigma_t),
+        "sensor.laser_dir": r(s.laser_dir),
+        "sensor.receiver_dir": r(s.receiver_dir),
+        "sensor.frame_tx": r(s.frame_tx),
+        "sensor.wavelength_m": r(s.wavelength),
+        "channels": None if proj is None else r(proj),
+    }
+
+
+def _check_same_sensor(cands, bank) -> None:
+    """Candidates of one observation share its sensor settings, and a screening bank's are
+    theirs: a ValueError naming the first setting that differs (the invert docstring's "the
+    same sensor settings" was not checked: a bank of 5 cm bins screened 1 cm data)."""
+    prints = [(c.name, _sensor_fingerprint(c.model)) for c in cands]
+    prints = [(n, f) for n, f in prints if f is not None]
+    ref = None
+    if bank is not None and bank.names.get("model_sensor"):
+        ref = ("the bank", bank.names["model_sensor"])
+    elif prints:
+        ref = (f"candidate {prints[0][0]!r}", prints[0][1])
+    if ref is None:
+        return
+
+    def show(x):
+        x = np.atleast_1d(np.asarray(x, np.float64))
+        return f"{x[0]:.6g}" if x.size == 1 else (str(x.tolist()) if x.size <= 4 else "(other)")
+
+    for name, f in prints:
+        for key, v in f.items():
+            w = ref[1].get(key)
+            if v is None or w is None:
+                continue
+            va = np.atleast_1d(np.asarray(v, np.float64))
+            wa = np.atleast_1d(np.asarray(w, np.float64))
+            if va.shape != wa.shape or not np.allclose(va, wa, rtol=1e-9, atol=1e-15):
+                raise ValueError(
+                    f"candidate {name!r}: {key} = {show(v)} differs from {ref[0]}'s {show(w)}: "
+                    "the candidates (and a bank) must share the observation's sensor settings"
+                )
 
 
 def _expect(model, phys, aux) -> np.ndarray:
@@ -1873,6 +1935,7 @@ def invert(
             shape = _expected_shape(c.model)
             if shape is not None:
                 check_observation(data, shape, f"observation (candidate {c.name!r})")
+        _check_same_sensor(cands, bank_)
         if hasattr(noise, "check_data"):
             try:
                 noise.check_data(data, "observation")

@@ -388,6 +388,40 @@ def test_bad_observation_or_argument_is_named_before_any_computation(observation
         assert w in msg, msg
 
 
+def test_candidates_or_a_bank_of_other_sensor_settings_are_refused():
+    """Two candidates whose range bins differ (1 cm and 5 cm: the same counts mean different
+    depths), or a screening bank built from models of other settings, were accepted without
+    a word; refused naming the setting, before any model runs."""
+    from ppr.pulse import glossy_fresnel_mueller
+
+    def cube(width, fwhm=100e-12):
+        scene = ppr.Scene(
+            ppr.shapes.cubesat(1),
+            (ppr.Material(1.5, 10.0),),
+            ppr.Pose([1.0, 0.0, 0.0, 0.0]),
+            ppr.Sensor.make(),
+            ppr.Pulse.gaussian(fwhm),
+            ppr.RangeBins.centred(width, 32),
+        )
+        chm = inversion.MeasurementModel.preset("copol").channel_matrix()
+        return inversion.SimulatorModel(scene, chm, brdf=glossy_fresnel_mueller, dense=True)
+
+    data = np.ones((2, 32))
+    fine, coarse, slow = cube(0.01), cube(0.05), cube(0.01, 400e-12)
+    with pytest.raises(ValueError, match=r"candidate 'b': bins.width_m = 0.05 differs from"):
+        inversion.invert(data, {"a": fine, "b": coarse}, config={"mcmc": None})
+    with pytest.raises(ValueError, match=r"candidate 'b': pulse.sigma_t_s = .* differs from"):
+        inversion.invert(data, {"a": fine, "b": slow}, config={"mcmc": None})
+    bank = inversion.screening_bank(
+        {"a": coarse}, {"gold": 0.2 + 7j}, {"rough": 10.0}, grid={"size": 1}
+    )
+    assert bank.names["model_sensor"]["bins.width_m"] == [0.05]
+    with pytest.raises(
+        ValueError, match=r"candidate 'a': bins.width_m = 0.01 differs from the bank"
+    ):
+        inversion.invert(data, {"a": fine}, config={"mcmc": None}, bank=bank)
+
+
 def test_float32_is_refused_before_any_computation():
     """Without x64 the point fit ran in float32 unannounced (only the sampler refused it):
     the observability named other directions (a roll at +-692 deg in the 'observable'
