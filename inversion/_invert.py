@@ -2284,6 +2284,7 @@ def invert(
         distinct = [distinct[i] for i in order]
         lz = [lz[i] for i in order]
         w = w[order]
+        distinct, lz, w = _merge_roll_ridge(distinct, lz, w, cand, cfg, los_world)
         best_mode_fit = distinct[0].fit
         base_cost = best_mode_fit.cost
         q_best = np.asarray(best_mode_fit.params.unit_quaternion(), np.float64)
@@ -2817,6 +2818,50 @@ def _other_optima(refiner, data, fit, sym, kept, half_turn_exact, cfg) -> list:
         )
         for _, q, p in found[:OTHER_MODES]
     ]
+
+
+ROLL_RIDGE_DEG = 0.5
+"""Modes whose lines of sight are this close are one mode when the roll about the line of
+sight is unobservable at the best of them (:func:`_merge_roll_ridge`)."""
+
+
+def _merge_roll_ridge(distinct, lz, w, cand, cfg, los_world):
+    """Modes that differ only by a roll the data do not determine are one mode: when the
+    best mode's observability names the roll about the line of sight unobservable, a mode
+    whose line of sight is within ``ROLL_RIDGE_DEG`` of a more probable one is dropped and
+    its weight added to that one (the chain samples the roll along the ridge: two such
+    points were reported as two modes of weight 1/3 each, "line of sight 0 deg away")."""
+    if len(distinct) < 2:
+        return distinct, lz, w
+    ob = observability(distinct[0].fit, line_of_sight=los_world)
+    if not any(n.startswith("roll about the line of sight") for n in ob.names):
+        return distinct, lz, w
+    exact = cand.exact_symmetry(cfg.symmetry)
+    keep: list[int] = []
+    w = np.array(w, np.float64)
+    lz = list(lz)
+    for j, m in enumerate(distinct):
+        q = np.asarray(m.fit.params.unit_quaternion(), np.float64)
+        home = next(
+            (
+                k
+                for k in keep
+                if line_of_sight_error_deg(
+                    np.asarray(distinct[k].fit.params.unit_quaternion(), np.float64),
+                    q,
+                    exact,
+                    los=los_world,
+                )[0]
+                <= ROLL_RIDGE_DEG
+            ),
+            None,
+        )
+        if home is None:
+            keep.append(j)
+        else:
+            w[home] += w[j]
+            lz[home] = float(np.logaddexp(lz[home], lz[j]))
+    return [distinct[k] for k in keep], [lz[k] for k in keep], w[keep]
 
 
 def _sensor_geometry(model, los_world) -> tuple[bool, np.ndarray]:
