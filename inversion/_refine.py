@@ -287,7 +287,10 @@ class RefineResult:
     - `params`: best physical parameters; `theta` their solver coordinates in
       `parametrisation` (whose reference is ``params``, so the attitude entries are 0).
     - `cost`: ``sum(residual^2)`` at the optimum (``chi^2``; for :class:`PoissonCounts` the
-      Poisson deviance, ``-2 log L`` up to a constant); `dof` = n_data - n_params;
+      Poisson deviance, ``-2 log L`` up to a constant); `dof` = n_data - n_params (every
+      free parameter counted; :class:`~inversion.GoodnessOfFit`'s ``dof`` counts only those
+      the data determine, the rank of the Jacobian, so it is larger where a direction is
+      unobservable);
       `reduced_chi2` = cost / dof (about 1 when a Gaussian noise model is right and counts are
       large; the deviance of sparse counts is smaller).
     - `success`: the solver reported success and the cost is finite; `result` the optimistix
