@@ -739,47 +739,51 @@ class GoodnessOfFit:
         return out
 
 
-def _upper_tail(x, mean: float, var: float, k3: float):
-    """P(X >= x) for the Pearson type III law with the given cumulants (normal if unskewed);
-    ``x`` scalar or array."""
-    x = np.asarray(x, np.float64)
-    sd = math.sqrt(var)
-    skew = k3 / var**1.5
-    if not skew > 1e-4:  # a symmetric null (large counts): the normal limit
-        out = stats.norm.sf((x - mean) / sd)
-    else:
-        shape = 4.0 / skew**2
-        scale = 0.5 * sd * skew
-        loc = mean - shape * scale
-        out = special.gammaincc(shape, np.maximum((x - loc) / scale, 0.0))
-    return float(out) if out.ndim == 0 else out
-
-
-def _lower_tail(x, mean: float, var: float, k3: float):
-    """P(X <= x) for the law of :func:`_upper_tail` (computed directly, not as 1 - upper)."""
-    x = np.asarray(x, np.float64)
+def _pearson3(mean: float, var: float, k3: float):
+    """``(loc, scale, shape)`` of the Pearson type III (shifted gamma) law with these
+    cumulants, or None when it is symmetric (large counts: the normal limit)."""
     sd = math.sqrt(var)
     skew = k3 / var**1.5
     if not skew > 1e-4:
-        out = stats.norm.cdf((x - mean) / sd)
+        return None
+    shape = 4.0 / skew**2
+    scale = 0.5 * sd * skew
+    return mean - shape * scale, scale, shape
+
+
+def _tail(x, mean: float, var: float, k3: float, *, upper: bool):
+    """P(X >= x) (`upper`) or P(X <= x) for the Pearson type III law with the given
+    cumulants (normal if unskewed), each computed directly; ``x`` scalar or array."""
+    x = np.asarray(x, np.float64)
+    law = _pearson3(mean, var, k3)
+    if law is None:
+        z = (x - mean) / math.sqrt(var)
+        out = stats.norm.sf(z) if upper else stats.norm.cdf(z)
     else:
-        shape = 4.0 / skew**2
-        scale = 0.5 * sd * skew
-        loc = mean - shape * scale
-        out = special.gammainc(shape, np.maximum((x - loc) / scale, 0.0))
+        loc, scale, shape = law
+        t = np.maximum((x - loc) / scale, 0.0)
+        out = special.gammaincc(shape, t) if upper else special.gammainc(shape, t)
     return float(out) if out.ndim == 0 else out
+
+
+def _upper_tail(x, mean: float, var: float, k3: float):
+    """P(X >= x) (:func:`_tail`)."""
+    return _tail(x, mean, var, k3, upper=True)
+
+
+def _lower_tail(x, mean: float, var: float, k3: float):
+    """P(X <= x) (:func:`_tail`)."""
+    return _tail(x, mean, var, k3, upper=False)
 
 
 def _upper_quantile(alpha: float, mean: float, var: float, k3: float) -> float:
     """The ``x`` with ``P(X >= x) = alpha`` for the Pearson type III law of
     :func:`_upper_tail`."""
-    sd = math.sqrt(var)
-    skew = k3 / var**1.5
-    if not skew > 1e-4:
-        return mean + sd * float(stats.norm.isf(alpha))
-    shape = 4.0 / skew**2
-    scale = 0.5 * sd * skew
-    return mean - shape * scale + scale * float(special.gammainccinv(shape, alpha))
+    law = _pearson3(mean, var, k3)
+    if law is None:
+        return mean + math.sqrt(var) * float(stats.norm.isf(alpha))
+    loc, scale, shape = law
+    return loc + scale * float(special.gammainccinv(shape, alpha))
 
 
 def _check_power_args(noncentrality, alpha):

@@ -280,8 +280,25 @@ class StartSummary:
     n_rounds: int
 
 
+class _ReportedSigma:
+    """The `sigma` of a result with `covariance`, `labels`, `parametrisation`,
+    `fisher_theta` and `physical_jacobian` (:class:`RefineResult`, :class:`CramerRao`)."""
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """1-sigma of each entry of `labels` (:func:`_sigma_reported`: ``inf`` where the data
+        leave a parameter free, also a roughness or extinction near its floor 0)."""
+        return _sigma_reported(
+            self.covariance,
+            self.labels,
+            self.parametrisation,
+            self.fisher_theta,
+            self.physical_jacobian,
+        )
+
+
 @dataclasses.dataclass(frozen=True)
-class RefineResult:
+class RefineResult(_ReportedSigma):
     """Best fit of a (multi-start) refinement, with the solver's verdict and uncertainties.
 
     - `params`: best physical parameters; `theta` their solver coordinates in
@@ -339,18 +356,6 @@ class RefineResult:
     @property
     def reduced_chi2(self) -> float:
         return self.cost / max(self.dof, 1)
-
-    @property
-    def sigma(self) -> np.ndarray:
-        """1-sigma of each entry of `labels` (:func:`_sigma_reported`: ``inf`` where the data
-        leave a parameter free, also a roughness or extinction near its floor 0)."""
-        return _sigma_reported(
-            self.covariance,
-            self.labels,
-            self.parametrisation,
-            self.fisher_theta,
-            self.physical_jacobian,
-        )
 
     def observability(self, line_of_sight=None, rtol: float | None = None):
         """:func:`inversion.observability` of this fit: the directions the data do not
@@ -700,7 +705,7 @@ def _sigma_reported(cov, labels, param, fisher, G) -> np.ndarray:
 
 
 @dataclasses.dataclass(frozen=True)
-class CramerRao:
+class CramerRao(_ReportedSigma):
     """The Cramer-Rao bound at a parameter point: inverse expected Fisher information.
 
     - `covariance`: in physical units (`labels`, as :class:`RefineResult`); `sigma` the 1-sigma
@@ -718,18 +723,6 @@ class CramerRao:
     fisher_theta: np.ndarray | None = None
     parametrisation: Parametrisation | None = None
     physical_jacobian: np.ndarray | None = None
-
-    @property
-    def sigma(self) -> np.ndarray:
-        """1-sigma of each entry of `labels` (:func:`_sigma_reported`: ``inf`` where the data
-        leave a parameter free, also a roughness or extinction near its floor 0)."""
-        return _sigma_reported(
-            self.covariance,
-            self.labels,
-            self.parametrisation,
-            self.fisher_theta,
-            self.physical_jacobian,
-        )
 
     def observability(self, line_of_sight=None, rtol: float | None = None):
         """:func:`inversion.observability` of this bound: the unobservable directions by name
