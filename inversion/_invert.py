@@ -2284,7 +2284,7 @@ def invert(
         distinct = [distinct[i] for i in order]
         lz = [lz[i] for i in order]
         w = w[order]
-        distinct, lz, w = _merge_roll_ridge(distinct, lz, w, cand, cfg, los_world)
+        distinct, lz, w = _merge_roll_ridge(distinct, lz, w, cand, cfg, los_world, data, noise)
         best_mode_fit = distinct[0].fit
         base_cost = best_mode_fit.cost
         q_best = np.asarray(best_mode_fit.params.unit_quaternion(), np.float64)
@@ -2821,41 +2821,68 @@ def _other_optima(refiner, data, fit, sym, kept, half_turn_exact, cfg) -> list:
 
 
 ROLL_RIDGE_DEG = 0.5
-"""Modes whose lines of sight are this close are one mode when the roll about the line of
-sight is unobservable at the best of them (:func:`_merge_roll_ridge`)."""
+"""Modes whose lines of sight are this close may be one mode when the roll about the line
+of sight is unobservable at the best of them (:func:`_merge_roll_ridge`)."""
+ROLL_RIDGE_RISE = 2.0
+"""... and when the deviance along the roll between them rises by no more than this."""
 
 
-def _merge_roll_ridge(distinct, lz, w, cand, cfg, los_world):
+def _roll_between_deg(q_from, q_to, los) -> float:
+    """Signed turn (deg) about the world line of sight taking attitude ``q_from`` to
+    ``q_to`` (their relative rotation's component along it)."""
+    from scipy.spatial.transform import Rotation
+
+    def rot(q):
+        return Rotation.from_quat(np.roll(np.asarray(q, np.float64), -1))  # scalar-last
+
+    rv = (rot(q_to) * rot(q_from).inv()).as_rotvec()
+    return float(np.degrees(rv @ np.asarray(los, np.float64)))
+
+
+def _merge_roll_ridge(distinct, lz, w, cand, cfg, los_world, data, noise):
     """Modes that differ only by a roll the data do not determine are one mode: when the
     best mode's observability names the roll about the line of sight unobservable, a mode
-    whose line of sight is within ``ROLL_RIDGE_DEG`` of a more probable one is dropped and
-    its weight added to that one (the chain samples the roll along the ridge: two such
-    points were reported as two modes of weight 1/3 each, "line of sight 0 deg away")."""
+    whose line of sight is within ``ROLL_RIDGE_DEG`` of a more probable one, and between
+    which and that one the deviance along the roll (:func:`inversion.roll_scan`, gain
+    profiled) rises by at most ``ROLL_RIDGE_RISE``, is dropped and its weight and evidence
+    added to that one: the chain samples the roll along the ridge (two points of one ridge
+    were reported as two modes of weight 1/3 each, "line of sight 0 deg away"). Modes
+    separated by a barrier in the roll (a bistatic half turn, another roll minimum) stay."""
     if len(distinct) < 2:
         return distinct, lz, w
     ob = observability(distinct[0].fit, line_of_sight=los_world)
     if not any(n.startswith("roll about the line of sight") for n in ob.names):
         return distinct, lz, w
     exact = cand.exact_symmetry(cfg.symmetry)
+    model = cand.model
+    scans: dict[int, Any] = {}
+
+    def quat(k):
+        return np.asarray(distinct[k].fit.params.unit_quaternion(), np.float64)
+
+    def one_ridge(k, j) -> bool:
+        if line_of_sight_error_deg(quat(k), quat(j), exact, los=los_world)[0] > ROLL_RIDGE_DEG:
+            return False
+        if k not in scans:
+            scans[k] = roll_scan(model, data, distinct[k].fit.params, noise=noise, los=los_world)
+        sc = scans[k]
+        period = 180.0 if sc.exact else 360.0
+        turn = _roll_between_deg(quat(k), quat(j), los_world) % period
+        ang = np.asarray(sc.angles_deg, np.float64)
+        # the shorter arc from roll 0 to the turn, both ends included
+        if turn <= period / 2:
+            arc = ang <= turn + 1e-9
+        else:
+            arc = ang >= turn - 1e-9
+        arc[0] = True
+        dev = np.asarray(sc.deviance, np.float64)
+        return bool(np.max(dev[arc]) - dev[0] <= ROLL_RIDGE_RISE)
+
     keep: list[int] = []
     w = np.array(w, np.float64)
     lz = list(lz)
-    for j, m in enumerate(distinct):
-        q = np.asarray(m.fit.params.unit_quaternion(), np.float64)
-        home = next(
-            (
-                k
-                for k in keep
-                if line_of_sight_error_deg(
-                    np.asarray(distinct[k].fit.params.unit_quaternion(), np.float64),
-                    q,
-                    exact,
-                    los=los_world,
-                )[0]
-                <= ROLL_RIDGE_DEG
-            ),
-            None,
-        )
+    for j in range(len(distinct)):
+        home = next((k for k in keep if one_ridge(k, j)), None)
         if home is None:
             keep.append(j)
         else:
