@@ -660,7 +660,8 @@ class GoodnessOfFit:
       optimum its search missed).
     - `allowance`: model error allowed for (0: the model is exact).
     - `lower_p_value`: the deviance's lower tail ``P(X <= deviance)`` under the same law;
-      `underdispersed`: ``lower_p_value < threshold`` and ``z < -3``: the data scatter less
+      `underdispersed`: ``lower_p_value < threshold`` and ``z < -3`` (both under the exact
+      model, without the `allowance`): the data scatter less
       than the noise model says they must (counts averaged, scaled or background-subtracted,
       or a variance too large): the noise settings do not describe the data, and the
       reported uncertainties, which rest on them, are not the data's.
@@ -941,8 +942,10 @@ def goodness_of_fit(
                 comps.append(c)
     full = comps[0]
     pval = min(1.0, len(comps) * min(c.p_value for c in comps))
-    var_f = full.std**2
-    lower = float(_lower_tail(dev, full.expected, var_f, full.skewness * var_f**1.5))
+    # the lower tail under the exact model (no allowance: an allowance bounds model error
+    # from above, and would make an exact fit read as too little scatter)
+    lower = float(_lower_tail(dev, mean, var, third))
+    z_exact = (dev - mean) / math.sqrt(var)
     return GoodnessOfFit(
         statistic="poisson_deviance" if kind == "poisson" else "pearson_chi2",
         deviance=dev,
@@ -959,7 +962,7 @@ def goodness_of_fit(
         allowance=float(allowance),
         components=tuple(comps),
         lower_p_value=lower,
-        underdispersed=bool(lower < threshold and full.z < -3.0),
+        underdispersed=bool(lower < threshold and z_exact < -3.0),
     )
 
 

@@ -1415,8 +1415,8 @@ def _sensor_fingerprint(model) -> dict | None:
     pure = getattr(model, "pure_model", None)
     proj = getattr(pure, "projection", None)
 
-    def r(a):
-        return [round(float(x), 12) for x in np.asarray(a, np.float64).reshape(-1)]
+    def r(a):  # 12 significant digits (a pulse sigma is 4e-11 s)
+        return [float(f"{float(x):.12g}") for x in np.asarray(a, np.float64).reshape(-1)]
 
     b, p, s = scene.bins, scene.pulse, scene.sensor
     return {
@@ -1424,6 +1424,7 @@ def _sensor_fingerprint(model) -> dict | None:
         "bins.width_m": r(b.width),
         "bins.start_m": r(b.start),
         "pulse.sigma_t_s": r(p.sigma_t),
+        "pulse.t0_s": r(getattr(p, "t0", 0.0)),
         "sensor.laser_dir": r(s.laser_dir),
         "sensor.receiver_dir": r(s.receiver_dir),
         "sensor.frame_tx": r(s.frame_tx),
@@ -2844,8 +2845,9 @@ def _merge_roll_ridge(distinct, lz, w, cand, cfg, los_world, data, noise):
     best mode's observability names the roll about the line of sight unobservable, a mode
     whose line of sight is within ``ROLL_RIDGE_DEG`` of a more probable one, and between
     which and that one the deviance along the roll (:func:`inversion.roll_scan`, gain
-    profiled) rises by at most ``ROLL_RIDGE_RISE``, is dropped and its weight and evidence
-    added to that one: the chain samples the roll along the ridge (two points of one ridge
+    profiled) rises by at most ``ROLL_RIDGE_RISE``, is dropped (its evidence is the ridge's,
+    which the kept point already carries) and the weights renormalised: the chain samples
+    the roll along the ridge (two points of one ridge
     were reported as two modes of weight 1/3 each, "line of sight 0 deg away"). Modes
     separated by a barrier in the roll (a bistatic half turn, another roll minimum) stay."""
     if len(distinct) < 2:
@@ -2879,16 +2881,15 @@ def _merge_roll_ridge(distinct, lz, w, cand, cfg, los_world, data, noise):
         return bool(np.max(dev[arc]) - dev[0] <= ROLL_RIDGE_RISE)
 
     keep: list[int] = []
-    w = np.array(w, np.float64)
-    lz = list(lz)
     for j in range(len(distinct)):
         home = next((k for k in keep if one_ridge(k, j)), None)
         if home is None:
             keep.append(j)
-        else:
-            w[home] += w[j]
-            lz[home] = float(np.logaddexp(lz[home], lz[j]))
-    return [distinct[k] for k in keep], [lz[k] for k in keep], w[keep]
+    # each point of a flat roll ridge already carries the whole ridge's evidence (the Laplace
+    # Occam factor of an unobservable roll is its full prior width): the kept point's own
+    # evidence is the ridge's, not a sum over the points found on it
+    lz = [lz[k] for k in keep]
+    return [distinct[k] for k in keep], lz, _probabilities(lz)
 
 
 def _sensor_geometry(model, los_world) -> tuple[bool, np.ndarray]:

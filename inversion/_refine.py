@@ -286,15 +286,10 @@ class _ReportedSigma:
 
     @property
     def sigma(self) -> np.ndarray:
-        """1-sigma of each entry of `labels` (:func:`_sigma_reported`: ``inf`` where the data
-        leave a parameter free, also a roughness or extinction near its floor 0)."""
-        return _sigma_reported(
-            self.covariance,
-            self.labels,
-            self.parametrisation,
-            self.fisher_theta,
-            self.physical_jacobian,
-        )
+        """1-sigma of each entry of `labels` (:func:`_sigma_reported`: ``inf`` where a
+        parameter is unobservable on its own, a roughness or extinction near its floor 0
+        included)."""
+        return _sigma_reported(self)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -680,27 +675,28 @@ def _covariance_from_fisher(JTJ, G, param: Parametrisation):
     return cov, cov_theta, cond
 
 
-def _sigma_reported(cov, labels, param, fisher, G) -> np.ndarray:
-    """``sqrt(diag(cov))``, with ``inf`` for a roughness or extinction (``m[j]``,
-    ``n_im[j]``, fitted as logarithms) that moves by more than a tenth of itself along a
-    direction the data do not constrain. The covariance keeps such a parameter finite (it
-    sits near its floor 0, where a unit step of its logarithm is a small absolute change,
-    :func:`_covariance_from_fisher`), which made its sigma ~1e-23: the opposite of what the
-    data say (no local information)."""
-    s = np.sqrt(np.clip(np.diag(np.asarray(cov, np.float64)), 0.0, None))
-    if param is None or fisher is None or G is None:
+def _sigma_reported(result) -> np.ndarray:
+    """``sqrt(diag(covariance))``, with ``inf`` for a roughness or extinction (``m[j]``,
+    ``n_im[j]``, fitted as logarithms) that :func:`inversion.observability` finds
+    unobservable on its own. The covariance keeps such a parameter finite near its floor 0
+    (:func:`_covariance_from_fisher`: a unit step of its logarithm is a small absolute
+    change there), which made its sigma ~1e-23: the opposite of what the observability
+    says. Where the observability's floor rule errs (a parameter at its floor that the data
+    do determine to first order), this errs the same way: inf, conservative."""
+    s = np.sqrt(np.clip(np.diag(np.asarray(result.covariance, np.float64)), 0.0, None))
+    if result.fisher_theta is None or result.parametrisation is None:
         return s
-    F = np.asarray(fisher, np.float64)
-    if F.size == 0 or not np.all(np.isfinite(F)):
+    logp = np.array([lab.startswith(("m[", "n_im[")) for lab in result.labels], bool)
+    if not logp.any():
         return s
-    ev, V = np.linalg.eigh(F)
-    null = ev <= 1e-12 * max(ev[-1], 1e-300)
-    if not np.any(null):
+    from ._observability import observability  # noqa: PLC0415
+
+    try:
+        ob = observability(result)
+    except (ValueError, np.linalg.LinAlgError):
         return s
-    vals = np.asarray(param.physical_vector(param.from_physical(param.reference)), np.float64)
-    moved = np.max(np.abs(np.asarray(G, np.float64) @ V[:, null]), axis=1)
-    logp = np.array([lab.startswith(("m[", "n_im[")) for lab in labels], bool)
-    free = logp & (moved > 0.1 * np.maximum(np.abs(vals), 1e-300))
+    own = dict(zip(ob.labels, ob.observable, strict=True))
+    free = np.array([logp[i] and not own.get(lab, True) for i, lab in enumerate(result.labels)])
     return np.where(free, np.inf, s)
 
 
@@ -1059,7 +1055,9 @@ def _finish(model, noise, data_j, best: StartSummary, ordered, free, range_scale
         J, inv_sigma, mu, G, param, chi2 = weighted_jacobian(
             model, noise, data_j, phys, free, None, range_scale
         )
-        if success and not np.any(np.asarray(mu) > 0) and np.any(np.asarray(data_j) > 0):
+        # the model's own constant background (a SimulatorModel's) is not the target's signal
+        signal = np.asarray(mu) - np.asarray(getattr(_pure(model), "background", 0.0))
+        if success and not np.any(signal > 0) and np.any(np.asarray(data_j) > 0):
             # a zero gradient because nothing is predicted, not an optimum
             success, result = False, "no_signal"
             message = (
