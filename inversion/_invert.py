@@ -1937,6 +1937,14 @@ def invert(
             if shape is not None:
                 check_observation(data, shape, f"observation (candidate {c.name!r})")
         _check_same_sensor(cands, bank_)
+        for c in cands:
+            proj = getattr(getattr(c.model, "pure_model", None), "projection", None)
+            if proj is not None and np.asarray(proj).dtype != np.float64:
+                raise ValueError(
+                    f"candidate {c.name!r} holds {np.asarray(proj).dtype} arrays (built before "
+                    "x64 was enabled?): build the models after "
+                    "jax.config.update('jax_enable_x64', True)"
+                )
         if hasattr(noise, "check_data"):
             try:
                 noise.check_data(data, "observation")

@@ -420,6 +420,11 @@ def test_candidates_or_a_bank_of_other_sensor_settings_are_refused():
         ValueError, match=r"candidate 'a': bins.width_m = 0.01 differs from the bank"
     ):
         inversion.invert(data, {"a": fine}, config={"mcmc": None}, bank=bank)
+    # a model built before x64 was switched on holds float32 arrays: refused by name too
+    with jax.enable_x64(False):
+        f32 = cube(0.01)
+    with pytest.raises(ValueError, match="candidate 'a' holds float32 arrays"):
+        inversion.invert(data, {"a": f32}, config={"mcmc": None})
 
 
 def test_float32_is_refused_before_any_computation():
